@@ -1,0 +1,48 @@
+//! The crate's error type.
+
+/// Everything that can go wrong in the MD engine. Messages are lowercase and name the
+/// file, line, component or value at fault.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum MdError {
+    /// A file could not be read or written.
+    #[error("cannot access {file}: {source}")]
+    Io {
+        /// The file.
+        file: String,
+        /// The underlying error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A potential, data or other input file is malformed or truncated.
+    #[error("{file}:{line}: {msg}")]
+    Parse {
+        /// The file.
+        file: String,
+        /// 1-based line number (the line after the last one for a truncated file).
+        line: usize,
+        /// What was expected and what was found.
+        msg: String,
+    },
+    /// An input value is out of range or inconsistent.
+    #[error("invalid {what}: {msg}")]
+    Invalid {
+        /// The component or field at fault.
+        what: String,
+        /// Why.
+        msg: String,
+    },
+    /// A feature that this engine does not provide was requested.
+    #[error("unsupported: {0}")]
+    Unsupported(String),
+    /// A request named a box that this back end does not hold.
+    #[error("unknown box (point id {0})")]
+    UnknownBox(u64),
+}
+
+impl MdError {
+    /// Shorthand for [`MdError::Invalid`].
+    pub fn invalid(what: impl Into<String>, msg: impl Into<String>) -> Self {
+        MdError::Invalid { what: what.into(), msg: msg.into() }
+    }
+}

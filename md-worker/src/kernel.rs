@@ -1,0 +1,426 @@
+//! The per-box kernels: forces, neighbour-list upkeep, one velocity-Verlet step with
+//! deformation, thermodynamic measures. Every function here works on one box's slices and
+//! runs serially in a fixed order, so a box's result never depends on how boxes are spread
+//! over threads. A GPU back end implements the same functions over the same flat layout.
+
+use crate::neighbor::{self, NeighborList};
+use crate::potential::Potential;
+use crate::units::{BOLTZ, EV_PER_A3_TO_GPA, FTM2V, MVV2E};
+use serde::{Deserialize, Serialize};
+
+/// How a velocity gradient deforms a box.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum DeformMode {
+    /// Box lengths follow L = L0 exp(L_dd t); atoms are remapped affinely every step
+    /// (LAMMPS `fix deform ... trate ... remap x`). Diagonal gradients only.
+    #[default]
+    Affine,
+    /// The thesis's scheme (Ch. 5.2): the gradient is made upper triangular by adding a
+    /// rotation (5.20), box lengths grow as (5.7), atoms leaving the box re-enter through the
+    /// opposite face (5.8) and get the velocity of the image they become, `L' * shift`.
+    /// Off-diagonal terms act only through those image velocities.
+    Seed,
+}
+
+/// Per-box scalars (everything of a box that is not per atom).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BoxMeta {
+    /// Material point id.
+    pub id: u64,
+    /// Lower box corner (A).
+    pub lo: [f64; 3],
+    /// Box lengths (A).
+    pub l: [f64; 3],
+    /// Box corner and lengths when the neighbour list was built.
+    pub lo_build: [f64; 3],
+    /// Box lengths when the neighbour list was built (A).
+    pub l_build: [f64; 3],
+    /// Deformation mode.
+    pub mode: DeformMode,
+    /// Random seed of the box (with the point id it seeds every random draw).
+    pub seed: u64,
+    /// Neighbour skin (A).
+    pub skin: f64,
+    /// MD steps done.
+    pub step: u64,
+    /// Potential energy at the last force evaluation (eV).
+    pub pe: f64,
+    /// Pair virial at the last force evaluation, sum of r_a f_b (eV), order xx yy zz xy xz yz.
+    pub virial: [f64; 6],
+    /// Neighbour-list builds so far.
+    pub rebuilds: u64,
+}
+
+/// One box's per-atom data, borrowed from the flat batch arrays.
+pub struct BoxView<'a> {
+    /// Scalars.
+    pub meta: &'a mut BoxMeta,
+    /// Element index per atom.
+    pub types: &'a [u32],
+    /// Positions (A).
+    pub x: &'a mut [[f64; 3]],
+    /// Velocities (A/ps).
+    pub v: &'a mut [[f64; 3]],
+    /// Forces (eV/A).
+    pub f: &'a mut [[f64; 3]],
+    /// Positions when the list was built (wrapped).
+    pub x_build: &'a mut [[f64; 3]],
+    /// Box crossings since the list was built (seed mode).
+    pub img: &'a mut [[i32; 3]],
+    /// Neighbour list.
+    pub list: &'a mut NeighborList,
+}
+
+/// Wrap positions into the box; returns nothing, resets image counters.
+fn wrap_all(x: &mut [[f64; 3]], img: &mut [[i32; 3]], lo: [f64; 3], l: [f64; 3]) {
+    for (p, im) in x.iter_mut().zip(img.iter_mut()) {
+        for d in 0..3 {
+            let mut s = p[d];
+            while s < lo[d] {
+                s += l[d];
+            }
+            while s >= lo[d] + l[d] {
+                s -= l[d];
+            }
+            p[d] = s;
+            im[d] = 0;
+        }
+    }
+}
+
+/// Rebuild the neighbour list now (wraps atoms first).
+pub fn rebuild(pot: &Potential, b: &mut BoxView) {
+    wrap_all(b.x, b.img, b.meta.lo, b.meta.l);
+    b.x_build.copy_from_slice(b.x);
+    b.meta.lo_build = b.meta.lo;
+    b.meta.l_build = b.meta.l;
+    build_from_reference(pot, b);
+}
+
+/// Build the list from the stored reference positions (used again on restore, so a
+/// restored box has exactly the list the original had).
+pub fn build_from_reference(pot: &Potential, b: &mut BoxView) {
+    neighbor::build(b.x_build, b.meta.lo_build, b.meta.l_build, pot.cutoff() + b.meta.skin, b.list);
+    b.meta.rebuilds += 1;
+}
+
+/// Whether some pair outside the list may have come within the cut-off.
+fn needs_rebuild(pot: &Potential, b: &BoxView) -> bool {
+    let m = &*b.meta;
+    let mut ratio = [0.0; 3];
+    for d in 0..3 {
+        ratio[d] = m.l[d] / m.l_build[d];
+    }
+    let min_ratio = ratio[0].min(ratio[1]).min(ratio[2]);
+    let rc = pot.cutoff();
+    let margin = min_ratio * (rc + m.skin) - rc;
+    if margin <= 0.0 {
+        return true;
+    }
+    let lim = 0.25 * margin * margin;
+    for i in 0..b.x.len() {
+        let mut d2 = 0.0;
+        for d in 0..3 {
+            let now = b.x[i][d] + b.img[i][d] as f64 * m.l[d];
+            let reference = m.lo[d] + (b.x_build[i][d] - m.lo_build[d]) * ratio[d];
+            d2 += (now - reference) * (now - reference);
+        }
+        if d2 > lim {
+            return true;
+        }
+    }
+    false
+}
+
+/// Forces, potential energy and pair virial of one box. `rho`/`fp` are scratch.
+pub fn compute_forces(pot: &Potential, b: &mut BoxView, rho: &mut Vec<f64>, fp: &mut Vec<f64>) {
+    let n = b.x.len();
+    let l = b.meta.l;
+    for f in b.f.iter_mut() {
+        *f = [0.0; 3];
+    }
+    let mut pe = 0.0;
+    let mut w = [0.0f64; 6];
+    let list = &*b.list;
+    let x = &*b.x;
+    let img = &*b.img;
+    let types = b.types;
+    let del = |i: usize, k: usize| -> [f64; 3] {
+        let j = list.j[k] as usize;
+        let n = list.image[k];
+        let mut out = [0.0; 3];
+        for d in 0..3 {
+            let shift = (img[i][d] - img[j][d] - n[d]) as f64 * l[d];
+            out[d] = x[i][d] - x[j][d] + shift;
+        }
+        out
+    };
+    let mut tally = |f: &mut [[f64; 3]], i: usize, j: usize, dx: [f64; 3], fpair: f64| {
+        for d in 0..3 {
+            f[i][d] += dx[d] * fpair;
+            f[j][d] -= dx[d] * fpair;
+        }
+        w[0] += dx[0] * dx[0] * fpair;
+        w[1] += dx[1] * dx[1] * fpair;
+        w[2] += dx[2] * dx[2] * fpair;
+        w[3] += dx[0] * dx[1] * fpair;
+        w[4] += dx[0] * dx[2] * fpair;
+        w[5] += dx[1] * dx[2] * fpair;
+    };
+    match pot {
+        Potential::Eam(t) => {
+            let cut2 = t.cutforcesq();
+            rho.clear();
+            rho.resize(n, 0.0);
+            for i in 0..n {
+                let ti = types[i] as usize;
+                for k in list.start[i] as usize..list.start[i + 1] as usize {
+                    let dx = del(i, k);
+                    let r2 = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2];
+                    if r2 < cut2 {
+                        let j = list.j[k] as usize;
+                        let tj = types[j] as usize;
+                        let r = r2.sqrt();
+                        rho[i] += t.density(ti, tj, r);
+                        rho[j] += t.density(tj, ti, r);
+                    }
+                }
+            }
+            fp.clear();
+            fp.resize(n, 0.0);
+            for i in 0..n {
+                let (phi, d) = t.embed(types[i] as usize, rho[i]);
+                fp[i] = d;
+                pe += phi;
+            }
+            for i in 0..n {
+                let ti = types[i] as usize;
+                for k in list.start[i] as usize..list.start[i + 1] as usize {
+                    let dx = del(i, k);
+                    let r2 = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2];
+                    if r2 < cut2 {
+                        let j = list.j[k] as usize;
+                        let r = r2.sqrt();
+                        let (phi, psip) = t.pair(ti, types[j] as usize, r, fp[i], fp[j]);
+                        let fpair = -psip / r;
+                        pe += phi;
+                        tally(b.f, i, j, dx, fpair);
+                    }
+                }
+            }
+        }
+        Potential::LjCut(lj) => {
+            let cut2 = lj.cutoff * lj.cutoff;
+            let s6 = lj.sigma.powi(6);
+            let (lj1, lj2) = (48.0 * lj.epsilon * s6 * s6, 24.0 * lj.epsilon * s6);
+            let (lj3, lj4) = (4.0 * lj.epsilon * s6 * s6, 4.0 * lj.epsilon * s6);
+            for i in 0..n {
+                for k in list.start[i] as usize..list.start[i + 1] as usize {
+                    let dx = del(i, k);
+                    let r2 = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2];
+                    if r2 < cut2 {
+                        let r2inv = 1.0 / r2;
+                        let r6inv = r2inv * r2inv * r2inv;
+                        let fpair = r6inv * (lj1 * r6inv - lj2) * r2inv;
+                        pe += r6inv * (lj3 * r6inv - lj4);
+                        tally(b.f, i, list.j[k] as usize, dx, fpair);
+                    }
+                }
+            }
+        }
+    }
+    b.meta.pe = pe;
+    b.meta.virial = w;
+}
+
+/// Mass-weighted mean velocity (A/ps).
+pub fn mean_velocity(types: &[u32], v: &[[f64; 3]], masses: &[f64]) -> [f64; 3] {
+    let mut p = [0.0; 3];
+    let mut mt = 0.0;
+    for (t, vi) in types.iter().zip(v) {
+        let m = masses[*t as usize];
+        mt += m;
+        for d in 0..3 {
+            p[d] += m * vi[d];
+        }
+    }
+    if mt > 0.0 {
+        for pd in &mut p {
+            *pd /= mt;
+        }
+    }
+    p
+}
+
+/// Kinetic tensor about the mean velocity, sum m (v - vbar)_a (v - vbar)_b (eV), order
+/// xx yy zz xy xz yz.
+pub fn kinetic_tensor(types: &[u32], v: &[[f64; 3]], masses: &[f64]) -> [f64; 6] {
+    let vb = mean_velocity(types, v, masses);
+    let mut k = [0.0; 6];
+    for (t, vi) in types.iter().zip(v) {
+        let m = masses[*t as usize] * MVV2E;
+        let u = [vi[0] - vb[0], vi[1] - vb[1], vi[2] - vb[2]];
+        k[0] += m * u[0] * u[0];
+        k[1] += m * u[1] * u[1];
+        k[2] += m * u[2] * u[2];
+        k[3] += m * u[0] * u[1];
+        k[4] += m * u[0] * u[2];
+        k[5] += m * u[1] * u[2];
+    }
+    k
+}
+
+/// Total kinetic energy 0.5 sum m v^2 (eV), not relative to the mean (as LAMMPS `ke`).
+pub fn total_kinetic(types: &[u32], v: &[[f64; 3]], masses: &[f64]) -> f64 {
+    let mut s = 0.0;
+    for (t, vi) in types.iter().zip(v) {
+        s += masses[*t as usize] * (vi[0] * vi[0] + vi[1] * vi[1] + vi[2] * vi[2]);
+    }
+    0.5 * s * MVV2E
+}
+
+/// Virial Cauchy stress (thesis eq. 2.25; GPa, tension positive, order xx yy zz xy xz yz):
+/// -(sum m (v - vbar)(v - vbar) + sum r f) / V.
+pub fn virial_stress(meta: &BoxMeta, kin: &[f64; 6]) -> [f64; 6] {
+    let vol = meta.l[0] * meta.l[1] * meta.l[2];
+    let mut s = [0.0; 6];
+    for c in 0..6 {
+        s[c] = -(kin[c] + meta.virial[c]) / vol * EV_PER_A3_TO_GPA;
+    }
+    s
+}
+
+/// Temperature (K) from the kinetic tensor, with 3N - 3 degrees of freedom (as LAMMPS).
+pub fn temperature(kin: &[f64; 6], n: usize) -> f64 {
+    let dof = (3 * n).saturating_sub(3).max(1) as f64;
+    (kin[0] + kin[1] + kin[2]) / (dof * BOLTZ)
+}
+
+/// Validated per-call deformation: the gradient used by the mode.
+#[derive(Debug, Clone, Copy)]
+pub struct Deformation {
+    /// Affine: diagonal rates; seed: the upper-triangular gradient L' of (5.20).
+    pub g: [[f64; 3]; 3],
+}
+
+impl Deformation {
+    /// Gradient for `mode` from the velocity gradient `l` (1/ps, l[i][j] = dv_i/dx_j).
+    pub fn new(mode: DeformMode, l: &[[f64; 3]; 3]) -> Self {
+        match mode {
+            DeformMode::Affine => Deformation { g: *l },
+            DeformMode::Seed => {
+                // (5.20): add the rotation that zeroes the lower triangle.
+                let mut g = *l;
+                for i in 0..3 {
+                    for j in 0..i {
+                        g[j][i] += l[i][j];
+                        g[i][j] = 0.0;
+                    }
+                }
+                Deformation { g }
+            }
+        }
+    }
+}
+
+/// Run `steps` velocity-Verlet steps of `dt` ps on one box. Forces in `b.f` must be those
+/// of the current positions. Returns the number of atom wraps (seed mode).
+pub fn run_steps(
+    pot: &Potential,
+    masses: &[f64],
+    b: &mut BoxView,
+    def: &Deformation,
+    steps: u64,
+    dt: f64,
+    rho: &mut Vec<f64>,
+    fp: &mut Vec<f64>,
+) -> u64 {
+    let dtf = 0.5 * dt * FTM2V;
+    let mode = b.meta.mode;
+    let g = def.g;
+    let rate = [g[0][0], g[1][1], g[2][2]];
+    let l_start = b.meta.l;
+    let mid: [f64; 3] = std::array::from_fn(|d| b.meta.lo[d] + 0.5 * b.meta.l[d]);
+    let deforming = rate.iter().any(|r| *r != 0.0);
+    let mut wraps = 0;
+    for k in 1..=steps {
+        for i in 0..b.x.len() {
+            let dtfm = dtf / masses[b.types[i] as usize];
+            for d in 0..3 {
+                b.v[i][d] += dtfm * b.f[i][d];
+                b.x[i][d] += dt * b.v[i][d];
+            }
+        }
+        if mode == DeformMode::Seed {
+            wraps += seed_box_and_wrap(b, &g, dt);
+        }
+        if needs_rebuild(pot, b) {
+            rebuild(pot, b);
+        }
+        compute_forces(pot, b, rho, fp);
+        for i in 0..b.x.len() {
+            let dtfm = dtf / masses[b.types[i] as usize];
+            for d in 0..3 {
+                b.v[i][d] += dtfm * b.f[i][d];
+            }
+        }
+        if mode == DeformMode::Affine && deforming {
+            // LAMMPS fix deform (end_of_step): L = L0 exp(rate t) about the box centre,
+            // atoms remapped through their fractional coordinates.
+            let t = k as f64 * dt;
+            let old_lo = b.meta.lo;
+            let old_l = b.meta.l;
+            for d in 0..3 {
+                let ld = l_start[d] * (rate[d] * t).exp();
+                b.meta.lo[d] = mid[d] - 0.5 * ld;
+                b.meta.l[d] = ld;
+            }
+            for p in b.x.iter_mut() {
+                for d in 0..3 {
+                    let lamda = (1.0 / old_l[d]) * (p[d] - old_lo[d]);
+                    p[d] = b.meta.l[d] * lamda + b.meta.lo[d];
+                }
+            }
+        }
+        b.meta.step += 1;
+    }
+    wraps
+}
+
+/// Seed mode, after the drift: grow the box by (5.7) about its centre and wrap atoms back
+/// (5.8), giving each wrapped atom the velocity of the image it becomes.
+fn seed_box_and_wrap(b: &mut BoxView, g: &[[f64; 3]; 3], dt: f64) -> u64 {
+    let mut wraps = 0;
+    for d in 0..3 {
+        let mid = b.meta.lo[d] + 0.5 * b.meta.l[d];
+        b.meta.l[d] *= 1.0 + g[d][d] * dt;
+        b.meta.lo[d] = mid - 0.5 * b.meta.l[d];
+    }
+    let (lo, l) = (b.meta.lo, b.meta.l);
+    for i in 0..b.x.len() {
+        let mut shift = [0.0; 3];
+        for d in 0..3 {
+            let n = ((b.x[i][d] - lo[d]) / l[d]).floor();
+            if n != 0.0 {
+                let mut s = b.x[i][d] - n * l[d];
+                if s >= lo[d] + l[d] {
+                    s = lo[d] + l[d] * (1.0 - f64::EPSILON); // round-off guard
+                }
+                if s < lo[d] {
+                    s = lo[d];
+                }
+                shift[d] = s - b.x[i][d];
+                b.x[i][d] = s;
+                b.img[i][d] += n as i32;
+                wraps += 1;
+            }
+        }
+        if shift != [0.0; 3] {
+            for a in 0..3 {
+                b.v[i][a] += g[a][0] * shift[0] + g[a][1] * shift[1] + g[a][2] * shift[2];
+            }
+        }
+    }
+    wraps
+}

@@ -1,0 +1,103 @@
+//! Shared helpers of md-worker's integration tests: golden-file reader, box builders and the
+//! back-end list every physics test is instantiated for.
+#![allow(dead_code, clippy::unwrap_used)]
+
+use md_worker::data::DataFile;
+use md_worker::{BoxSpec, CpuBackend, DeformMode, InitialAtoms, MdBackend, Potential, ReferenceBackend};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+pub fn crate_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+pub fn potential(name: &str) -> Arc<Potential> {
+    Arc::new(Potential::from_file(&crate_dir().join("potentials").join(name)).unwrap())
+}
+
+pub fn mishin() -> Arc<Potential> {
+    potential("Cu_mishin1.eam.alloy")
+}
+
+/// Back ends by name, for the instantiation macro.
+pub fn make_backend(name: &str, pot: Arc<Potential>) -> Box<dyn MdBackend> {
+    match name {
+        "reference" => Box::new(ReferenceBackend::new(pot)),
+        "cpu" => Box::new(CpuBackend::new(pot)),
+        "cpu1" => {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+            Box::new(CpuBackend::with_pool(pot, Arc::new(pool)))
+        }
+        "cpu2" => {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+            Box::new(CpuBackend::with_pool(pot, Arc::new(pool)))
+        }
+        _ => panic!("unknown back end {name}"),
+    }
+}
+
+/// Instantiate each listed generic test `fn name(backend: &str)` once per back end.
+#[macro_export]
+macro_rules! for_each_backend {
+    ($($test:ident),* $(,)?) => {
+        mod reference { $( #[test] fn $test() { super::$test("reference") } )* }
+        mod cpu { $( #[test] fn $test() { super::$test("cpu") } )* }
+    };
+}
+
+/// A LAMMPS golden file produced by scripts/make_golden.py.
+pub struct Golden {
+    pub potential: String,
+    pub data: String,
+    pub steps: u64,
+    pub deform: String,
+    /// step pe ke pxx pyy pzz pxy pxz pyz lx ly lz
+    pub thermo: Vec<Vec<f64>>,
+    /// id type x y z vx vy vz fx fy fz (final frame)
+    pub atoms: Vec<Vec<f64>>,
+}
+
+pub fn golden(name: &str) -> Golden {
+    let path = crate_dir().join("tests/golden").join(name);
+    let text = std::fs::read_to_string(&path).unwrap();
+    assert!(text.starts_with("# regenerate: "), "golden file without its regeneration command");
+    let mut g = Golden { potential: String::new(), data: String::new(), steps: 0, deform: String::new(), thermo: vec![], atoms: vec![] };
+    for line in text.lines() {
+        let (key, rest) = line.split_once(' ').unwrap_or((line, ""));
+        let nums = || rest.split_whitespace().map(|t| t.parse::<f64>().unwrap()).collect::<Vec<_>>();
+        match key {
+            "potential" => g.potential = rest.to_string(),
+            "data" => g.data = rest.to_string(),
+            "steps" => g.steps = rest.parse().unwrap(),
+            "deform" => g.deform = rest.to_string(),
+            "thermo" => g.thermo.push(nums()),
+            "atom" => g.atoms.push(nums()),
+            _ => {}
+        }
+    }
+    g
+}
+
+/// A box spec holding exactly the atoms of a data file (velocities kept).
+pub fn spec_from_data(id: u64, file: &str) -> (BoxSpec, DataFile) {
+    let d = DataFile::read(&crate_dir().join("tests/golden").join(file)).unwrap();
+    let mut s = BoxSpec::lattice(id, md_worker::LatticeKind::Fcc, 1.0, [1, 1, 1]);
+    s.atoms = InitialAtoms::Explicit {
+        lo: d.lo,
+        lengths: d.lengths,
+        types: d.types.iter().map(|t| t - 1).collect(),
+        x: d.x.clone(),
+        v: d.v.clone(),
+    };
+    s.mode = DeformMode::Affine;
+    (s, d)
+}
+
+/// LAMMPS pressure (bar) to our stress (GPa, tension positive).
+pub fn bar_to_stress(p: f64) -> f64 {
+    -p / 1e4
+}
+
+pub fn rel_close(a: f64, b: f64, scale: f64, tol: f64) -> bool {
+    (a - b).abs() <= tol * scale.abs().max(1e-300)
+}
