@@ -6,7 +6,7 @@
 #[non_exhaustive]
 pub enum MdError {
     /// A file could not be read or written.
-    #[error("cannot access {file}: {source}")]
+    #[error("cannot access {file}")]
     Io {
         /// The file.
         file: String,

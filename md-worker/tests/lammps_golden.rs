@@ -32,6 +32,7 @@ fn check_eval(backend: &str, case: &str) {
             worst = worst.max((st.f[k][d] - a[8 + d]).abs() / fmax);
         }
     }
+    eprintln!("{case}: pe rel err {:e}, worst force err {worst:e} of max force", (r.potential_energy_ev - t[1]).abs() / t[1].abs());
     assert!(worst < 1e-9, "{case}: worst force error {worst:e} of max force {fmax}");
 }
 
@@ -63,6 +64,10 @@ fn check_trajectory(backend: &str, case: &str) {
         let smax = want.iter().fold(0.0f64, |m, s| m.max(s.abs()));
         for c in 0..6 {
             assert!(rel_close(r.stress_gpa[c], want[c], smax, 1e-6), "{case} step {step}: stress[{c}] {} vs {}", r.stress_gpa[c], want[c]);
+        }
+        if t[0] == g.thermo.last().unwrap()[0] {
+            let e = (0..6).map(|c| (r.stress_gpa[c] - want[c]).abs() / smax).fold(0.0f64, f64::max);
+            eprintln!("{case} step {step}: pe rel err {:e}, stress rel err {e:e}", (r.potential_energy_ev - t[1]).abs() / t[1].abs());
         }
         for d in 0..3 {
             assert!(rel_close(r.diagnostics.lengths_a[d], t[9 + d], t[9 + d], 1e-12), "{case}: box length {d}");

@@ -1,0 +1,307 @@
+//! `md-worker`: evaluate, run and benchmark EAM boxes from the command line.
+//! Exit code 2 for bad input (with the message), 1 for other failures.
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand};
+use md_worker::data::{DataFile, dump_frame};
+use md_worker::kernel;
+use md_worker::{BoxResult, BoxSpec, BoxWork, DeformMode, InitialAtoms, LatticeKind, MdBackend, MdError, Potential, backend_by_name};
+use serde_json::json;
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+#[derive(Parser)]
+#[command(name = "md-worker", version, about = "MD engine for mscale: EAM boxes in LAMMPS metal units")]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Energy, kinetic energy and virial stress of a LAMMPS data file (JSON on stdout).
+    Eval {
+        /// EAM potential file (.eam, .eam.alloy, .eam.fs).
+        #[arg(long)]
+        potential: PathBuf,
+        /// LAMMPS data file (atom_style atomic).
+        #[arg(long)]
+        data: PathBuf,
+        /// Write per-atom forces (id fx fy fz, eV/A) to this file.
+        #[arg(long)]
+        forces: Option<PathBuf>,
+    },
+    /// NVE run with an optional constant velocity gradient; one JSON line per --thermo steps.
+    Run {
+        #[arg(long)]
+        potential: PathBuf,
+        #[arg(long)]
+        data: PathBuf,
+        /// Number of steps.
+        #[arg(long)]
+        steps: u64,
+        /// Time step (ps).
+        #[arg(long)]
+        dt: f64,
+        /// Velocity gradient components in 1/ps, e.g. xx=0.01,yy=-0.005 (xy = dv_x/dy).
+        #[arg(long, default_value = "")]
+        velocity_gradient: String,
+        /// Deformation mode: affine (LAMMPS fix deform remap x) or seed (thesis Ch. 5.2).
+        #[arg(long, default_value = "affine")]
+        remap: String,
+        /// Print thermo every K steps.
+        #[arg(long, default_value_t = 100)]
+        thermo: u64,
+        /// Write the final configuration as a LAMMPS data file.
+        #[arg(long)]
+        write_data: Option<PathBuf>,
+        /// Write a LAMMPS dump (OVITO-readable) frame every --thermo steps.
+        #[arg(long)]
+        dump: Option<PathBuf>,
+    },
+    /// Throughput of a back end on lattice boxes: atom-steps/s and ns/atom-step.
+    Bench {
+        #[arg(long)]
+        potential: PathBuf,
+        #[arg(long, default_value = "fcc")]
+        lattice: String,
+        /// Lattice constant (A).
+        #[arg(long)]
+        a0: f64,
+        /// Cells per side.
+        #[arg(long)]
+        cells: usize,
+        /// Number of boxes.
+        #[arg(long, default_value_t = 1)]
+        boxes: usize,
+        /// Steps per repetition.
+        #[arg(long, default_value_t = 100)]
+        steps: u64,
+        /// Threads (cpu back end).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// reference or cpu.
+        #[arg(long, default_value = "cpu")]
+        backend: String,
+        /// Repetitions (median reported; at least 5).
+        #[arg(long, default_value_t = 5)]
+        reps: usize,
+    },
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let res = match cli.cmd {
+        Cmd::Eval { potential, data, forces } => eval(&potential, &data, forces),
+        Cmd::Run { potential, data, steps, dt, velocity_gradient, remap, thermo, write_data, dump } => {
+            run(&potential, &data, steps, dt, &velocity_gradient, &remap, thermo, write_data, dump)
+        }
+        Cmd::Bench { potential, lattice, a0, cells, boxes, steps, threads, backend, reps } => {
+            bench(&potential, &lattice, a0, cells, boxes, steps, threads, &backend, reps)
+        }
+    };
+    if let Err(e) = res {
+        eprintln!("md-worker: error: {e:#}");
+        let input = e.chain().any(|c| c.downcast_ref::<MdError>().is_some() || c.downcast_ref::<InputError>().is_some());
+        std::process::exit(if input { 2 } else { 1 });
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+struct InputError(String);
+
+fn bad(msg: impl Into<String>) -> anyhow::Error {
+    InputError(msg.into()).into()
+}
+
+/// A single box from a data file, ready to evaluate.
+fn load(potential: &std::path::Path, data: &std::path::Path, mode: DeformMode) -> Result<(Arc<Potential>, DataFile, BoxSpec)> {
+    let pot = Arc::new(Potential::from_file(potential)?);
+    let d = DataFile::read(data)?;
+    if let Some(t) = d.types.iter().find(|&&t| t as usize > pot.n_elements()) {
+        return Err(bad(format!("{}: atom type {t}, but {} has {} element(s)", data.display(), potential.display(), pot.n_elements())));
+    }
+    let mut spec = BoxSpec::lattice(0, LatticeKind::Fcc, 1.0, [1, 1, 1]);
+    spec.atoms = InitialAtoms::Explicit { lo: d.lo, lengths: d.lengths, types: d.types.iter().map(|t| t - 1).collect(), x: d.x.clone(), v: d.v.clone() };
+    spec.mode = mode;
+    Ok((pot, d, spec))
+}
+
+fn stress_json(s: &[f64; 6]) -> serde_json::Value {
+    json!({"xx": s[0], "yy": s[1], "zz": s[2], "xy": s[3], "xz": s[4], "yz": s[5]})
+}
+
+fn masses(pot: &Potential) -> Vec<f64> {
+    (0..pot.n_elements()).map(|e| pot.mass(e)).collect()
+}
+
+fn eval(potential: &std::path::Path, data: &std::path::Path, forces: Option<PathBuf>) -> Result<()> {
+    let (pot, d, spec) = load(potential, data, DeformMode::Affine)?;
+    let m = masses(&pot);
+    let st = md_worker::backend::prepare_box(&pot, &m, &spec)?;
+    let ke = kernel::total_kinetic(&st.types, &st.v, &m);
+    let kin = kernel::kinetic_tensor(&st.types, &st.v, &m);
+    let stress = kernel::virial_stress(&st.meta, &kin);
+    println!("{}", json!({"energy_ev": st.meta.pe, "kinetic_ev": ke, "stress_gpa": stress_json(&stress)}));
+    if let Some(path) = forces {
+        let mut s = String::from("# id fx fy fz (eV/A)\n");
+        for (id, f) in d.ids.iter().zip(&st.f) {
+            s += &format!("{id} {:e} {:e} {:e}\n", f[0], f[1], f[2]);
+        }
+        std::fs::write(&path, s).with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    Ok(())
+}
+
+fn parse_gradient(s: &str) -> Result<[[f64; 3]; 3]> {
+    let mut g = [[0.0; 3]; 3];
+    for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+        let (k, v) = part.split_once('=').ok_or_else(|| bad(format!("velocity gradient entry {part:?}: expected like xx=0.01")))?;
+        let idx = |c: u8| match c {
+            b'x' => Ok(0),
+            b'y' => Ok(1),
+            b'z' => Ok(2),
+            _ => Err(bad(format!("velocity gradient component {k:?}: expected two of x, y, z"))),
+        };
+        let kb = k.as_bytes();
+        if kb.len() != 2 {
+            return Err(bad(format!("velocity gradient component {k:?}: expected two of x, y, z")));
+        }
+        let val: f64 = v.parse().map_err(|_| bad(format!("velocity gradient {k}: {v:?} is not a number (1/ps)")))?;
+        g[idx(kb[0])?][idx(kb[1])?] = val;
+    }
+    Ok(g)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn run(
+    potential: &std::path::Path,
+    data: &std::path::Path,
+    steps: u64,
+    dt: f64,
+    grad: &str,
+    remap: &str,
+    thermo: u64,
+    write_data: Option<PathBuf>,
+    dump: Option<PathBuf>,
+) -> Result<()> {
+    let mode = match remap {
+        "affine" => DeformMode::Affine,
+        "seed" => DeformMode::Seed,
+        _ => bail!(bad(format!("--remap {remap:?}: expected affine or seed"))),
+    };
+    if !(dt > 0.0 && dt.is_finite()) {
+        return Err(bad(format!("--dt {dt}: must be a positive time step in ps")));
+    }
+    if thermo == 0 {
+        return Err(bad("--thermo must be at least 1"));
+    }
+    let g = parse_gradient(grad)?;
+    let (pot, mut d, spec) = load(potential, data, mode)?;
+    let mut backend = backend_by_name("reference", pot.clone())?;
+    backend.open(&[spec])?;
+    let mut dump_out = match &dump {
+        Some(p) => Some(std::io::BufWriter::new(std::fs::File::create(p).with_context(|| format!("cannot create {}", p.display()))?)),
+        None => None,
+    };
+    let m = masses(&pot);
+    let mut done = 0;
+    let mut emit = |backend: &mut Box<dyn MdBackend>, r: &BoxResult, done: u64| -> Result<()> {
+        let st = backend.snapshot(&[0])?.remove(0);
+        let ke = kernel::total_kinetic(&st.types, &st.v, &m);
+        println!("{}", json!({"step": done, "energy_ev": r.potential_energy_ev, "kinetic_ev": ke, "stress_gpa": stress_json(&r.stress_gpa)}));
+        if let Some(w) = dump_out.as_mut() {
+            let types: Vec<u32> = st.types.iter().map(|t| t + 1).collect();
+            w.write_all(dump_frame(done, st.meta.lo, st.meta.l, &d.ids, &types, &st.x, &st.v).as_bytes())?;
+        }
+        Ok(())
+    };
+    let mut out = [BoxResult::default()];
+    backend.step(&[BoxWork { id: 0, velocity_gradient: g, steps: 0, dt_ps: dt, energy_to_add_ev: 0.0 }], &mut out)?;
+    emit(&mut backend, &out[0], 0)?;
+    while done < steps {
+        let n = thermo.min(steps - done);
+        backend.step(&[BoxWork { id: 0, velocity_gradient: g, steps: n, dt_ps: dt, energy_to_add_ev: 0.0 }], &mut out)?;
+        done += n;
+        emit(&mut backend, &out[0], done)?;
+    }
+    if let Some(path) = write_data {
+        let st = backend.snapshot(&[0])?.remove(0);
+        d.lo = st.meta.lo;
+        d.lengths = st.meta.l;
+        d.x = st.x;
+        d.v = st.v;
+        d.masses = Some(m.clone());
+        std::fs::write(&path, d.to_text(&format!("md-worker run, step {done}")))
+            .with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    Ok(())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn bench(
+    potential: &std::path::Path,
+    lattice: &str,
+    a0: f64,
+    cells: usize,
+    boxes: usize,
+    steps: u64,
+    threads: Option<usize>,
+    backend: &str,
+    reps: usize,
+) -> Result<()> {
+    let kind: LatticeKind = lattice.parse()?;
+    if cells == 0 || boxes == 0 || steps == 0 {
+        return Err(bad("--cells, --boxes and --steps must be at least 1"));
+    }
+    let pot = Arc::new(Potential::from_file(potential)?);
+    let pool = match threads {
+        Some(0) => return Err(bad("--threads must be at least 1")),
+        Some(t) => Some(Arc::new(rayon::ThreadPoolBuilder::new().num_threads(t).build()?)),
+        None => None,
+    };
+    let mut b: Box<dyn MdBackend> = match (backend, pool) {
+        ("cpu", Some(pool)) => Box::new(md_worker::CpuBackend::with_pool(pot.clone(), pool)),
+        _ => backend_by_name(backend, pot.clone())?,
+    };
+    let specs: Vec<BoxSpec> = (0..boxes as u64)
+        .map(|id| {
+            let mut s = BoxSpec::lattice(id, kind, a0, [cells; 3]);
+            s.temperature_k = 300.0;
+            s.seed = 1;
+            s
+        })
+        .collect();
+    b.open(&specs)?;
+    let natoms = kind_atoms(kind) * cells * cells * cells * boxes;
+    let work: Vec<BoxWork> = (0..boxes as u64)
+        .map(|id| BoxWork { id, velocity_gradient: [[1e-3, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], steps, dt_ps: 0.001, energy_to_add_ev: 0.0 })
+        .collect();
+    let mut out = vec![BoxResult::default(); boxes];
+    let mut times = Vec::new();
+    for _ in 0..reps.max(5) {
+        let t0 = std::time::Instant::now();
+        b.step(&work, &mut out)?;
+        times.push(t0.elapsed().as_secs_f64());
+    }
+    times.sort_by(f64::total_cmp);
+    let med = times[times.len() / 2];
+    let atom_steps = (natoms as u64 * steps) as f64;
+    println!(
+        "{}",
+        json!({"backend": backend, "threads": threads.unwrap_or_else(rayon::current_num_threads), "atoms": natoms, "boxes": boxes,
+               "steps": steps, "repetitions": times.len(), "median_s": med,
+               "atom_steps_per_s": atom_steps / med, "ns_per_atom_step": med / atom_steps * 1e9})
+    );
+    Ok(())
+}
+
+fn kind_atoms(k: LatticeKind) -> usize {
+    match k {
+        LatticeKind::Fcc => 4,
+        LatticeKind::Bcc => 2,
+        LatticeKind::Sc => 1,
+    }
+}
