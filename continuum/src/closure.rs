@@ -1,0 +1,178 @@
+//! The closure seam: how a body's points get their stress.
+//!
+//! A closure evaluates a *batch* of points (all points of one body) at once from their
+//! velocity gradients and the time step, so an MD closure can ship a whole step's work to its
+//! workers in one go. Constitutive laws implement it directly. Stresses are Cauchy, in Pa,
+//! tension positive.
+
+use crate::tensor::{self, Mat3, IDENTITY};
+
+/// The points of one body, handed to its closure.
+pub struct ClosureBatch<'a> {
+    /// Global index of the first point of the batch (point `k` of the batch has id `first + k`).
+    pub first: usize,
+    /// Velocity gradient over the step, L_ij = dv_i/dx_j (1/s).
+    pub vel_grad: &'a [Mat3],
+    /// Deformation gradient at the end of the step.
+    pub def_grad: &'a [Mat3],
+    pub mass: &'a [f64],
+    /// Current volume (end of the step).
+    pub volume: &'a [f64],
+    /// In: stress at the start of the step. Out: stress at the end (Pa, tension positive).
+    pub stress: &'a mut [Mat3],
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ClosureError {
+    #[error("point {point}: {law} closure produced a non-finite stress (J = {jacobian:e}); the time step is probably too large or the point was crushed")]
+    NonFinite { point: usize, law: &'static str, jacobian: f64 },
+    #[error("point {point}: {law} closure needs a positive volume ratio, got J = {jacobian:e} (the point was inverted: reduce the time step or add particles per cell)")]
+    Inverted { point: usize, law: &'static str, jacobian: f64 },
+    #[error("{0}")]
+    Other(String),
+}
+
+pub trait Closure: Send {
+    /// Name as written in scene files.
+    fn name(&self) -> &'static str;
+    /// Largest longitudinal wave speed over the points (m/s), for the CFL time step.
+    fn wave_speed(&self, mass: &[f64], volume: &[f64]) -> f64;
+    /// Stress of the initial state (the points carry their initial deformation gradient).
+    fn initialize(&mut self, batch: ClosureBatch<'_>) -> Result<(), ClosureError> {
+        self.advance(batch, 0.0)
+    }
+    /// Advances every point of the batch over `dt` (s) and writes its stress.
+    fn advance(&mut self, batch: ClosureBatch<'_>, dt: f64) -> Result<(), ClosureError>;
+}
+
+/// Isothermal ideal gas: p = c^2 rho.
+#[derive(Debug, Clone)]
+pub struct IdealGasIsothermal {
+    /// Isothermal sound speed c (m/s).
+    pub sound_speed: f64,
+}
+
+impl Closure for IdealGasIsothermal {
+    fn name(&self) -> &'static str {
+        "ideal-gas-isothermal"
+    }
+    fn wave_speed(&self, _: &[f64], _: &[f64]) -> f64 {
+        self.sound_speed
+    }
+    fn advance(&mut self, b: ClosureBatch<'_>, _dt: f64) -> Result<(), ClosureError> {
+        let c2 = self.sound_speed * self.sound_speed;
+        for k in 0..b.stress.len() {
+            let rho = b.mass[k] / b.volume[k];
+            if !(rho.is_finite() && rho > 0.0) {
+                return Err(ClosureError::Inverted { point: b.first + k, law: self.name(), jacobian: tensor::det(&b.def_grad[k]) });
+            }
+            b.stress[k] = tensor::add_scaled(&tensor::ZERO, &IDENTITY, -c2 * rho);
+        }
+        Ok(())
+    }
+}
+
+/// Lame constants from Young's modulus and Poisson's ratio.
+pub fn lame(youngs: f64, poisson: f64) -> (f64, f64) {
+    let lambda = youngs * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson));
+    let mu = youngs / (2.0 * (1.0 + poisson));
+    (lambda, mu)
+}
+
+/// Linear elasticity in rate form with the Jaumann rate: sigma' = lambda tr(D) I + 2 mu D.
+#[derive(Debug, Clone)]
+pub struct LinearElastic {
+    pub youngs_modulus: f64,
+    pub poisson_ratio: f64,
+    pub density0: f64,
+}
+
+impl LinearElastic {
+    fn stress_rate(&self, d: &Mat3) -> Mat3 {
+        let (lambda, mu) = lame(self.youngs_modulus, self.poisson_ratio);
+        let mut s = tensor::add_scaled(&tensor::ZERO, d, 2.0 * mu);
+        let tr = tensor::trace(d);
+        for (i, row) in s.iter_mut().enumerate() {
+            row[i] += lambda * tr;
+        }
+        s
+    }
+}
+
+impl Closure for LinearElastic {
+    fn name(&self) -> &'static str {
+        "linear-elastic"
+    }
+    fn wave_speed(&self, mass: &[f64], volume: &[f64]) -> f64 {
+        let (lambda, mu) = lame(self.youngs_modulus, self.poisson_ratio);
+        let rho_min = mass.iter().zip(volume).map(|(m, v)| m / v).fold(self.density0, f64::min);
+        ((lambda + 2.0 * mu) / rho_min).sqrt()
+    }
+    fn initialize(&mut self, b: ClosureBatch<'_>) -> Result<(), ClosureError> {
+        // Small-strain stress of the initial strain F - I.
+        for k in 0..b.stress.len() {
+            let eps = tensor::sym(&tensor::add_scaled(&b.def_grad[k], &IDENTITY, -1.0));
+            b.stress[k] = self.stress_rate(&eps);
+        }
+        Ok(())
+    }
+    fn advance(&mut self, b: ClosureBatch<'_>, dt: f64) -> Result<(), ClosureError> {
+        for k in 0..b.stress.len() {
+            let l = &b.vel_grad[k];
+            let d = tensor::sym(l);
+            let w = tensor::add_scaled(l, &tensor::transpose(l), -1.0);
+            let w = tensor::add_scaled(&tensor::ZERO, &w, 0.5);
+            let s = b.stress[k];
+            // Jaumann: sigma_dot = C:D + W sigma - sigma W.
+            let rot = tensor::add_scaled(&tensor::mul(&w, &s), &tensor::mul(&s, &w), -1.0);
+            let rate = tensor::add_scaled(&self.stress_rate(&d), &rot, 1.0);
+            b.stress[k] = tensor::add_scaled(&s, &rate, dt);
+            if !tensor::is_finite(&b.stress[k]) {
+                return Err(ClosureError::NonFinite { point: b.first + k, law: self.name(), jacobian: tensor::det(&b.def_grad[k]) });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Compressible neo-Hookean: sigma = mu/J (F F^T - I) + lambda ln(J)/J I.
+#[derive(Debug, Clone)]
+pub struct NeoHookean {
+    pub youngs_modulus: f64,
+    pub poisson_ratio: f64,
+    pub density0: f64,
+}
+
+impl Closure for NeoHookean {
+    fn name(&self) -> &'static str {
+        "neo-hookean"
+    }
+    fn wave_speed(&self, mass: &[f64], volume: &[f64]) -> f64 {
+        let (lambda, mu) = lame(self.youngs_modulus, self.poisson_ratio);
+        let rho_min = mass.iter().zip(volume).map(|(m, v)| m / v).fold(self.density0, f64::min);
+        ((lambda + 2.0 * mu) / rho_min).sqrt()
+    }
+    fn advance(&mut self, b: ClosureBatch<'_>, _dt: f64) -> Result<(), ClosureError> {
+        let (lambda, mu) = lame(self.youngs_modulus, self.poisson_ratio);
+        for k in 0..b.stress.len() {
+            let f = &b.def_grad[k];
+            let j = tensor::det(f);
+            if !(j > 0.0) {
+                return Err(ClosureError::Inverted { point: b.first + k, law: self.name(), jacobian: j });
+            }
+            let bb = tensor::mul(f, &tensor::transpose(f));
+            let mut s = tensor::add_scaled(&tensor::add_scaled(&bb, &IDENTITY, -1.0), &tensor::ZERO, 0.0);
+            for row in s.iter_mut() {
+                for v in row.iter_mut() {
+                    *v *= mu / j;
+                }
+            }
+            for (i, row) in s.iter_mut().enumerate() {
+                row[i] += lambda * j.ln() / j;
+            }
+            b.stress[k] = s;
+        }
+        Ok(())
+    }
+}

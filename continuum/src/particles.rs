@@ -1,0 +1,97 @@
+//! Material points as structure-of-arrays. Points of one body are contiguous, so a closure
+//! sees a body as one slice.
+
+use crate::tensor::{Mat3, IDENTITY, ZERO};
+use std::ops::Range;
+
+#[derive(Debug, Clone, Default)]
+pub struct Particles<const D: usize> {
+    /// Initial position (m).
+    pub x0: Vec<[f64; D]>,
+    /// Current position (m).
+    pub x: Vec<[f64; D]>,
+    /// Velocity (m/s).
+    pub v: Vec<[f64; D]>,
+    /// Mass (kg; kg/m^2 in 1D, kg/m in 2D).
+    pub mass: Vec<f64>,
+    /// Volume in the reference (unstrained) configuration.
+    pub volume0: Vec<f64>,
+    /// Current volume (m^3; m in 1D, m^2 in 2D).
+    pub volume: Vec<f64>,
+    /// Half-lengths of the point's domain along each axis at the start (m), for GIMP-like schemes.
+    pub half_length: Vec<[f64; D]>,
+    /// Deformation gradient from the reference configuration.
+    pub def_grad: Vec<Mat3>,
+    /// Velocity gradient of the last step, L_ij = dv_i/dx_j (1/s).
+    pub vel_grad: Vec<Mat3>,
+    /// Cauchy stress from the closure (Pa, tension positive), without artificial viscosity.
+    pub stress: Vec<Mat3>,
+    /// Artificial viscous pressure of the last step (Pa, >= 0 in compression).
+    pub visc_pressure: Vec<f64>,
+    /// Work done on the point by stresses since the start (J, per unit cross-section in 1D).
+    pub internal_energy: Vec<f64>,
+    /// Index of the body each point belongs to.
+    pub body: Vec<u32>,
+}
+
+impl<const D: usize> Particles<D> {
+    pub fn len(&self) -> usize {
+        self.x.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.x.is_empty()
+    }
+
+    /// Appends one point at rest state `F = def_grad` with the given reference volume.
+    #[allow(clippy::too_many_arguments)]
+    pub fn push(&mut self, body: u32, x: [f64; D], v: [f64; D], mass: f64, volume0: f64, half_length: [f64; D], def_grad: Mat3) {
+        let j = crate::tensor::det(&def_grad);
+        self.x0.push(x);
+        self.x.push(x);
+        self.v.push(v);
+        self.mass.push(mass);
+        self.volume0.push(volume0);
+        self.volume.push(volume0 * j);
+        self.half_length.push(half_length);
+        self.def_grad.push(def_grad);
+        self.vel_grad.push(ZERO);
+        self.stress.push(ZERO);
+        self.visc_pressure.push(0.0);
+        self.internal_energy.push(0.0);
+        self.body.push(body);
+    }
+
+    pub fn density(&self, p: usize) -> f64 {
+        self.mass[p] / self.volume[p]
+    }
+
+    /// Mean pressure -tr(sigma)/3 (Pa), without artificial viscosity.
+    pub fn pressure(&self, p: usize) -> f64 {
+        -crate::tensor::trace(&self.stress[p]) / 3.0
+    }
+
+    /// The contiguous range of points of each body, in body order.
+    pub fn body_ranges(&self) -> Vec<Range<usize>> {
+        let mut ranges: Vec<Range<usize>> = Vec::new();
+        for (p, &b) in self.body.iter().enumerate() {
+            match ranges.get_mut(b as usize) {
+                Some(r) => r.end = p + 1,
+                None => {
+                    while ranges.len() < b as usize {
+                        ranges.push(p..p);
+                    }
+                    ranges.push(p..p + 1);
+                }
+            }
+        }
+        ranges
+    }
+}
+
+impl<const D: usize> Particles<D> {
+    /// Identity deformation gradient (for callers building points by hand).
+    pub fn identity() -> Mat3 {
+        IDENTITY
+    }
+}

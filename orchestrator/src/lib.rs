@@ -1,0 +1,23 @@
+//! The user-facing side of mscale: scene files, runs and their outputs, and (later) the job
+//! service. Main design decision: a scene is validated completely, with every default filled,
+//! before anything is built, and then turned into exactly the parts it needs (a
+//! constitutive-law scene builds no MD engine). The `mscale` binary is a thin layer over this
+//! library, so tests drive the same code users do.
+
+pub mod output;
+pub mod run;
+pub mod scene;
+pub mod setup;
+
+/// Cargo features this binary was built with (reported in provenance).
+pub const FEATURES: &[&str] = &[];
+
+/// Exit codes of `mscale`.
+pub mod exit {
+    /// The run completed.
+    pub const OK: i32 = 0;
+    /// A run that failed: instability, lost worker, cancelled.
+    pub const RUN_FAILED: i32 = 1;
+    /// Bad usage or bad input.
+    pub const BAD_INPUT: i32 = 2;
+}

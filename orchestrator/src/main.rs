@@ -1,0 +1,109 @@
+//! `mscale`: run and check scenes (later: serve, submit, status, watch, cancel, fetch, report).
+
+use clap::{Parser, Subcommand};
+use orchestrator::{exit, run, scene};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(name = "mscale", version, about = "Multiscale DDMP + MD simulations of materials under extreme deformation")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a scene in this process (the embedded default).
+    Run {
+        /// Scene file (TOML).
+        scene: PathBuf,
+        /// Run directory (default runs/<scene>-<timestamp>).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Override a scene field: --set dotted.key=value (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+    /// Validate a scene and print it with every default filled, and the size of the work.
+    Check {
+        scene: PathBuf,
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    // No panic reaches the user as a backtrace: report it as an internal error.
+    std::panic::set_hook(Box::new(|info| {
+        eprintln!("mscale: internal error (this is a bug, please report it): {info}");
+    }));
+    let code = std::panic::catch_unwind(|| dispatch(cli)).unwrap_or(exit::RUN_FAILED);
+    ExitCode::from(code as u8)
+}
+
+fn dispatch(cli: Cli) -> i32 {
+    match cli.command {
+        Command::Check { scene, set } => match scene::load(&scene, &set) {
+            Ok(loaded) => {
+                print!("{}", loaded.scene.to_toml());
+                println!("\n# work");
+                let (points, nodes) = work_size(&loaded);
+                println!("# points = {points}\n# grid_nodes = {nodes}\n# steps = {}\n# dt_s = {:e}", loaded.steps, loaded.dt);
+                exit::OK
+            }
+            Err(e) => {
+                eprintln!("mscale: {e}");
+                exit::BAD_INPUT
+            }
+        },
+        Command::Run { scene, out, set } => {
+            let loaded = match scene::load(&scene, &set) {
+                Ok(l) => l,
+                Err(e) => {
+                    eprintln!("mscale: {e}");
+                    return exit::BAD_INPUT;
+                }
+            };
+            let out = out.unwrap_or_else(|| run::default_out_dir(&loaded.scene));
+            let opts = run::RunOptions::new(out.clone(), std::env::args().collect());
+            match run::run(&loaded, &opts) {
+                Ok(run::Outcome::Completed(summary)) => {
+                    println!("completed {} steps in {:.2} s; outputs in {}", summary["steps"], summary["wall_seconds"].as_f64().unwrap_or(0.0), out.display());
+                    if let Some(e) = summary.get("errors").filter(|e| !e.is_null()) {
+                        println!("pressure error vs {}: L1 {:.4e}, L2 {:.4e}, spike {:.4e} (of the jump)", e["reference"], e["pressure_l1"].as_f64().unwrap_or(f64::NAN), e["pressure_l2"].as_f64().unwrap_or(f64::NAN), e["pressure_spike"].as_f64().unwrap_or(f64::NAN));
+                    }
+                    exit::OK
+                }
+                Ok(run::Outcome::Failed(_, why)) => {
+                    eprintln!("mscale: the run failed: {why}\n(outputs so far are in {})", out.display());
+                    exit::RUN_FAILED
+                }
+                Err(e) => {
+                    let bad_input = e.downcast_ref::<orchestrator::setup::SetupError>().is_some_and(|s| !matches!(s, orchestrator::setup::SetupError::Solver(_)));
+                    eprintln!("mscale: {e:#}");
+                    if bad_input { exit::BAD_INPUT } else { exit::RUN_FAILED }
+                }
+            }
+        }
+    }
+}
+
+/// Points and grid nodes a scene will have, without building the simulation.
+fn work_size(loaded: &scene::LoadedScene) -> (usize, usize) {
+    fn size<const D: usize>(s: &scene::Scene) -> (usize, usize) {
+        let grid = orchestrator::setup::grid::<D>(s);
+        let points = orchestrator::setup::points::<D>(s, &grid).map(|p| p.len()).unwrap_or(0);
+        (points, grid.node_count())
+    }
+    match loaded.scene.domain.dimension {
+        1 => size::<1>(&loaded.scene),
+        2 => size::<2>(&loaded.scene),
+        _ => size::<3>(&loaded.scene),
+    }
+}

@@ -1,0 +1,297 @@
+//! `mscale run`: one process runs the whole scene (the embedded default), with a progress bar
+//! on a terminal and periodic log lines otherwise, and writes every output of a run directory.
+
+use crate::output::{self, Series};
+use crate::scene::{LoadedScene, Material, Scene};
+use crate::setup;
+use anyhow::{Context, Result};
+use continuum::exact::{IsothermalRiemann, PressureErrors, State};
+use continuum::Simulation;
+use serde_json::{json, Value};
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// How a run ended.
+pub enum Outcome {
+    Completed(Value),
+    /// The solver stopped the run (divergence guard, closure failure); outputs so far are kept.
+    Failed(Value, String),
+}
+
+pub struct RunOptions {
+    pub out: PathBuf,
+    pub command_line: Vec<String>,
+    /// Draw a progress bar (otherwise log lines every 10 %).
+    pub progress_bar: bool,
+}
+
+impl RunOptions {
+    pub fn new(out: PathBuf, command_line: Vec<String>) -> Self {
+        RunOptions { out, command_line, progress_bar: std::io::stderr().is_terminal() }
+    }
+}
+
+/// Default run directory: `runs/<scene>-<UTC timestamp>`.
+pub fn default_out_dir(scene: &Scene) -> PathBuf {
+    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+    let (days, rem) = (secs / 86400, secs % 86400);
+    let (y, m, d) = civil_from_days(days as i64);
+    PathBuf::from("runs").join(format!("{}-{y:04}{m:02}{d:02}T{:02}{:02}{:02}Z", scene.name, rem / 3600, rem % 3600 / 60, rem % 60))
+}
+
+/// Gregorian date of a day count since 1970-01-01 (H. Hinnant's algorithm).
+fn civil_from_days(z: i64) -> (i64, u32, u32) {
+    let z = z + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
+    (yoe + era * 400 + i64::from(m <= 2), m, d)
+}
+
+pub fn run(loaded: &LoadedScene, opts: &RunOptions) -> Result<Outcome> {
+    match loaded.scene.domain.dimension {
+        1 => run_dim::<1>(loaded, opts),
+        2 => run_dim::<2>(loaded, opts),
+        _ => run_dim::<3>(loaded, opts),
+    }
+}
+
+/// The exact solution a scene names, if any, as (solution, pressure jump in Pa).
+fn reference(scene: &Scene) -> Option<(IsothermalRiemann, f64)> {
+    let r = scene.reference.as_ref()?;
+    let state = |name: &str| {
+        let b = scene.bodies.get(name)?;
+        let Material::IdealGasIsothermal(g) = &b.material else { return None };
+        let j0: f64 = b.initial_strain.iter().map(|e| 1.0 + e).product();
+        Some((State { density: b.density / j0, velocity: b.velocity[0] }, g.sound_speed, b.max[0]))
+    };
+    let (left, c, x0) = state(&r.left)?;
+    let (right, _, _) = state(&r.right)?;
+    Some((IsothermalRiemann::new(left, right, c, x0), c * c * (left.density - right.density).abs()))
+}
+
+struct Snapshots {
+    index: String,
+    pvd: Vec<(f64, String)>,
+}
+
+fn write_snapshot<const D: usize>(sim: &Simulation<D>, scene: &Scene, dir: &Path, snaps: &mut Snapshots) -> Result<()> {
+    let step = sim.step;
+    if scene.output.particles {
+        let file = format!("particles_{step:08}.csv");
+        output::write_atomic(&dir.join("snapshots").join(&file), output::particles_csv(&sim.points).as_bytes())?;
+        snaps.index.push_str(&format!("{step},{:e},{file}\n", sim.time));
+        output::write_atomic(&dir.join("snapshots/index.csv"), snaps.index.as_bytes())?;
+    }
+    if scene.output.vtk {
+        let file = format!("particles_{step:08}.vtu");
+        output::write_atomic(&dir.join("vtk").join(&file), output::particles_vtu(&sim.points).as_bytes())?;
+        snaps.pvd.push((sim.time, file));
+        output::write_atomic(&dir.join("vtk/particles.pvd"), output::pvd(&snaps.pvd).as_bytes())?;
+    }
+    Ok(())
+}
+
+fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Outcome> {
+    let scene = &loaded.scene;
+    let dir = &opts.out;
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create the run directory {}", dir.display()))?;
+    output::write_atomic(&dir.join("scene.resolved.toml"), scene.to_toml().as_bytes())?;
+    let wall = Instant::now();
+    let mut sim = setup::simulation::<D>(scene, loaded.dt)?;
+    let setup_s = wall.elapsed().as_secs_f64();
+    tracing::info!(points = sim.points.len(), nodes = sim.grid.node_count(), steps = loaded.steps, dt = sim.dt, "running {}", scene.name);
+
+    let every = (loaded.steps / scene.output.snapshots.max(1) as u64).max(1);
+    let mut snaps = Snapshots { index: "step,time,file\n".into(), pvd: Vec::new() };
+    let mut output_s = 0.0;
+    let t = Instant::now();
+    write_snapshot(&sim, scene, dir, &mut snaps)?;
+    output_s += t.elapsed().as_secs_f64();
+
+    let bar = progress_bar(opts.progress_bar, loaded.steps, scene.scheme.end_time);
+    let mut continuum_s = 0.0;
+    let (mut max_kinetic, mut max_abs_momentum) = (sim.initial.kinetic.abs(), momentum_scale(&sim));
+    let mut last_log = Instant::now();
+    let mut failure = None;
+    while sim.step < loaded.steps {
+        let t = Instant::now();
+        let result = sim.step();
+        continuum_s += t.elapsed().as_secs_f64();
+        if let Err(e) = result {
+            failure = Some(e.to_string());
+            break;
+        }
+        let totals = sim.totals();
+        max_kinetic = max_kinetic.max(totals.kinetic);
+        max_abs_momentum = max_abs_momentum.max(momentum_scale(&sim));
+        if sim.step % every == 0 && sim.step < loaded.steps {
+            let t = Instant::now();
+            write_snapshot(&sim, scene, dir, &mut snaps)?;
+            output_s += t.elapsed().as_secs_f64();
+        }
+        match &bar {
+            Some(b) => {
+                b.set_position(sim.step);
+                b.set_message(format!("t = {:.4e} s", sim.time));
+            }
+            None if last_log.elapsed() > Duration::from_secs(5) || sim.step == loaded.steps => {
+                last_log = Instant::now();
+                tracing::info!("step {}/{} ({:.0} %), t = {:.4e} s", sim.step, loaded.steps, 100.0 * sim.step as f64 / loaded.steps as f64, sim.time);
+            }
+            None => {}
+        }
+    }
+    if let Some(b) = &bar {
+        b.finish_and_clear();
+    }
+    let t = Instant::now();
+    if failure.is_none() {
+        write_snapshot(&sim, scene, dir, &mut snaps)?;
+    }
+    if scene.output.particles {
+        output::write_atomic(&dir.join("particles_final.csv"), output::particles_csv(&sim.points).as_bytes())?;
+    }
+    let reference = reference(scene);
+    let errors = reference.as_ref().map(|(rp, jump)| pressure_errors(&sim, rp, *jump));
+    if D == 1 && scene.output.plots {
+        plot_profiles(&sim, reference.as_ref().map(|r| &r.0), dir)?;
+    }
+    output_s += t.elapsed().as_secs_f64();
+
+    let summary = summary(loaded, opts, &sim, SummaryTimes { wall: wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s }, max_kinetic, max_abs_momentum, errors, failure.as_deref())?;
+    output::write_atomic(&dir.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    Ok(match failure {
+        None => Outcome::Completed(summary),
+        Some(e) => Outcome::Failed(summary, e),
+    })
+}
+
+fn momentum_scale<const D: usize>(sim: &Simulation<D>) -> f64 {
+    let p = &sim.points;
+    (0..p.len()).map(|k| p.mass[k] * p.v[k].iter().map(|v| v * v).sum::<f64>().sqrt()).sum()
+}
+
+fn progress_bar(enabled: bool, steps: u64, end_time: f64) -> Option<indicatif::ProgressBar> {
+    if !enabled {
+        return None;
+    }
+    let bar = indicatif::ProgressBar::new(steps);
+    let style = indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} step {pos}/{len}  {msg}  ETA {eta}")
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar());
+    bar.set_style(style);
+    bar.set_message(format!("t = 0 / {end_time:e} s"));
+    Some(bar)
+}
+
+fn pressure_errors<const D: usize>(sim: &Simulation<D>, rp: &IsothermalRiemann, jump: f64) -> PressureErrors {
+    let x: Vec<f64> = sim.points.x.iter().map(|x| x[0]).collect();
+    let p: Vec<f64> = (0..sim.points.len()).map(|k| sim.points.pressure(k)).collect();
+    continuum::exact::pressure_errors(&x, &p, |xk| rp.pressure(xk, sim.time), jump, sim.grid.h[0])
+}
+
+fn plot_profiles<const D: usize>(sim: &Simulation<D>, exact: Option<&IsothermalRiemann>, dir: &Path) -> Result<()> {
+    let pts = &sim.points;
+    let (x0, x1) = (sim.grid.origin[0], sim.grid.extent_max()[0]);
+    let field = |f: &dyn Fn(usize) -> f64| (0..pts.len()).map(|k| (pts.x[k][0], f(k))).collect::<Vec<_>>();
+    let exact_line = |f: &dyn Fn(State) -> f64| {
+        exact.map(|rp| (0..=2000).map(|i| x0 + (x1 - x0) * i as f64 / 2000.0).map(|x| (x, f(rp.sample(x, sim.time)))).collect::<Vec<_>>())
+    };
+    let c2 = exact.map(|r| r.sound_speed * r.sound_speed).unwrap_or(0.0);
+    let title = |q: &str| format!("{q} at t = {:.4e} s (step {})", sim.time, sim.step);
+    let plots: [(&str, &str, Vec<(f64, f64)>, Option<Vec<(f64, f64)>>); 3] = [
+        ("pressure", "pressure (Pa)", field(&|k| pts.pressure(k)), exact_line(&|s| c2 * s.density)),
+        ("velocity", "velocity (m/s)", field(&|k| pts.v[k][0]), exact_line(&|s| s.velocity)),
+        ("density", "density (kg/m^3)", field(&|k| pts.density(k)), exact_line(&|s| s.density)),
+    ];
+    for (name, ylabel, particles, exact) in plots {
+        let mut series = vec![Series { label: "particles", points: particles, line: false }];
+        if let Some(e) = exact {
+            series.push(Series { label: "exact", points: e, line: true });
+        }
+        output::plot_profile(&dir.join("plots").join(format!("{name}.png")), &title(name), "x (m)", ylabel, &series)?;
+    }
+    Ok(())
+}
+
+struct SummaryTimes {
+    wall: f64,
+    setup: f64,
+    continuum: f64,
+    output: f64,
+}
+
+fn finite_or_null(v: f64) -> Value {
+    if v.is_finite() { json!(v) } else { Value::Null }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn summary<const D: usize>(
+    loaded: &LoadedScene,
+    opts: &RunOptions,
+    sim: &Simulation<D>,
+    times: SummaryTimes,
+    max_kinetic: f64,
+    momentum_scale: f64,
+    errors: Option<PressureErrors>,
+    failure: Option<&str>,
+) -> Result<Value> {
+    let scene = &loaded.scene;
+    let (init, now) = (sim.initial, sim.totals());
+    let energy_scale = init.energy().abs().max(max_kinetic).max(f64::MIN_POSITIVE);
+    let momentum_drift = (0..D).map(|a| (now.momentum[a] - init.momentum[a] - sim.wall_impulse[a]).abs()).fold(0.0, f64::max) / momentum_scale.max(sim.wall_impulse_magnitude).max(f64::MIN_POSITIVE);
+    let mut inputs = serde_json::Map::new();
+    inputs.insert(loaded.path.display().to_string(), json!(output::sha256_file(&loaded.path)?));
+    for f in &loaded.files {
+        inputs.insert(f.display().to_string(), json!(output::sha256_file(f)?));
+    }
+    Ok(json!({
+        "status": if failure.is_some() { "failed" } else { "completed" },
+        "error": failure,
+        "scene": scene.name,
+        "dimension": D,
+        "method": scene.scheme.method,
+        "wall_seconds": times.wall,
+        "steps": sim.step,
+        "simulated_time_s": sim.time,
+        "dt_s": sim.dt,
+        "points": sim.points.len(),
+        "grid_nodes": sim.grid.node_count(),
+        "closure_evaluations": sim.closure_evaluations,
+        "conservation": {
+            "mass_initial": init.mass,
+            "mass_final": now.mass,
+            "mass_drift": finite_or_null((now.mass - init.mass).abs() / init.mass),
+            "momentum_initial": init.momentum.to_vec(),
+            "momentum_final": now.momentum.iter().map(|v| finite_or_null(*v)).collect::<Vec<_>>(),
+            "wall_impulse": sim.wall_impulse.to_vec(),
+            "momentum_drift": finite_or_null(momentum_drift),
+            "energy_initial": init.energy(),
+            "energy_final": finite_or_null(now.energy()),
+            "energy_drift": finite_or_null((now.energy() - init.energy()).abs() / energy_scale),
+        },
+        "time_breakdown_s": { "setup": times.setup, "continuum": times.continuum, "output": times.output },
+        "errors": errors.map(|e| json!({
+            "reference": "isothermal-riemann",
+            "pressure_l1": finite_or_null(e.l1),
+            "pressure_l2": finite_or_null(e.l2),
+            "pressure_spike": finite_or_null(e.spike),
+        })),
+        "provenance": {
+            "program": "mscale",
+            "version": env!("CARGO_PKG_VERSION"),
+            "commit": option_env!("MSCALE_COMMIT").unwrap_or("unknown"),
+            "features": crate::FEATURES,
+            "backend": if scene.needs_md() { "md" } else { "none (constitutive laws only)" },
+            "precision": "f64",
+            "inputs": inputs,
+        },
+        "command_line": opts.command_line,
+        "state_digest": output::state_digest(&sim.points, sim.step, sim.time),
+    }))
+}
