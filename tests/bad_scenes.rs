@@ -1,0 +1,99 @@
+//! Every bad scene is refused before anything runs, with a message that names the file, the
+//! line (or the --set), the key, the value and what is allowed.
+
+use mscale_tests::{repo, small_scene};
+use orchestrator::scene;
+
+/// Parses the small scene after replacing `from` with `to` (which must occur) and applying `sets`.
+fn parse_edited(from: &str, to: &str, sets: &[&str]) -> Result<scene::LoadedScene, scene::SceneError> {
+    let base = small_scene();
+    assert!(from.is_empty() || base.contains(from), "test bug: `{from}` is not in the small scene");
+    let text = if from.is_empty() { base } else { base.replacen(from, to, 1) };
+    let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+    scene::parse("bad.toml", &text, &sets, &repo().join("scenes"), "bad")
+}
+
+/// (what, replace this, with this, overrides, every fragment the message must contain)
+const CASES: &[(&str, &str, &str, &[&str], &[&str])] = &[
+    ("unknown top-level key", "name = \"small\"", "name = \"small\"\ncolour = 3", &[], &["bad.toml", "line 3", "unknown field `colour`"]),
+    ("unknown key in a body", "density = 1.0\n", "density = 1.0\ndensty = 2.0\n", &[], &["line 22", "`densty`", "unknown field `densty`", "expected one of"]),
+    ("missing scheme", "[scheme]\nmethod", "[schemex]\nmethod", &[], &["unknown field `schemex`"]),
+    ("missing end time", "end_time = 0.1\n", "\n", &[], &["missing field `end_time`"]),
+    ("wrong type", "cells = [50]", "cells = \"fifty\"", &[], &["line 8", "invalid type: string \"fifty\""]),
+    ("schema version", "schema = 1", "schema = 7", &[], &["line 1", "`schema` = 7", "this build reads schema 1"]),
+    ("dimension 4", "dimension = 1", "dimension = 4", &[], &["line 5", "`domain.dimension` = 4", "allowed: 1, 2 or 3"]),
+    ("inverted domain", "max = [1.0]\ncells", "max = [-1.0]\ncells", &[], &["line 7", "`domain.max` = [-1.0]", "must exceed domain.min"]),
+    ("cells and cell_size disagree", "cells = [50]", "cells = [50]\ncell_size = [0.03]", &[], &["line 9", "`domain.cell_size` = [0.03]", "disagrees with cells = [50]"]),
+    ("zero cells", "cells = [50]", "cells = [0]", &[], &["`domain.cells` = [0]", "positive integer"]),
+    ("cell size not dividing", "cells = [50]", "cell_size = [0.3]", &[], &["`domain.cell_size` = [0.3]", "whole number of cells"]),
+    ("negative density", "density = 1.0\n", "density = -1.0\n", &[], &["line 21", "`bodies.right.density` = -1", "finite positive"]),
+    ("body outside the domain", "max = [1.0]\ndensity = 1.0", "max = [1.5]\ndensity = 1.0", &[], &["`bodies.right.max`", "inside the domain"]),
+    ("unknown law", "law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]", "law = \"unobtainium\", sound_speed = 1.0 }\n\n[bodies.right]", &[], &["unknown variant `unobtainium`", "ideal-gas-isothermal"]),
+    ("zero sound speed", "sound_speed = 1.0 }\n\n[scheme]", "sound_speed = 0.0 }\n\n[scheme]", &[], &["`bodies.right.material.sound_speed` = 0", "finite positive"]),
+    ("unknown method", "method = \"ugimp\"", "method = \"magic\"", &[], &["line 25", "`scheme.method` = \"magic\"", "allowed: mpm, ugimp"]),
+    ("CFL beyond stability", "cfl = 0.2", "cfl = 1.5", &[], &["line 28", "`scheme.cfl` = 1.5", "0 < cfl <= 1"]),
+    ("time step beyond the bound", "cfl = 0.2", "timestep = 0.05", &[], &["`scheme.timestep` = 0.05", "exceeds the stability bound", "2.000000e-2 s"]),
+    ("cfl and timestep disagree", "cfl = 0.2", "cfl = 0.2\ntimestep = 0.001", &[], &["`scheme.timestep` = 0.001", "disagrees with cfl = 0.2", "not both"]),
+    ("no time step", "cfl = 0.2\n", "\n", &[], &["`scheme`", "missing `cfl`"]),
+    ("negative end time", "end_time = 0.1", "end_time = -0.1", &[], &["`scheme.end_time` = -0.1"]),
+    ("unknown boundary", "x_min = \"reflective\"", "x_min = \"sticky\"", &[], &["line 32", "`boundary.x_min` = \"sticky\"", "allowed: \"free\", \"fixed\""]),
+    ("half periodic", "x_min = \"reflective\"", "x_min = \"periodic\"", &[], &["`boundary.x_max`", "periodic must be set on both"]),
+    ("face of a missing axis", "x_max = \"reflective\"", "x_max = \"reflective\"\ny_min = \"fixed\"", &[], &["`boundary.y_min` = \"fixed\"", "a 1D scene has no y_min face"]),
+    ("reference names a missing body", "right = \"right\"\n", "right = \"middle\"\n", &[], &["`reference.right` = \"middle\"", "no such body; bodies: left, right"]),
+    ("too many particles per cell", "particles_per_cell = 4", "particles_per_cell = 0", &[], &["`scheme.particles_per_cell` = 0", "allowed: 1 to 64"]),
+    ("bad override value", "", "", &["bodies.left.density=-3"], &["--set bodies.left.density=-3", "`bodies.left.density` = -3"]),
+    ("override of an unknown key", "", "", &["scheme.colour=blue"], &["unknown field `colour`"]),
+    ("override through a value", "", "", &["scheme.method.name=x"], &["--set scheme.method.name=x", "is a value, not a table"]),
+    ("malformed override", "", "", &["scheme.cfl"], &["--set scheme.cfl", "expected --set dotted.key=value"]),
+    ("not TOML", "[domain]", "[domain", &[], &["not valid TOML"]),
+    ("missing potential file", "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
+        "material = { law = \"md\", potential = \"nowhere/Cu.eam.alloy\", lattice = \"fcc\", lattice_constant_angstrom = 3.615, cells_per_side = 5 }\n\n[bodies.right]",
+        &[], &["line 15", "`bodies.left.material.potential` = \"nowhere/Cu.eam.alloy\"", "no such file", "relative to the scene file"]),
+];
+
+#[test]
+fn every_bad_scene_is_refused_with_its_message() {
+    assert!(CASES.len() >= 20);
+    let mut failures = Vec::new();
+    for (what, from, to, sets, fragments) in CASES {
+        match parse_edited(from, to, sets) {
+            Ok(_) => failures.push(format!("{what}: accepted")),
+            Err(e) => {
+                let msg = e.to_string();
+                for f in *fragments {
+                    if !msg.contains(f) {
+                        failures.push(format!("{what}: message lacks `{f}`:\n    {msg}"));
+                    }
+                }
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{} of {} cases failed:\n{}", failures.len(), CASES.len(), failures.join("\n"));
+}
+
+#[test]
+fn the_small_scene_is_valid_and_overrides_apply() {
+    let loaded = parse_edited("", "", &["bodies.left.temperature_k=250", "scheme.particles_per_cell=2"]).expect("valid");
+    assert_eq!(loaded.scene.bodies["left"].temperature_k, 250.0);
+    assert_eq!(loaded.scene.scheme.particles_per_cell, 2);
+    // Defaults are filled: the time step comes from the CFL number (0.2 * 0.02 m / 1 m/s).
+    assert!((loaded.dt - 0.004).abs() < 1e-15);
+    assert_eq!(loaded.steps, 25);
+    assert_eq!(loaded.scene.scheme.timestep, Some(loaded.dt));
+    assert_eq!(loaded.scene.domain.cell_size, vec![0.02]);
+    // The resolved scene reads back to the same scene.
+    let again = scene::parse("resolved.toml", &loaded.scene.to_toml(), &[], &repo(), "x").expect("resolved scene is valid");
+    assert_eq!(again.scene, loaded.scene);
+}
+
+#[test]
+fn shipped_scenes_are_valid() {
+    for entry in std::fs::read_dir(repo().join("scenes")).expect("scenes/") {
+        let path = entry.expect("entry").path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            if let Err(e) = scene::load(&path, &[]) {
+                panic!("{} is invalid: {e}", path.display());
+            }
+        }
+    }
+}

@@ -546,7 +546,15 @@ impl Scene {
             }
         }
         match (d.cells.is_empty(), d.cell_size.is_empty()) {
-            (false, false) => return Err(loc.err("domain.cell_size", vec_str(&d.cell_size), "give `cells` or `cell_size`, not both")),
+            (false, false) => {
+                // Both given (as in a resolved scene): they must agree.
+                let agree = d.cells.len() == dim
+                    && d.cell_size.len() == dim
+                    && (0..dim).all(|a| ((d.max[a] - d.min[a]) / d.cells[a] as f64 - d.cell_size[a]).abs() <= 1e-9 * d.cell_size[a].abs());
+                if !agree {
+                    return Err(loc.err("domain.cell_size", vec_str(&d.cell_size), format!("disagrees with cells = {:?}; give `cells` or `cell_size`, not both", d.cells)));
+                }
+            }
             (true, true) => return Err(loc.err("domain", "", "missing `cells` (cells per axis) or `cell_size` (m per axis)")),
             (false, true) => {
                 if d.cells.len() != dim || d.cells.contains(&0) {
@@ -726,7 +734,16 @@ impl Scene {
             + self.bodies.values().flat_map(|b| b.velocity.iter()).fold(0.0_f64, |m, v| m.max(v.abs()));
         let bound = CFL_LIMIT * h / speed;
         let dt = match (s.cfl, s.timestep) {
-            (Some(_), Some(_)) => return Err(loc.err("scheme.timestep", s.timestep.unwrap_or_default(), "give `cfl` or `timestep`, not both")),
+            (Some(c), Some(dt)) => {
+                // Both given (as in a resolved scene): they must agree.
+                if (c - dt * speed / h).abs() > 1e-9 * c.abs() {
+                    return Err(loc.err("scheme.timestep", dt, format!("disagrees with cfl = {c} (which gives {:e} s); give `cfl` or `timestep`, not both", c * h / speed)));
+                }
+                if !(c > 0.0 && c <= CFL_LIMIT) {
+                    return Err(loc.err("scheme.cfl", c, format!("allowed: 0 < cfl <= {CFL_LIMIT} (explicit stability bound)")));
+                }
+                dt
+            }
             (None, None) => return Err(loc.err("scheme", "", "missing `cfl` (c dt / h, at most 1) or `timestep` (s)")),
             (Some(c), None) => {
                 if !(c > 0.0 && c <= CFL_LIMIT) {

@@ -1,0 +1,163 @@
+//! The `mscale` binary end to end: outputs of a run, exit codes, messages.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn mscale(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_mscale")).args(args).current_dir(repo()).env("RUST_LOG", "warn").output().expect("run mscale")
+}
+
+fn small() -> String {
+    repo().join("tests/data/small.toml").display().to_string()
+}
+
+fn text(o: &[u8]) -> String {
+    String::from_utf8_lossy(o).into_owned()
+}
+
+fn summary(dir: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).expect("summary.json")).expect("summary is JSON")
+}
+
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).expect("dir").flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}
+
+#[test]
+fn run_writes_every_output() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let o = mscale(&["run", &small(), "--out", out.to_str().expect("utf8")]);
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", text(&o.stderr));
+    let s = summary(&out);
+    assert_eq!(s["status"], "completed");
+    assert_eq!(s["steps"], 25);
+    for key in ["wall_seconds", "simulated_time_s", "time_breakdown_s", "provenance", "command_line", "state_digest", "conservation"] {
+        assert!(!s[key].is_null(), "summary lacks {key}");
+    }
+    assert_eq!(s["conservation"]["mass_drift"], 0.0);
+    assert!(s["conservation"]["momentum_drift"].as_f64().expect("number") < 1e-9, "{}", s["conservation"]);
+    let e = &s["errors"];
+    assert_eq!(e["reference"], "isothermal-riemann");
+    let l1 = e["pressure_l1"].as_f64().expect("number");
+    assert!(l1 > 0.0 && l1 < 0.2, "pressure L1 {l1}");
+    assert_eq!(s["provenance"]["inputs"].as_object().expect("map").len(), 1);
+    assert_eq!(s["state_digest"].as_str().expect("digest").len(), 64);
+
+    let resolved = std::fs::read_to_string(out.join("scene.resolved.toml")).expect("resolved");
+    assert!(resolved.contains("timestep = 0.004") && resolved.contains("viscosity_coefficient"), "{resolved}");
+
+    let index = std::fs::read_to_string(out.join("snapshots/index.csv")).expect("index");
+    let mut lines = index.lines();
+    assert_eq!(lines.next(), Some("step,time,file"));
+    let rows: Vec<&str> = lines.collect();
+    assert_eq!(rows.len(), 4, "initial, two in between (snapshots = 2), final: {index}");
+    for row in rows {
+        let file = row.split(',').nth(2).expect("file column");
+        assert!(out.join("snapshots").join(file).is_file(), "{file} listed but missing");
+    }
+    let csv = std::fs::read_to_string(out.join("particles_final.csv")).expect("final csv");
+    let header = csv.lines().next().expect("header");
+    assert_eq!(header, "id,x0,x,vx,mass,volume,density,pressure,sxx,syy,szz,sxy,sxz,syz");
+    assert_eq!(csv.lines().count(), 1 + 50 * 4);
+    assert!(!csv.contains("NaN") && !csv.contains("inf"));
+
+    let pvd = std::fs::read_to_string(out.join("vtk/particles.pvd")).expect("pvd");
+    assert_eq!(pvd.matches("<DataSet").count(), 4);
+    let vtu = std::fs::read_to_string(out.join("vtk/particles_00000025.vtu")).expect("vtu");
+    assert!(vtu.contains("NumberOfPoints=\"200\"") && vtu.contains("Name=\"pressure\""));
+    for plot in ["pressure", "velocity", "density"] {
+        let png = std::fs::read(out.join(format!("plots/{plot}.png"))).expect("png");
+        assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+    }
+    // No temporary file is left behind by the atomic writes.
+    let leftovers: Vec<_> = walk(&out).into_iter().filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().contains(".tmp"))).collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}
+
+#[test]
+fn same_scene_gives_the_same_digest_and_overrides_change_it() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let scene = small();
+    let digest = |name: &str, extra: &[&str]| {
+        let out = tmp.path().join(name);
+        let mut args = vec!["run", scene.as_str(), "--out", out.to_str().expect("utf8")];
+        args.extend_from_slice(extra);
+        let o = mscale(&args);
+        assert_eq!(o.status.code(), Some(0), "stderr: {}", text(&o.stderr));
+        summary(&out)["state_digest"].as_str().expect("digest").to_string()
+    };
+    let a = digest("a", &[]);
+    let b = digest("b", &[]);
+    let c = digest("c", &["--set", "bodies.left.density=1.2"]);
+    assert_eq!(a, b);
+    assert_ne!(a, c);
+}
+
+#[test]
+fn check_prints_the_resolved_scene_and_the_work() {
+    let o = mscale(&["check", &small(), "--set", "scheme.particles_per_cell=2"]);
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", text(&o.stderr));
+    let s = text(&o.stdout);
+    assert!(s.contains("particles_per_cell = 2"), "{s}");
+    assert!(s.contains("# points = 100") && s.contains("# grid_nodes = 51") && s.contains("# steps = 25"), "{s}");
+}
+
+#[test]
+fn bad_input_exits_2_with_a_message_and_no_panic() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let bad = tmp.path().join("bad.toml");
+    std::fs::write(&bad, std::fs::read_to_string(small()).expect("small").replace("cfl = 0.2", "cfl = 3.0")).expect("write");
+    for args in [vec!["run", bad.to_str().expect("utf8")], vec!["check", bad.to_str().expect("utf8")]] {
+        let o = mscale(&args);
+        assert_eq!(o.status.code(), Some(2));
+        let err = text(&o.stderr);
+        assert!(err.contains("bad.toml, line 28: `scheme.cfl` = 3"), "{err}");
+        assert!(!err.contains("panicked"), "{err}");
+    }
+    let o = mscale(&["run", "no/such/scene.toml"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(text(&o.stderr).contains("cannot read the scene file"));
+    let o = mscale(&["frobnicate"]);
+    assert_eq!(o.status.code(), Some(2));
+}
+
+#[test]
+fn a_run_stopped_by_the_guard_exits_1_and_keeps_its_outputs() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    // The right body flies out through a free face: the guard stops the run.
+    let o = mscale(&[
+        "run",
+        &small(),
+        "--out",
+        out.to_str().expect("utf8"),
+        "--set",
+        "boundary.x_max=\"free\"",
+        "--set",
+        "bodies.right.velocity=[30.0]",
+        "--set",
+        "scheme.end_time=1.0",
+    ]);
+    assert_eq!(o.status.code(), Some(1), "stderr: {}", text(&o.stderr));
+    let err = text(&o.stderr);
+    assert!(err.contains("left the grid along axis 0") && err.contains("likely cause"), "{err}");
+    let s = summary(&out);
+    assert_eq!(s["status"], "failed");
+    assert!(s["error"].as_str().expect("error").contains("left the grid"));
+    assert!(out.join("particles_final.csv").is_file());
+    assert!(out.join("snapshots/index.csv").is_file());
+}
