@@ -518,7 +518,11 @@ pub fn prepare_box(pot: &Potential, masses: &[f64], s: &BoxSpec) -> Result<BoxSt
 /// Rescale box lengths towards zero mean normal stress, in blocks of 100 NVE steps.
 fn relax_box_lengths(pot: &Potential, masses: &[f64], b: &mut BoxView, s: &BoxSpec, rho: &mut Vec<f64>, fp: &mut Vec<f64>) {
     const BLOCK: u64 = 100;
-    const STIFFNESS_GPA: f64 = 300.0; // conservative: a bit above 3 x bulk modulus of metals
+    // Assumed stiffnesses of the volumetric (C11 + 2 C12; Cu 415 GPa) and deviatoric
+    // (C11 - C12; Cu 47 GPa) modes, set a little above cubic metals' values so the update
+    // converges without overshooting.
+    const VOLUMETRIC_GPA: f64 = 450.0;
+    const DEVIATORIC_GPA: f64 = 60.0;
     let still = Deformation::new(s.mode, &[[0.0; 3]; 3]);
     for _ in 0..s.relax_box_blocks {
         let mut mean = [0.0; 3];
@@ -531,9 +535,11 @@ fn relax_box_lengths(pot: &Potential, masses: &[f64], b: &mut BoxView, s: &BoxSp
         }
         let old_l = b.meta.l;
         let old_lo = b.meta.lo;
+        let hydro = (mean[0] + mean[1] + mean[2]) / 3.0;
         for d in 0..3 {
             // Tension (positive) means the box is too long: shrink it.
-            let factor = (1.0 + mean[d] / STIFFNESS_GPA).clamp(0.98, 1.02);
+            let strain = hydro / VOLUMETRIC_GPA + (mean[d] - hydro) / DEVIATORIC_GPA;
+            let factor = (1.0 - strain).clamp(0.98, 1.02);
             let mid = old_lo[d] + 0.5 * old_l[d];
             b.meta.l[d] = old_l[d] * factor;
             b.meta.lo[d] = mid - 0.5 * b.meta.l[d];

@@ -326,6 +326,7 @@ impl Deformation {
 
 /// Run `steps` velocity-Verlet steps of `dt` ps on one box. Forces in `b.f` must be those
 /// of the current positions. Returns the number of atom wraps (seed mode).
+#[allow(clippy::too_many_arguments)]
 pub fn run_steps(
     pot: &Potential,
     masses: &[f64],
