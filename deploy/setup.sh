@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Installs what mscale needs beyond cargo for its optional features. The default build needs
+# none of it. Usage:
+#   bash deploy/setup.sh            # nothing to install for the default build; prints what is optional
+#   bash deploy/setup.sh mpi        # Open MPI + libclang (cargo feature `mpi`)
+#   bash deploy/setup.sh nvrtc      # NVRTC from PyPI (cargo feature `cuda`: kernels compile in CI without a GPU)
+#   bash deploy/setup.sh lammps     # LAMMPS, to regenerate the MD golden data (tests do not need it)
+#   bash deploy/setup.sh all
+# Prints, for nvrtc, the export line that puts libnvrtc on LD_LIBRARY_PATH.
+set -euo pipefail
+
+need_apt() {
+  local missing=()
+  for p in "$@"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
+  if [ ${#missing[@]} -gt 0 ]; then
+    echo "setup: installing ${missing[*]}" >&2
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq >/dev/null
+    apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+  fi
+}
+
+nvrtc_dir() {
+  python3 - <<'PY'
+import importlib.util, os, sys
+spec = importlib.util.find_spec("nvidia.cuda_nvrtc")
+if spec is None or not spec.submodule_search_locations:
+    sys.exit(1)
+print(os.path.join(list(spec.submodule_search_locations)[0], "lib"))
+PY
+}
+
+want="${1:-none}"
+case "$want" in
+  none)
+    echo "setup: the default build needs only cargo; optional: mpi, nvrtc, lammps, all" ;;
+  mpi|all|nvrtc|lammps) ;;
+  *) echo "setup: unknown component '$want' (expected mpi, nvrtc, lammps or all)" >&2; exit 2 ;;
+esac
+if [ "$want" = mpi ] || [ "$want" = all ]; then
+  need_apt libopenmpi-dev openmpi-bin libclang-dev pkg-config
+fi
+if [ "$want" = lammps ] || [ "$want" = all ]; then
+  need_apt lammps lammps-data
+fi
+if [ "$want" = nvrtc ] || [ "$want" = all ]; then
+  if ! nvrtc_dir >/dev/null 2>&1; then
+    echo "setup: installing nvidia-cuda-nvrtc-cu12 from PyPI" >&2
+    python3 -m pip install -q nvidia-cuda-nvrtc-cu12 >&2
+  fi
+  echo "export LD_LIBRARY_PATH=$(nvrtc_dir)\${LD_LIBRARY_PATH:+:\$LD_LIBRARY_PATH}"
+fi
