@@ -5,6 +5,7 @@
 //! library, so tests drive the same code users do.
 
 pub mod output;
+pub mod report;
 pub mod run;
 pub mod scene;
 pub mod setup;

@@ -25,11 +25,31 @@ enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
+    /// Reports over many runs of a scene.
+    #[command(subcommand)]
+    Report(ReportCommand),
     /// Validate a scene and print it with every default filled, and the size of the work.
     Check {
         scene: PathBuf,
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
+    },
+}
+
+#[derive(Subcommand)]
+enum ReportCommand {
+    /// Run every combination of the sweeps; write report.csv and report.png (error against wall time).
+    ErrorVsTime {
+        scene: PathBuf,
+        /// A parameter and its values: --sweep scheme.particles_per_cell=8,16,32 (repeatable).
+        #[arg(long = "sweep", value_name = "KEY=V1,V2,...", required = true)]
+        sweep: Vec<orchestrator::report::Sweep>,
+        /// Override applied to every run (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+        /// Report directory (default runs/<scene>-report).
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
 }
 
@@ -62,6 +82,23 @@ fn dispatch(cli: Cli) -> i32 {
                 exit::BAD_INPUT
             }
         },
+        Command::Report(ReportCommand::ErrorVsTime { scene, sweep, set, out }) => {
+            let out = out.unwrap_or_else(|| orchestrator::report::default_out(&scene));
+            match orchestrator::report::error_vs_time(&scene, &set, &sweep, &out) {
+                Ok(rows) => {
+                    println!("{} runs; report in {}/report.csv and report.png", rows.len(), out.display());
+                    exit::OK
+                }
+                Err(orchestrator::report::ReportError::Scene(e)) => {
+                    eprintln!("mscale: {e}");
+                    exit::BAD_INPUT
+                }
+                Err(e) => {
+                    eprintln!("mscale: {e}");
+                    exit::RUN_FAILED
+                }
+            }
+        }
         Command::Run { scene, out, set } => {
             let loaded = match scene::load(&scene, &set) {
                 Ok(l) => l,

@@ -223,3 +223,16 @@ fn encode_png(rgb: &[u8], w: u32, h: u32) -> Result<Vec<u8>> {
     }
     Ok(out)
 }
+
+/// Log-log plot: the data are drawn as log10 values on linear axes (labelled so).
+pub fn plot_loglog(path: &Path, title: &str, xlabel: &str, ylabel: &str, series: &[Series<'_>]) -> Result<()> {
+    let logged: Vec<Series<'_>> = series
+        .iter()
+        .map(|s| Series {
+            label: s.label,
+            points: s.points.iter().filter(|(x, y)| *x > 0.0 && *y > 0.0).map(|(x, y)| (x.log10(), y.log10())).collect(),
+            line: s.line,
+        })
+        .collect();
+    plot_profile(path, title, &format!("log10 {xlabel}"), &format!("log10 {ylabel}"), &logged)
+}

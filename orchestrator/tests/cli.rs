@@ -161,3 +161,31 @@ fn a_run_stopped_by_the_guard_exits_1_and_keeps_its_outputs() {
     assert!(out.join("particles_final.csv").is_file());
     assert!(out.join("snapshots/index.csv").is_file());
 }
+
+#[test]
+fn report_error_vs_time_runs_every_combination() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("rep");
+    let o = mscale(&["report", "error-vs-time", &small(), "--sweep", "scheme.method=mpm,ugimp", "--sweep", "scheme.particles_per_cell=2,4", "--out", out.to_str().expect("utf8")]);
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", text(&o.stderr));
+    let csv = std::fs::read_to_string(out.join("report.csv")).expect("report.csv");
+    let rows: Vec<Vec<&str>> = csv.lines().map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows[0][..5], ["scheme.method", "scheme.particles_per_cell", "method", "status", "pressure_l1"]);
+    assert_eq!(rows.len(), 5);
+    let combos: Vec<(&str, &str)> = rows[1..].iter().map(|r| (r[0], r[1])).collect();
+    assert_eq!(combos, [("mpm", "2"), ("mpm", "4"), ("ugimp", "2"), ("ugimp", "4")]);
+    for r in &rows[1..] {
+        assert_eq!(r[3], "completed");
+        let l1: f64 = r[4].parse().expect("l1");
+        assert!(l1 > 0.0);
+        let evaluations: u64 = r[10].parse().expect("evaluations");
+        let ppc: u64 = r[1].parse().expect("ppc");
+        assert_eq!(evaluations, 25 * 50 * ppc, "closure evaluations = steps x points");
+    }
+    assert_eq!(&std::fs::read(out.join("report.png")).expect("png")[..4], b"\x89PNG");
+    // A bad sweep value is refused before anything runs.
+    let o = mscale(&["report", "error-vs-time", &small(), "--sweep", "scheme.cfl=0.5,7", "--out", out.join("bad").to_str().expect("utf8")]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(text(&o.stderr).contains("`scheme.cfl` = 7"), "{}", text(&o.stderr));
+    assert!(!out.join("bad").exists());
+}
