@@ -1,3 +1,16 @@
-//! gRPC definitions of mscale and the code generated from them. The coupling protocol
-//! (`mscale.coupling.v1`) and the orchestrator protocol (`mscale.orchestrator.v1`) are added
-//! by the coupling-service and orchestrator work; nothing here is generated yet.
+//! gRPC definitions of mscale and the code generated from them (tonic + prost, protoc
+//! vendored). Generated types stay at the edge: the crates convert them to their domain types
+//! with `From`/`TryFrom` and refuse bad values there.
+
+/// The coupling protocol between the continuum coordinator and MD workers.
+pub mod coupling {
+    pub mod v1 {
+        tonic::include_proto!("mscale.coupling.v1");
+    }
+}
+
+/// Version of `mscale.coupling.v1` this build speaks; checked on `Open`.
+pub const COUPLING_PROTOCOL_VERSION: u32 = 1;
+
+/// Encoded file descriptor set of every service (for gRPC reflection).
+pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("mscale_descriptor");

@@ -1,0 +1,355 @@
+//! The client side of a worker pool: boxes spread over endpoints, each either an in-process
+//! back end or a remote `md-worker serve` reached over gRPC (`mscale.coupling.v1`).
+//!
+//! Every box is owned by exactly one endpoint; a step's work is split by owner, run on all
+//! endpoints at once (one thread per endpoint), and the results are put back in the order of
+//! the request. Since every box is computed independently and deterministically, the result
+//! does not depend on how many endpoints there are or which kind they are.
+
+use crate::backend::{BoxResult, BoxSpec, BoxState, BoxWork, MdBackend, PointId};
+use crate::error::MdError;
+use crate::potential::Potential;
+use crate::wire;
+use mscale_proto::coupling::v1 as pb;
+use sha2::{Digest, Sha256};
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// A potential file as shipped to workers: its name, bytes and SHA-256.
+#[derive(Debug, Clone)]
+pub struct PotentialSource {
+    pub name: String,
+    pub bytes: Arc<Vec<u8>>,
+    pub sha256: String,
+}
+
+impl PotentialSource {
+    pub fn from_file(path: &std::path::Path) -> Result<Self, MdError> {
+        let bytes = std::fs::read(path).map_err(|e| MdError::Io { file: path.display().to_string(), source: e })?;
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        Ok(Self::from_bytes(name, bytes))
+    }
+
+    pub fn from_bytes(name: String, bytes: Vec<u8>) -> Self {
+        let sha256 = hex::encode(Sha256::digest(&bytes));
+        PotentialSource { name, bytes: Arc::new(bytes), sha256 }
+    }
+
+    /// Parses the potential (the format follows the file name).
+    pub fn parse(&self) -> Result<Potential, MdError> {
+        let text = std::str::from_utf8(&self.bytes).map_err(|_| MdError::Parse { file: self.name.clone(), line: 1, msg: "not a text file".into() })?;
+        Potential::from_text(&self.name, text)
+    }
+}
+
+/// One place boxes live.
+pub trait Endpoint: Send {
+    /// Name for messages (`in-process cpu`, `127.0.0.1:50051`).
+    fn name(&self) -> String;
+    fn open(&mut self, potential: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError>;
+    /// Results in the order of `work`.
+    fn step(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError>;
+    fn snapshot(&mut self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError>;
+    fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError>;
+    /// Back end and precision that hold the boxes (`cpu/double`).
+    fn kind(&self) -> String;
+}
+
+/// An in-process back end, created on `open` from the potential.
+pub struct InProcess {
+    backend_name: String,
+    backend: Option<Box<dyn MdBackend>>,
+    threads: Option<Arc<rayon::ThreadPool>>,
+}
+
+impl InProcess {
+    /// `backend`: `reference` or `cpu` (the rayon pool is the global one unless `threads` is given).
+    pub fn new(backend: &str, threads: Option<Arc<rayon::ThreadPool>>) -> Self {
+        InProcess { backend_name: backend.to_string(), backend: None, threads }
+    }
+
+    fn backend(&mut self) -> Result<&mut Box<dyn MdBackend>, MdError> {
+        self.backend.as_mut().ok_or_else(|| MdError::invalid("pool", "step before open"))
+    }
+}
+
+impl Endpoint for InProcess {
+    fn name(&self) -> String {
+        format!("in-process {}", self.backend_name)
+    }
+    fn open(&mut self, potential: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
+        if self.backend.is_none() {
+            let pot = Arc::new(potential.parse()?);
+            self.backend = Some(match (self.backend_name.as_str(), &self.threads) {
+                ("cpu", Some(pool)) => Box::new(crate::CpuBackend::with_pool(pot, pool.clone())),
+                (name, _) => crate::backend_by_name(name, pot)?,
+            });
+        }
+        self.backend()?.open(specs)
+    }
+    fn step(&mut self, _step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
+        let mut out = vec![BoxResult::default(); work.len()];
+        self.backend()?.step(work, &mut out)?;
+        Ok(out)
+    }
+    fn snapshot(&mut self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError> {
+        self.backend()?.snapshot(ids)
+    }
+    fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
+        self.backend()?.restore(states)
+    }
+    fn kind(&self) -> String {
+        format!("{}/double", self.backend_name)
+    }
+}
+
+/// Time spent in a pool's step calls.
+#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
+pub struct PoolTimes {
+    /// Wall time of step calls (s).
+    pub step_wall: f64,
+    /// Largest compute time of an endpoint per call, summed (s).
+    pub md_compute: f64,
+    /// Step calls.
+    pub calls: u64,
+}
+
+/// Boxes spread over endpoints.
+pub struct MdPool {
+    endpoints: Vec<Box<dyn Endpoint>>,
+    owner: HashMap<PointId, usize>,
+    pub times: PoolTimes,
+}
+
+impl MdPool {
+    pub fn new(endpoints: Vec<Box<dyn Endpoint>>) -> Result<Self, MdError> {
+        if endpoints.is_empty() {
+            return Err(MdError::invalid("pool", "no endpoints"));
+        }
+        Ok(MdPool { endpoints, owner: HashMap::new(), times: PoolTimes::default() })
+    }
+
+    pub fn endpoint_names(&self) -> Vec<String> {
+        self.endpoints.iter().map(|e| e.name()).collect()
+    }
+
+    /// Back end kinds of the endpoints (`cpu/double`, ...).
+    pub fn kinds(&self) -> Vec<String> {
+        self.endpoints.iter().map(|e| e.kind()).collect()
+    }
+
+    /// Opens boxes, spread over the endpoints in contiguous, nearly equal blocks.
+    pub fn open(&mut self, potential: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
+        let n = self.endpoints.len();
+        let mut parts: Vec<Vec<BoxSpec>> = vec![Vec::new(); n];
+        for (k, s) in specs.iter().enumerate() {
+            if self.owner.contains_key(&s.id) {
+                return Err(MdError::invalid("box spec", format!("point {} is opened twice", s.id)));
+            }
+            let e = k * n / specs.len().max(1);
+            parts[e].push(s.clone());
+        }
+        let results = self.on_every_endpoint(parts, |ep, part| if part.is_empty() { Ok(()) } else { ep.open(potential, &part) });
+        for (e, r) in results.into_iter().enumerate() {
+            r.map_err(|err| lost(&*self.endpoints[e], "open", err))?;
+        }
+        let n = self.endpoints.len();
+        for (k, s) in specs.iter().enumerate() {
+            self.owner.insert(s.id, k * n / specs.len().max(1));
+        }
+        Ok(())
+    }
+
+    /// Advances boxes; `out[k]` is the result of `work[k]`.
+    pub fn step(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
+        let start = Instant::now();
+        let n = self.endpoints.len();
+        let mut parts: Vec<Vec<BoxWork>> = vec![Vec::new(); n];
+        let mut slot: Vec<Vec<usize>> = vec![Vec::new(); n];
+        for (k, w) in work.iter().enumerate() {
+            let e = *self.owner.get(&w.id).ok_or(MdError::UnknownBox(w.id))?;
+            parts[e].push(*w);
+            slot[e].push(k);
+        }
+        let results = self.on_every_endpoint(parts, |ep, part| {
+            let t = Instant::now();
+            let r = if part.is_empty() { Ok(Vec::new()) } else { ep.step(step, &part) };
+            r.map(|r| (r, t.elapsed().as_secs_f64()))
+        });
+        let mut out = vec![BoxResult::default(); work.len()];
+        let mut slowest: f64 = 0.0;
+        for (e, r) in results.into_iter().enumerate() {
+            let (res, secs) = r.map_err(|err| lost(&*self.endpoints[e], &format!("continuum step {step}"), err))?;
+            slowest = slowest.max(secs);
+            if res.len() != slot[e].len() {
+                return Err(MdError::invalid("worker reply", format!("{} returned {} results for {} boxes", self.endpoints[e].name(), res.len(), slot[e].len())));
+            }
+            for (k, r) in slot[e].iter().zip(res) {
+                if r.id != work[*k].id {
+                    return Err(MdError::invalid("worker reply", format!("{} answered point {} for point {}", self.endpoints[e].name(), r.id, work[*k].id)));
+                }
+                wire::check_result(&r, &self.endpoints[e].name())?;
+                out[*k] = r;
+            }
+        }
+        self.times.step_wall += start.elapsed().as_secs_f64();
+        self.times.md_compute += slowest;
+        self.times.calls += 1;
+        Ok(out)
+    }
+
+    /// States of the named boxes, in the order of `ids`.
+    pub fn snapshot(&mut self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError> {
+        let mut out = Vec::with_capacity(ids.len());
+        for id in ids {
+            let e = *self.owner.get(id).ok_or(MdError::UnknownBox(*id))?;
+            out.extend(self.endpoints[e].snapshot(&[*id])?);
+        }
+        Ok(out)
+    }
+
+    /// Runs `f` on every endpoint with its part, concurrently (one thread per endpoint).
+    fn on_every_endpoint<P: Send, R: Send>(&mut self, parts: Vec<P>, f: impl Fn(&mut dyn Endpoint, P) -> R + Sync) -> Vec<R> {
+        if self.endpoints.len() == 1 {
+            return parts.into_iter().map(|p| f(&mut *self.endpoints[0], p)).collect();
+        }
+        std::thread::scope(|s| {
+            let handles: Vec<_> = self.endpoints.iter_mut().zip(parts).map(|(ep, p)| {
+                let f = &f;
+                s.spawn(move || f(&mut **ep, p))
+            }).collect();
+            handles.into_iter().map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
+        })
+    }
+}
+
+fn lost(ep: &dyn Endpoint, when: &str, err: MdError) -> MdError {
+    MdError::Worker { worker: ep.name(), msg: format!("failed during {when}: {err}") }
+}
+
+/// A remote worker over gRPC. Calls block on a shared tokio runtime.
+pub struct Remote {
+    addr: String,
+    rt: Arc<tokio::runtime::Runtime>,
+    client: pb::md_worker_client::MdWorkerClient<tonic::transport::Channel>,
+    session: Option<u64>,
+    kind: String,
+    stream: Option<StepStream>,
+}
+
+struct StepStream {
+    tx: tokio::sync::mpsc::Sender<pb::StepBatch>,
+    rx: tonic::Streaming<pb::StepResults>,
+}
+
+impl Remote {
+    /// Connects to `addr` (`host:port`) and checks the protocol version.
+    pub fn connect(addr: &str, rt: Arc<tokio::runtime::Runtime>) -> Result<Self, MdError> {
+        let url = if addr.starts_with("http") { addr.to_string() } else { format!("http://{addr}") };
+        let worker = |msg: String| MdError::Worker { worker: addr.to_string(), msg };
+        let client = rt.block_on(async {
+            let ch = tonic::transport::Endpoint::from_shared(url.clone())
+                .map_err(|e| worker(format!("bad address: {e}")))?
+                .connect_timeout(std::time::Duration::from_secs(10))
+                .tcp_nodelay(true)
+                .connect()
+                .await
+                .map_err(|e| worker(format!("cannot connect: {e}")))?;
+            Ok::<_, MdError>(pb::md_worker_client::MdWorkerClient::new(ch).max_decoding_message_size(wire::MAX_MESSAGE).max_encoding_message_size(wire::MAX_MESSAGE))
+        })?;
+        let mut remote = Remote { addr: addr.to_string(), rt, client, session: None, kind: String::new(), stream: None };
+        let info = remote.rt.block_on(remote.client.info(pb::InfoRequest {})).map_err(|s| worker(wire::status_text(&s)))?.into_inner();
+        if info.protocol_version != mscale_proto::COUPLING_PROTOCOL_VERSION {
+            return Err(worker(format!("speaks coupling protocol {}, this build speaks {}", info.protocol_version, mscale_proto::COUPLING_PROTOCOL_VERSION)));
+        }
+        Ok(remote)
+    }
+
+    fn err(&self, s: tonic::Status) -> MdError {
+        MdError::Worker { worker: self.addr.clone(), msg: wire::status_text(&s) }
+    }
+
+    fn session(&self) -> Result<u64, MdError> {
+        self.session.ok_or_else(|| MdError::invalid("pool", "step before open"))
+    }
+}
+
+impl Endpoint for Remote {
+    fn name(&self) -> String {
+        self.addr.clone()
+    }
+
+    fn open(&mut self, potential: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
+        if self.session.is_some() {
+            return Err(MdError::Unsupported("opening more boxes on a remote worker after the first open".into()));
+        }
+        let pref = pb::PotentialRef { name: potential.name.clone(), sha256: potential.sha256.clone() };
+        let present = self.rt.block_on(self.client.has_potential(pref.clone())).map_err(|s| self.err(s))?.into_inner().present;
+        let req = pb::OpenRequest {
+            protocol_version: mscale_proto::COUPLING_PROTOCOL_VERSION,
+            potential: Some(pref),
+            potential_bytes: if present { Vec::new() } else { potential.bytes.as_ref().clone() },
+            boxes: specs.iter().map(wire::spec_to_pb).collect(),
+            backend: String::new(),
+        };
+        let resp = self.rt.block_on(self.client.open(req)).map_err(|s| self.err(s))?.into_inner();
+        self.session = Some(resp.session);
+        self.kind = format!("{}/{}", resp.backend, resp.precision);
+        Ok(())
+    }
+
+    fn step(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
+        let session = self.session()?;
+        if self.stream.is_none() {
+            let (tx, rx) = tokio::sync::mpsc::channel(16);
+            let out = tokio_stream::wrappers::ReceiverStream::new(rx);
+            let mut client = self.client.clone();
+            let resp = self.rt.block_on(client.step(out)).map_err(|s| self.err(s))?;
+            self.stream = Some(StepStream { tx, rx: resp.into_inner() });
+        }
+        let addr = self.addr.clone();
+        let stream = self.stream.as_mut().ok_or_else(|| MdError::invalid("pool", "no step stream"))?;
+        let chunks: Vec<&[BoxWork]> = work.chunks(wire::MAX_BOXES_PER_MESSAGE).collect();
+        let result = self.rt.block_on(async {
+            for c in &chunks {
+                let batch = pb::StepBatch { session, step, work: c.iter().map(wire::work_to_pb).collect() };
+                stream.tx.send(batch).await.map_err(|_| format!("the step stream to {addr} closed"))?;
+            }
+            let mut out = Vec::with_capacity(work.len());
+            for _ in &chunks {
+                match stream.rx.message().await {
+                    Ok(Some(r)) => {
+                        for res in r.results {
+                            out.push(wire::result_from_pb(&res).map_err(|e| e.to_string())?);
+                        }
+                    }
+                    Ok(None) => return Err(format!("{addr} closed the step stream")),
+                    Err(s) => return Err(wire::status_text(&s)),
+                }
+            }
+            Ok(out)
+        });
+        result.map_err(|msg| {
+            self.stream = None;
+            MdError::Worker { worker: self.addr.clone(), msg }
+        })
+    }
+
+    fn snapshot(&mut self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError> {
+        let req = pb::SnapshotRequest { session: self.session()?, point_ids: ids.to_vec() };
+        let resp = self.rt.block_on(self.client.snapshot(req)).map_err(|s| self.err(s))?.into_inner();
+        resp.states.iter().map(|b| serde_json::from_slice(b).map_err(|e| MdError::invalid("box state", e.to_string()))).collect()
+    }
+
+    fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
+        let states = states.iter().map(|s| serde_json::to_vec(s).map_err(|e| MdError::invalid("box state", e.to_string()))).collect::<Result<_, _>>()?;
+        let req = pb::RestoreRequest { session: self.session()?, states };
+        self.rt.block_on(self.client.restore(req)).map_err(|s| self.err(s))?;
+        Ok(())
+    }
+
+    fn kind(&self) -> String {
+        self.kind.clone()
+    }
+}

@@ -1,0 +1,198 @@
+//! `md-worker serve`: hosts boxes for coordinators over gRPC (`mscale.coupling.v1`).
+//!
+//! The service only decodes, calls an [`MdBackend`], and encodes. MD work runs on blocking
+//! threads (and the back end's rayon pool), never on the tokio runtime, so health checks and
+//! other calls are answered while a batch computes. Every server registers gRPC health
+//! (NOT_SERVING until ready) and reflection.
+
+use crate::backend::MdBackend;
+use crate::error::MdError;
+use crate::pool::PotentialSource;
+use crate::potential::Potential;
+use crate::wire;
+use mscale_proto::coupling::v1 as pb;
+use pb::md_worker_server::{MdWorker, MdWorkerServer};
+use std::collections::HashMap;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status};
+
+type Shared<T> = Arc<Mutex<T>>;
+
+/// What a worker serves with.
+#[derive(Clone)]
+pub struct ServeOptions {
+    /// Back end for new sessions: `cpu` or `reference`.
+    pub backend: String,
+    /// Rayon pool for the `cpu` back end (global pool if `None`).
+    pub threads: Option<Arc<rayon::ThreadPool>>,
+    /// Device description reported by `Info`.
+    pub device: String,
+}
+
+pub struct WorkerService {
+    opts: ServeOptions,
+    potentials: Shared<HashMap<String, Arc<Potential>>>,
+    sessions: Shared<HashMap<u64, Shared<Box<dyn MdBackend>>>>,
+    next_session: AtomicU64,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+impl WorkerService {
+    pub fn new(opts: ServeOptions) -> Self {
+        WorkerService { opts, potentials: Default::default(), sessions: Default::default(), next_session: AtomicU64::new(1) }
+    }
+
+    fn session(&self, id: u64) -> Result<Shared<Box<dyn MdBackend>>, Status> {
+        lock(&self.sessions).get(&id).cloned().ok_or_else(|| Status::not_found(format!("no session {id} on this worker (was it restarted?)")))
+    }
+}
+
+/// Runs blocking MD work off the runtime.
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, MdError> + Send + 'static) -> Result<T, Status> {
+    tokio::task::spawn_blocking(f).await.map_err(|e| Status::internal(format!("worker task failed: {e}")))?.map_err(Status::from)
+}
+
+#[tonic::async_trait]
+impl MdWorker for WorkerService {
+    async fn info(&self, _: Request<pb::InfoRequest>) -> Result<Response<pb::InfoResponse>, Status> {
+        Ok(Response::new(pb::InfoResponse {
+            protocol_version: mscale_proto::COUPLING_PROTOCOL_VERSION,
+            device: self.opts.device.clone(),
+            cores: std::thread::available_parallelism().map(|n| n.get() as u32).unwrap_or(1),
+            version: env!("CARGO_PKG_VERSION").into(),
+        }))
+    }
+
+    async fn has_potential(&self, req: Request<pb::PotentialRef>) -> Result<Response<pb::HasPotentialResponse>, Status> {
+        let present = lock(&self.potentials).contains_key(&req.get_ref().sha256);
+        Ok(Response::new(pb::HasPotentialResponse { present }))
+    }
+
+    async fn open(&self, req: Request<pb::OpenRequest>) -> Result<Response<pb::OpenResponse>, Status> {
+        let req = req.into_inner();
+        if req.protocol_version != mscale_proto::COUPLING_PROTOCOL_VERSION {
+            return Err(Status::failed_precondition(format!(
+                "coordinator speaks coupling protocol {}, this worker speaks {}",
+                req.protocol_version,
+                mscale_proto::COUPLING_PROTOCOL_VERSION
+            )));
+        }
+        let pref = req.potential.ok_or_else(|| Status::invalid_argument("`potential` is missing"))?;
+        let known = lock(&self.potentials).get(&pref.sha256).cloned();
+        let pot = match known {
+            Some(p) => p,
+            None if req.potential_bytes.is_empty() => {
+                return Err(Status::failed_precondition(format!("this worker lacks potential {} ({}); send its bytes", pref.name, pref.sha256)));
+            }
+            None => {
+                let src = PotentialSource::from_bytes(pref.name.clone(), req.potential_bytes);
+                if src.sha256 != pref.sha256 {
+                    return Err(Status::invalid_argument(format!("potential {}: bytes hash to {}, not {}", pref.name, src.sha256, pref.sha256)));
+                }
+                let pot = Arc::new(blocking(move || src.parse()).await?);
+                lock(&self.potentials).insert(pref.sha256.clone(), pot.clone());
+                pot
+            }
+        };
+        let specs = req.boxes.iter().map(wire::spec_from_pb).collect::<Result<Vec<_>, _>>()?;
+        let name = if req.backend.is_empty() { self.opts.backend.clone() } else { req.backend.clone() };
+        let threads = self.opts.threads.clone();
+        let backend = blocking(move || {
+            let mut b: Box<dyn MdBackend> = match (name.as_str(), threads) {
+                ("cpu", Some(pool)) => Box::new(crate::CpuBackend::with_pool(pot, pool)),
+                (n, _) => crate::backend_by_name(n, pot)?,
+            };
+            b.open(&specs)?;
+            Ok(b)
+        })
+        .await?;
+        let backend_name = backend.name().to_string();
+        let session = self.next_session.fetch_add(1, Ordering::Relaxed);
+        lock(&self.sessions).insert(session, Arc::new(Mutex::new(backend)));
+        tracing::info!(session, boxes = req.boxes.len(), backend = %backend_name, "opened boxes");
+        Ok(Response::new(pb::OpenResponse { session, backend: backend_name, precision: "double".into() }))
+    }
+
+    type StepStream = Pin<Box<dyn Stream<Item = Result<pb::StepResults, Status>> + Send + 'static>>;
+
+    async fn step(&self, req: Request<tonic::Streaming<pb::StepBatch>>) -> Result<Response<Self::StepStream>, Status> {
+        let mut inbound = req.into_inner();
+        let sessions = self.sessions.clone();
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        tokio::spawn(async move {
+            while let Some(batch) = inbound.next().await {
+                let reply = async {
+                    let batch = batch?;
+                    let backend = lock(&sessions).get(&batch.session).cloned().ok_or_else(|| Status::not_found(format!("no session {}", batch.session)))?;
+                    let work = batch.work.iter().map(wire::work_from_pb).collect::<Result<Vec<_>, _>>()?;
+                    let (results, secs) = blocking(move || {
+                        let t = std::time::Instant::now();
+                        let mut out = vec![crate::BoxResult::default(); work.len()];
+                        lock(&backend).step(&work, &mut out)?;
+                        Ok((out, t.elapsed().as_secs_f64()))
+                    })
+                    .await?;
+                    Ok(pb::StepResults { step: batch.step, results: results.iter().map(wire::result_to_pb).collect(), compute_seconds: secs })
+                }
+                .await;
+                let failed = reply.is_err();
+                if tx.send(reply).await.is_err() || failed {
+                    break;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
+    }
+
+    async fn snapshot(&self, req: Request<pb::SnapshotRequest>) -> Result<Response<pb::SnapshotResponse>, Status> {
+        let req = req.into_inner();
+        let backend = self.session(req.session)?;
+        let states = blocking(move || {
+            let states = lock(&backend).snapshot(&req.point_ids)?;
+            states.iter().map(|s| serde_json::to_vec(s).map_err(|e| MdError::invalid("box state", e.to_string()))).collect()
+        })
+        .await?;
+        Ok(Response::new(pb::SnapshotResponse { states }))
+    }
+
+    async fn restore(&self, req: Request<pb::RestoreRequest>) -> Result<Response<pb::RestoreResponse>, Status> {
+        let req = req.into_inner();
+        let backend = self.session(req.session)?;
+        let states = req
+            .states
+            .iter()
+            .map(|b| serde_json::from_slice(b).map_err(|e| Status::invalid_argument(format!("box state: {e}"))))
+            .collect::<Result<Vec<_>, _>>()?;
+        blocking(move || lock(&backend).restore(states)).await?;
+        Ok(Response::new(pb::RestoreResponse {}))
+    }
+
+    async fn close(&self, req: Request<pb::CloseRequest>) -> Result<Response<pb::CloseResponse>, Status> {
+        lock(&self.sessions).remove(&req.get_ref().session);
+        Ok(Response::new(pb::CloseResponse {}))
+    }
+}
+
+/// Serves on an already bound listener until `shutdown` resolves.
+pub async fn serve(listener: tokio::net::TcpListener, opts: ServeOptions, shutdown: impl std::future::Future<Output = ()>) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    let (mut health, health_service) = tonic_health::server::health_reporter();
+    health.set_not_serving::<MdWorkerServer<WorkerService>>().await;
+    let reflection = tonic_reflection::server::Builder::configure().register_encoded_file_descriptor_set(mscale_proto::FILE_DESCRIPTOR_SET).build_v1()?;
+    let service = MdWorkerServer::new(WorkerService::new(opts)).max_decoding_message_size(wire::MAX_MESSAGE).max_encoding_message_size(wire::MAX_MESSAGE);
+    health.set_serving::<MdWorkerServer<WorkerService>>().await;
+    tonic::transport::Server::builder()
+        .tcp_nodelay(true)
+        .http2_keepalive_interval(Some(std::time::Duration::from_secs(30)))
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(service)
+        .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), shutdown)
+        .await?;
+    Ok(())
+}

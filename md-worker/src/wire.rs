@@ -1,0 +1,192 @@
+//! Conversions between the generated `mscale.coupling.v1` types and the engine's domain types,
+//! with every value checked at the edge: a non-finite or out-of-range value is refused naming
+//! the point and the field (InvalidArgument on the server side).
+
+use crate::backend::{BoxResult, BoxSpec, BoxWork, Diagnostics, InitialAtoms};
+use crate::error::MdError;
+use crate::kernel::DeformMode;
+use crate::lattice::LatticeKind;
+use mscale_proto::coupling::v1 as pb;
+
+/// Largest gRPC message either side accepts (bytes).
+pub const MAX_MESSAGE: usize = 64 << 20;
+/// Boxes per step message; larger batches are chunked.
+pub const MAX_BOXES_PER_MESSAGE: usize = 4096;
+/// Most MD steps one box may be asked for in one call.
+pub const MAX_STEPS_PER_CALL: u64 = 10_000_000;
+
+pub fn status_text(s: &tonic::Status) -> String {
+    format!("{:?}: {}", s.code(), s.message())
+}
+
+fn invalid(point: u64, field: &str, msg: impl std::fmt::Display) -> MdError {
+    MdError::invalid(format!("point {point} field `{field}`"), msg.to_string())
+}
+
+fn finite(point: u64, field: &str, v: f64) -> Result<f64, MdError> {
+    if v.is_finite() { Ok(v) } else { Err(invalid(point, field, format!("{v} is not finite"))) }
+}
+
+pub fn spec_to_pb(s: &BoxSpec) -> pb::BoxSpec {
+    let (lattice, a0, cells) = match &s.atoms {
+        InitialAtoms::Lattice { kind, a0, cells } => (
+            match kind {
+                LatticeKind::Fcc => "fcc",
+                LatticeKind::Bcc => "bcc",
+                LatticeKind::Sc => "sc",
+            },
+            *a0,
+            cells.iter().map(|&c| c as u32).collect(),
+        ),
+        // Explicit atoms do not travel: the server refuses an empty lattice name.
+        InitialAtoms::Explicit { .. } => ("", 0.0, Vec::new()),
+    };
+    pb::BoxSpec {
+        point_id: s.id,
+        lattice: lattice.into(),
+        lattice_constant: a0,
+        cells,
+        strain: s.strain.to_vec(),
+        temperature_k: s.temperature_k,
+        seed: s.seed,
+        relax_steps: s.relax_steps,
+        relax_dt_ps: s.relax_dt_ps,
+        relax_box_blocks: s.relax_box_blocks,
+        deformation: match s.mode {
+            DeformMode::Affine => "affine",
+            DeformMode::Seed => "seed",
+        }
+        .into(),
+    }
+}
+
+pub fn spec_from_pb(p: &pb::BoxSpec) -> Result<BoxSpec, MdError> {
+    let id = p.point_id;
+    let kind = match p.lattice.as_str() {
+        "fcc" => LatticeKind::Fcc,
+        "bcc" => LatticeKind::Bcc,
+        "sc" => LatticeKind::Sc,
+        other => return Err(invalid(id, "lattice", format!("{other:?}; expected fcc, bcc or sc"))),
+    };
+    let a0 = finite(id, "lattice_constant", p.lattice_constant)?;
+    if a0 <= 0.0 {
+        return Err(invalid(id, "lattice_constant", format!("{a0} A must be positive")));
+    }
+    if p.cells.len() != 3 || p.cells.iter().any(|&c| c == 0 || c > 64) {
+        return Err(invalid(id, "cells", format!("{:?}; expected 3 values in 1..=64", p.cells)));
+    }
+    if p.strain.len() != 3 || p.strain.iter().any(|e| !(e.is_finite() && *e > -0.5 && *e < 1.0)) {
+        return Err(invalid(id, "strain", format!("{:?}; expected 3 finite values in (-0.5, 1)", p.strain)));
+    }
+    if !(p.temperature_k.is_finite() && p.temperature_k >= 0.0) {
+        return Err(invalid(id, "temperature_k", p.temperature_k));
+    }
+    if !(p.relax_dt_ps.is_finite() && p.relax_dt_ps > 0.0 && p.relax_dt_ps <= 0.01) {
+        return Err(invalid(id, "relax_dt_ps", format!("{} ps; expected (0, 0.01]", p.relax_dt_ps)));
+    }
+    let mode = match p.deformation.as_str() {
+        "affine" => DeformMode::Affine,
+        "seed" => DeformMode::Seed,
+        other => return Err(invalid(id, "deformation", format!("{other:?}; expected affine or seed"))),
+    };
+    let mut s = BoxSpec::lattice(id, kind, a0, [p.cells[0] as usize, p.cells[1] as usize, p.cells[2] as usize]);
+    s.strain = [p.strain[0], p.strain[1], p.strain[2]];
+    s.temperature_k = p.temperature_k;
+    s.seed = p.seed;
+    s.relax_steps = p.relax_steps;
+    s.relax_dt_ps = p.relax_dt_ps;
+    s.relax_box_blocks = p.relax_box_blocks;
+    s.mode = mode;
+    Ok(s)
+}
+
+pub fn work_to_pb(w: &BoxWork) -> pb::BoxWork {
+    pb::BoxWork {
+        point_id: w.id,
+        velocity_gradient: w.velocity_gradient.iter().flatten().copied().collect(),
+        steps: w.steps,
+        dt_ps: w.dt_ps,
+        energy_to_add_ev: w.energy_to_add_ev,
+    }
+}
+
+pub fn work_from_pb(p: &pb::BoxWork) -> Result<BoxWork, MdError> {
+    let id = p.point_id;
+    if p.velocity_gradient.len() != 9 {
+        return Err(invalid(id, "velocity_gradient", format!("{} values; expected 9 (row major, 1/ps)", p.velocity_gradient.len())));
+    }
+    let mut l = [[0.0; 3]; 3];
+    for (k, v) in p.velocity_gradient.iter().enumerate() {
+        l[k / 3][k % 3] = finite(id, "velocity_gradient", *v)?;
+    }
+    if p.steps > MAX_STEPS_PER_CALL {
+        return Err(invalid(id, "steps", format!("{} exceeds {MAX_STEPS_PER_CALL}", p.steps)));
+    }
+    if !(p.dt_ps.is_finite() && p.dt_ps > 0.0 && p.dt_ps <= 0.01) {
+        return Err(invalid(id, "dt_ps", format!("{} ps; expected (0, 0.01]", p.dt_ps)));
+    }
+    Ok(BoxWork { id, velocity_gradient: l, steps: p.steps, dt_ps: p.dt_ps, energy_to_add_ev: finite(id, "energy_to_add_ev", p.energy_to_add_ev)? })
+}
+
+pub fn result_to_pb(r: &BoxResult) -> pb::BoxResult {
+    pb::BoxResult {
+        point_id: r.id,
+        stress_gpa: r.stress_gpa.to_vec(),
+        potential_energy_ev: r.potential_energy_ev,
+        kinetic_energy_ev: r.kinetic_energy_ev,
+        temperature_k: r.temperature_k,
+        lengths: r.diagnostics.lengths_a.to_vec(),
+        neighbor_rebuilds: r.diagnostics.neighbor_rebuilds,
+        energy_shortfall_ev: r.diagnostics.energy_shortfall_ev,
+        total_steps: r.diagnostics.total_steps,
+        wraps: r.diagnostics.wraps,
+    }
+}
+
+pub fn result_from_pb(p: &pb::BoxResult) -> Result<BoxResult, MdError> {
+    let id = p.point_id;
+    if p.stress_gpa.len() != 6 || p.lengths.len() != 3 {
+        return Err(invalid(id, "stress_gpa", format!("{} stress and {} length values; expected 6 and 3", p.stress_gpa.len(), p.lengths.len())));
+    }
+    Ok(BoxResult {
+        id,
+        stress_gpa: std::array::from_fn(|k| p.stress_gpa[k]),
+        potential_energy_ev: p.potential_energy_ev,
+        kinetic_energy_ev: p.kinetic_energy_ev,
+        temperature_k: p.temperature_k,
+        diagnostics: Diagnostics {
+            total_steps: p.total_steps,
+            lengths_a: [p.lengths[0], p.lengths[1], p.lengths[2]],
+            energy_shortfall_ev: p.energy_shortfall_ev,
+            neighbor_rebuilds: p.neighbor_rebuilds,
+            wraps: p.wraps,
+        },
+    })
+}
+
+/// Refuses a result with a non-finite value, naming the worker, the point and the field.
+pub fn check_result(r: &BoxResult, worker: &str) -> Result<(), MdError> {
+    let fields = [
+        ("stress_gpa", r.stress_gpa.iter().all(|v| v.is_finite())),
+        ("potential_energy_ev", r.potential_energy_ev.is_finite()),
+        ("kinetic_energy_ev", r.kinetic_energy_ev.is_finite()),
+        ("lengths", r.diagnostics.lengths_a.iter().all(|v| v.is_finite() && *v > 0.0)),
+    ];
+    for (field, ok) in fields {
+        if !ok {
+            return Err(MdError::Worker { worker: worker.into(), msg: format!("returned a non-finite `{field}` for point {}", r.id) });
+        }
+    }
+    Ok(())
+}
+
+impl From<MdError> for tonic::Status {
+    fn from(e: MdError) -> Self {
+        match e {
+            MdError::Invalid { .. } | MdError::Parse { .. } => tonic::Status::invalid_argument(e.to_string()),
+            MdError::UnknownBox(_) => tonic::Status::not_found(e.to_string()),
+            MdError::Unsupported(_) => tonic::Status::unimplemented(e.to_string()),
+            _ => tonic::Status::internal(e.to_string()),
+        }
+    }
+}
