@@ -12,9 +12,11 @@
 //! cross-section; in 2D per unit thickness).
 
 pub mod closure;
+pub mod ddmp;
 pub mod diagnostics;
 pub mod exact;
 pub mod grid;
+pub mod par;
 pub mod particles;
 pub mod shape;
 pub mod solver;

@@ -26,8 +26,19 @@ pub struct Particles<const D: usize> {
     pub vel_grad: Vec<Mat3>,
     /// Cauchy stress from the closure (Pa, tension positive), without artificial viscosity.
     pub stress: Vec<Mat3>,
-    /// Artificial viscous pressure of the last step (Pa, >= 0 in compression).
+    /// Artificial viscous pressure of the last step, -tr(q)/3 (Pa, >= 0 in compression).
     pub visc_pressure: Vec<f64>,
+    /// Artificial viscous stress q of the last step (Pa, tension positive; added to `stress`
+    /// in the internal force). The linear form is -q I, the tensor form (7.8) is anisotropic.
+    pub visc_stress: Vec<Mat3>,
+    /// Reference half-vectors of the point's domain: column `a` is the domain's half-extent
+    /// along axis `a` in the reference configuration, so the current half-vectors are
+    /// `F * domain0` (CPDI1 parallelograms, sub-point placement).
+    pub domain0: Vec<Mat3>,
+    /// Tracked domain corners (CPDI in 1D, CPDI2), `2^D` per point: corner `k` of point `p`
+    /// is `corners[p * 2^D + k]` and lies on the side `+` of axis `a` when bit `a` of `k` is
+    /// set. Moved with the grid velocity every step (6.28).
+    pub corners: Vec<[f64; D]>,
     /// Work done on the point by stresses since the start (J, per unit cross-section in 1D).
     pub internal_energy: Vec<f64>,
     /// Index of the body each point belongs to.
@@ -47,6 +58,16 @@ impl<const D: usize> Particles<D> {
     #[allow(clippy::too_many_arguments)]
     pub fn push(&mut self, body: u32, x: [f64; D], v: [f64; D], mass: f64, volume0: f64, half_length: [f64; D], def_grad: Mat3) {
         let j = crate::tensor::det(&def_grad);
+        // Reference half-vectors: F0^-1 diag(half_length) (the given half-lengths are current).
+        let mut cur = ZERO;
+        for a in 0..D {
+            cur[a][a] = half_length[a];
+        }
+        let inv = crate::tensor::inverse(&def_grad).unwrap_or(IDENTITY);
+        self.domain0.push(crate::tensor::mul(&inv, &cur));
+        for k in 0..(1usize << D) {
+            self.corners.push(std::array::from_fn(|a| if k >> a & 1 == 1 { x[a] + half_length[a] } else { x[a] - half_length[a] }));
+        }
         self.x0.push(x);
         self.x.push(x);
         self.v.push(v);
@@ -58,8 +79,18 @@ impl<const D: usize> Particles<D> {
         self.vel_grad.push(ZERO);
         self.stress.push(ZERO);
         self.visc_pressure.push(0.0);
+        self.visc_stress.push(ZERO);
         self.internal_energy.push(0.0);
         self.body.push(body);
+    }
+
+    /// Corners per point (`2^D`).
+    pub const CORNERS: usize = 1 << D;
+
+    /// Current half-vector of the point's domain along axis `a` (column `a` of `F * domain0`).
+    pub fn half_vector(&self, p: usize, a: usize) -> [f64; D] {
+        let (f, r) = (&self.def_grad[p], &self.domain0[p]);
+        std::array::from_fn(|i| (0..3).map(|k| f[i][k] * r[k][a]).sum())
     }
 
     pub fn density(&self, p: usize) -> f64 {

@@ -1,18 +1,30 @@
 //! The explicit step (Dhakal, Ch. 3.1, steps 3-10) and the guard that stops a diverging run.
+//!
+//! Every per-point pass runs chunk-parallel (see [`crate::par`]) and every scatter to the grid
+//! is reduced in a fixed chunk order, so a run gives bitwise the same state for any number of
+//! threads.
 
 use crate::closure::{Closure, ClosureBatch, ClosureError};
+use crate::ddmp;
 use crate::diagnostics::Totals;
 use crate::grid::Grid;
+use crate::par::{self, Scatter, CHUNK};
 use crate::particles::Particles;
-use crate::shape::{self, SchemeKind, Stencil};
+use crate::shape::{self, Block, OutsideGrid, SchemeKind, Stencil, StencilPart};
 use crate::tensor::{self, Mat3};
+use rayon::prelude::*;
 
 /// Artificial viscosity added to the closure's stress in compression.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Viscosity {
     None,
-    /// Linear form of Ch. 6.3: q = coefficient * rho * c * h * |tr D| when tr D < 0.
+    /// Linear form of Ch. 6.3: q = coefficient * rho * c * h * |tr D| when tr D < 0, as a
+    /// pressure (the viscous stress is -q I).
     Linear { coefficient: f64 },
+    /// Tensor form (7.8)-(7.10): q = sum_k rho l lambda_k (tau0 c_L c - c_q l lambda_k) g_k g_k^T
+    /// over the negative eigenvalues lambda_k (eigenvectors g_k) of D, with
+    /// tau0 = |tr L| / |L| (Frobenius norm) and l the mean current length of the point's domain.
+    Tensor { linear: f64, quadratic: f64 },
 }
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -43,8 +55,16 @@ pub struct Simulation<const D: usize> {
     pub dt: f64,
     pub time: f64,
     pub step: u64,
+    /// Sub-points per point (`ddmp-subpoints`; 1 for every other scheme).
+    pub sub_points: usize,
+    /// Small-mass threshold m_eps of (7.5) (kg; per unit cross-section in 1D). Nodes at or
+    /// below it hand their internal force to heavier neighbours and take their velocity from
+    /// them; 0 turns the treatment off (empty nodes still hand on their force, (7.4)).
+    pub small_mass: f64,
     /// Closure evaluations so far (points advanced), the measure of cost users compare.
     pub closure_evaluations: u64,
+    /// Integration-point updates so far (points times sub-points per step).
+    pub integration_point_updates: u64,
     /// Momentum added by boundary constraints since the start (N s, per unit cross-section in 1D).
     pub wall_impulse: [f64; D],
     /// Sum of the magnitudes of the wall impulses (the scale to judge momentum drift by).
@@ -52,17 +72,24 @@ pub struct Simulation<const D: usize> {
     pub initial: Totals<D>,
     stencil: Stencil<D>,
     node_mass: Vec<f64>,
-    node_momentum: Vec<[f64; D]>,
     node_force: Vec<[f64; D]>,
     node_v: Vec<[f64; D]>,
     node_v_lagrangian: Vec<[f64; D]>,
     body_ranges: Vec<std::ops::Range<usize>>,
+    /// Per body (1D), point indices sorted by initial position, for the neighbour-gap guard.
+    order_1d: Vec<Vec<usize>>,
+    scatter: Scatter,
+    flat: Vec<f64>,
+    sub_x: Vec<[f64; D]>,
+    ddmp_field: Vec<f64>,
 }
 
 /// Nodes lighter than this fraction of the lightest point carry no velocity of their own.
 const EMPTY_NODE_FRACTION: f64 = 1e-12;
 /// A node accelerating faster than this many c^2/h is treated as a blow-up.
 const ACCELERATION_LIMIT: f64 = 1e3;
+/// Default small-mass threshold as a fraction of the mean initial point mass (Ch. 7.2).
+pub const DEFAULT_SMALL_MASS_FRACTION: f64 = 0.04;
 
 impl<const D: usize> Simulation<D> {
     /// Builds the simulation and evaluates the initial stresses.
@@ -76,6 +103,19 @@ impl<const D: usize> Simulation<D> {
     ) -> Result<Self, SolverError> {
         let n = grid.node_count();
         let body_ranges = points.body_ranges();
+        let order_1d = if D == 1 {
+            body_ranges
+                .iter()
+                .map(|r| {
+                    let mut o: Vec<usize> = r.clone().collect();
+                    o.sort_by(|&a, &b| points.x0[a][0].total_cmp(&points.x0[b][0]));
+                    o
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let mean_mass = points.mass.iter().sum::<f64>() / points.len().max(1) as f64;
         let mut sim = Simulation {
             initial: Totals::default(),
             grid,
@@ -86,16 +126,23 @@ impl<const D: usize> Simulation<D> {
             dt,
             time: 0.0,
             step: 0,
+            sub_points: 1,
+            small_mass: DEFAULT_SMALL_MASS_FRACTION * mean_mass,
             closure_evaluations: 0,
+            integration_point_updates: 0,
             wall_impulse: [0.0; D],
             wall_impulse_magnitude: 0.0,
             stencil: Stencil::default(),
             node_mass: vec![0.0; n],
-            node_momentum: vec![[0.0; D]; n],
             node_force: vec![[0.0; D]; n],
             node_v: vec![[0.0; D]; n],
             node_v_lagrangian: vec![[0.0; D]; n],
             body_ranges,
+            order_1d,
+            scatter: Scatter::default(),
+            flat: Vec::new(),
+            sub_x: Vec::new(),
+            ddmp_field: Vec::new(),
         };
         for (b, range) in sim.body_ranges.clone().into_iter().enumerate() {
             let pts = &mut sim.points;
@@ -113,6 +160,19 @@ impl<const D: usize> Simulation<D> {
         Ok(sim)
     }
 
+    /// Sets the number of sub-points per point (only `ddmp-subpoints` uses more than one).
+    pub fn with_sub_points(mut self, n: usize) -> Self {
+        self.sub_points = if self.scheme == SchemeKind::DdmpSubpoints { n.max(1) } else { 1 };
+        self
+    }
+
+    /// Sets m_eps to `fraction` of the mean initial point mass.
+    pub fn with_small_mass_fraction(mut self, fraction: f64) -> Self {
+        let mean_mass = self.points.mass.iter().sum::<f64>() / self.points.len().max(1) as f64;
+        self.small_mass = fraction * mean_mass;
+        self
+    }
+
     /// Largest wave speed over all bodies (m/s).
     pub fn wave_speed(&self) -> f64 {
         self.body_ranges
@@ -127,14 +187,32 @@ impl<const D: usize> Simulation<D> {
         Totals::of(&self.points)
     }
 
+    /// Lumped nodal masses of the last step (kg).
+    pub fn node_mass(&self) -> &[f64] {
+        &self.node_mass
+    }
+
+    /// Nodal internal forces of the last step after the small-mass redistribution (N).
+    pub fn node_force(&self) -> &[[f64; D]] {
+        &self.node_force
+    }
+
     /// One explicit step.
     pub fn step(&mut self) -> Result<StepReport, SolverError> {
         let step = self.step + 1;
         let dt = self.dt;
-        shape::build(self.scheme, &self.grid, &self.points, &mut self.stencil).map_err(|o| SolverError::Diverged {
+        self.build_stencil().map_err(|o| SolverError::Diverged {
             step,
-            what: format!("particle {} left the grid along axis {} (position {:e} m)", o.point, o.axis, o.position),
-            cause: "the body moved past a non-periodic face: enlarge the domain or use a wall",
+            what: if o.inverted {
+                format!("the domain of particle {} turned inside out (non-positive corner Jacobian)", o.point)
+            } else {
+                format!("particle {} left the grid along axis {} (position {:e} m)", o.point, o.axis, o.position)
+            },
+            cause: if o.inverted {
+                "time step too large or a domain sheared past its limit (use cpdi1 or ddmp)"
+            } else {
+                "the body moved past a non-periodic face: enlarge the domain or use a wall"
+            },
         })?;
         self.map_to_grid();
         self.nodal_forces();
@@ -145,81 +223,171 @@ impl<const D: usize> Simulation<D> {
         self.move_points();
         self.time += dt;
         self.step = step;
+        self.integration_point_updates += (self.points.len() * self.sub_points) as u64;
         self.guard(step)?;
         Ok(StepReport { step, time: self.time })
     }
 
-    /// Steps 3-4: lumped nodal mass and momentum, nodal velocity.
+    /// Fills the stencil for the scheme (DDMP: sub-points and the nodal integrals first).
+    fn build_stencil(&mut self) -> Result<(), OutsideGrid> {
+        let n = self.points.len();
+        let ns = self.sub_points.max(1);
+        if self.scheme.is_ddmp() {
+            ddmp::place_all(&self.points, ns, &mut self.sub_x);
+            ddmp::assemble_volumes(&self.grid, &self.points, &self.sub_x, ns, &mut self.scatter, &mut self.ddmp_field);
+        }
+        let ranges = par::chunk_ranges(n);
+        self.stencil.parts.resize_with(ranges.len(), StencilPart::default);
+        self.stencil.parts.truncate(ranges.len());
+        let (grid, pts, scheme) = (&self.grid, &self.points, self.scheme);
+        let (subs, field) = (&self.sub_x, &self.ddmp_field);
+        let results: Vec<Result<(), OutsideGrid>> = self
+            .stencil
+            .parts
+            .par_iter_mut()
+            .zip(ranges.into_par_iter())
+            .map_init(Block::default, |block, (part, r)| {
+                part.clear(r.start);
+                for p in r {
+                    match scheme {
+                        SchemeKind::Mpm | SchemeKind::Ugimp | SchemeKind::Cpgimp => shape::gimp_row(scheme, grid, pts, p, part)?,
+                        SchemeKind::Cpdi | SchemeKind::Cpdi1 | SchemeKind::Cpdi2 => shape::cpdi_row(scheme, grid, pts, p, block, part)?,
+                        SchemeKind::Ddmp | SchemeKind::DdmpSubpoints => {
+                            ddmp::ddmp_row(grid, pts, p, &subs[p * ns..(p + 1) * ns], field, block, part)?
+                        }
+                    }
+                    part.end_point();
+                }
+                Ok(())
+            })
+            .collect();
+        results.into_iter().collect()
+    }
+
+    /// Steps 3-4: lumped nodal mass and momentum, nodal velocity, small-mass velocities (7.7).
     fn map_to_grid(&mut self) {
-        self.node_mass.iter_mut().for_each(|m| *m = 0.0);
-        self.node_momentum.iter_mut().for_each(|m| *m = [0.0; D]);
         let (st, pts) = (&self.stencil, &self.points);
-        for p in 0..pts.len() {
-            for e in st.entries(p) {
-                let (i, w) = (st.node[e], st.weight[e]);
-                self.node_mass[i] += w * pts.mass[p];
-                for a in 0..D {
-                    self.node_momentum[i][a] += w * pts.mass[p] * pts.v[p][a];
+        self.scatter.run(pts.len(), self.grid.node_count(), D + 1, &mut self.flat, |r| st.span(r), |r, w| {
+            for p in r {
+                let (nodes, weights, _) = st.row(p);
+                for (&i, &s) in nodes.iter().zip(weights) {
+                    if s == 0.0 {
+                        continue;
+                    }
+                    let slot = w.slot(i);
+                    let m = s * pts.mass[p];
+                    slot[0] += m;
+                    for a in 0..D {
+                        slot[1 + a] += m * pts.v[p][a];
+                    }
                 }
             }
-        }
-        let floor = EMPTY_NODE_FRACTION * pts.mass.iter().cloned().fold(f64::INFINITY, f64::min);
-        for i in 0..self.node_mass.len() {
-            let m = self.node_mass[i];
-            self.node_v[i] = if m > floor { std::array::from_fn(|a| self.node_momentum[i][a] / m) } else { [0.0; D] };
+        });
+        let floor = self.empty_floor();
+        let flat = &self.flat;
+        self.node_mass.par_iter_mut().zip(self.node_v.par_iter_mut()).enumerate().for_each(|(i, (m, v))| {
+            let f = &flat[i * (D + 1)..(i + 1) * (D + 1)];
+            *m = f[0];
+            *v = if f[0] > floor { std::array::from_fn(|a| f[1 + a] / f[0]) } else { [0.0; D] };
+        });
+        if self.small_mass > 0.0 && self.node_mass.iter().any(|&m| m > floor && m <= self.small_mass) {
+            // (7.7) read as an average: a light node takes the sqrt(m)-weighted mean velocity of
+            // the nodes sharing a cell with it (itself included). Its lumped mass is kept, so the
+            // FLIP update (3.13) still conserves momentum.
+            let (grid, mass, eps, old) = (&self.grid, &self.node_mass, self.small_mass, self.node_v.clone());
+            self.node_v.par_iter_mut().enumerate().for_each(|(i, v)| {
+                if !(mass[i] > floor && mass[i] <= eps) {
+                    return;
+                }
+                let (mut sum, mut wsum) = ([0.0; D], 0.0);
+                for_each_neighbour(grid, i, |j| {
+                    let w = mass[j].max(0.0).sqrt();
+                    wsum += w;
+                    for a in 0..D {
+                        sum[a] += w * old[j][a];
+                    }
+                });
+                if wsum > 0.0 {
+                    *v = std::array::from_fn(|a| sum[a] / wsum);
+                }
+            });
         }
         let mass = std::mem::take(&mut self.node_mass);
         self.grid.apply_boundaries(&mass, &mut self.node_v);
         self.node_mass = mass;
     }
 
-    /// Step 5: f_i = -sum_p V_p (sigma_p - q_p I) . G_ip.
+    fn empty_floor(&self) -> f64 {
+        EMPTY_NODE_FRACTION * self.points.mass.iter().cloned().fold(f64::INFINITY, f64::min)
+    }
+
+    /// Step 5: f_i = -sum_p V_p (sigma_p + q_p) . G_ip, then the distribution (7.4)-(7.6).
     fn nodal_forces(&mut self) {
-        self.node_force.iter_mut().for_each(|f| *f = [0.0; D]);
         let (st, pts) = (&self.stencil, &self.points);
-        for p in 0..pts.len() {
-            let mut s = pts.stress[p];
-            for (a, row) in s.iter_mut().enumerate() {
-                row[a] -= pts.visc_pressure[p];
-            }
-            let vol = pts.volume[p];
-            for e in st.entries(p) {
-                let (i, g) = (st.node[e], &st.grad[e]);
-                for a in 0..D {
-                    let mut f = 0.0;
-                    for b in 0..D {
-                        f += s[a][b] * g[b];
+        self.scatter.run(pts.len(), self.grid.node_count(), D, &mut self.flat, |r| st.span(r), |r, w| {
+            for p in r {
+                let s = tensor::add_scaled(&pts.stress[p], &pts.visc_stress[p], 1.0);
+                let vol = pts.volume[p];
+                let (nodes, _, grads) = st.row(p);
+                for (&i, g) in nodes.iter().zip(grads) {
+                    let slot = w.slot(i);
+                    for a in 0..D {
+                        let mut f = 0.0;
+                        for b in 0..D {
+                            f += s[a][b] * g[b];
+                        }
+                        slot[a] -= vol * f;
                     }
-                    self.node_force[i][a] -= vol * f;
                 }
             }
+        });
+        let flat = &self.flat;
+        self.node_force.par_iter_mut().enumerate().for_each(|(i, f)| *f = std::array::from_fn(|a| flat[i * D + a]));
+        let floor = self.empty_floor();
+        // (7.4): forces on empty nodes go to the nodes sharing a cell, in proportion to sqrt(m).
+        let empty_with_force = |m: &[f64], f: &[[f64; D]]| (0..m.len()).any(|i| m[i] <= floor && f[i].iter().any(|v| *v != 0.0));
+        if empty_with_force(&self.node_mass, &self.node_force) {
+            self.node_force = distribute(&self.grid, &self.node_mass, &self.node_force, |m| m <= floor);
+        }
+        // (7.5)-(7.6): the same for light nodes (m <= m_eps), which keep their own share.
+        let eps = self.small_mass;
+        if eps > 0.0 && self.node_mass.iter().any(|&m| m > floor && m <= eps) {
+            self.node_force = distribute(&self.grid, &self.node_mass, &self.node_force, |m| m > floor && m <= eps);
         }
     }
 
     /// Step 6: Lagrangian nodal velocity, boundary conditions, wall impulse.
     fn lagrangian_update(&mut self, step: u64, c: f64) -> Result<(), SolverError> {
-        let floor = EMPTY_NODE_FRACTION * self.points.mass.iter().cloned().fold(f64::INFINITY, f64::min);
+        let floor = self.empty_floor();
         let limit = ACCELERATION_LIMIT * c * c / self.grid.min_spacing();
-        for i in 0..self.node_mass.len() {
-            let m = self.node_mass[i];
-            if m <= floor {
-                self.node_v_lagrangian[i] = [0.0; D];
-                continue;
-            }
-            for a in 0..D {
-                let acc = self.node_force[i][a] / m;
-                if !(acc.abs() <= limit) {
-                    return Err(SolverError::Diverged {
-                        step,
-                        what: format!(
-                            "node {:?} acceleration {acc:e} m/s^2 along axis {a} exceeds {limit:e} (= {ACCELERATION_LIMIT} c^2/h)",
-                            self.grid.unlinear(i)
-                        ),
-                        cause: "time step too large for the wave speed, or a tension instability (too few particles per cell)",
-                    });
+        let (mass, force, v, dt) = (&self.node_mass, &self.node_force, &self.node_v, self.dt);
+        let bad = self
+            .node_v_lagrangian
+            .par_iter_mut()
+            .enumerate()
+            .filter_map(|(i, vl)| {
+                let m = mass[i];
+                if m <= floor {
+                    *vl = [0.0; D];
+                    return None;
                 }
-                self.node_v_lagrangian[i][a] = self.node_v[i][a] + self.dt * acc;
-            }
+                let mut bad = None;
+                for a in 0..D {
+                    let acc = force[i][a] / m;
+                    if !(acc.abs() <= limit) && bad.is_none() {
+                        bad = Some((i, a, acc));
+                    }
+                    vl[a] = v[i][a] + dt * acc;
+                }
+                bad
+            })
+            .min_by_key(|b| b.0);
+        if let Some((i, a, acc)) = bad {
+            return Err(SolverError::Diverged {
+                step,
+                what: format!("node {:?} acceleration {acc:e} m/s^2 along axis {a} exceeds {limit:e} (= {ACCELERATION_LIMIT} c^2/h)", self.grid.unlinear(i)),
+                cause: "time step too large for the wave speed, or a tension instability (too few particles per cell)",
+            });
         }
         let (added, magnitude) = self.grid.apply_boundaries(&self.node_mass, &mut self.node_v_lagrangian);
         self.wall_impulse_magnitude += magnitude;
@@ -231,20 +399,22 @@ impl<const D: usize> Simulation<D> {
 
     /// Step 7 with the half-step nodal velocity (4.10): L_p = sum_i v_i^{n+1/2} (x) G_ip.
     fn velocity_gradients(&mut self) {
-        let st = &self.stencil;
-        for p in 0..self.points.len() {
-            let mut l: Mat3 = tensor::ZERO;
-            for e in st.entries(p) {
-                let i = st.node[e];
-                for a in 0..D {
-                    let v_half = 0.5 * (self.node_v[i][a] + self.node_v_lagrangian[i][a]);
-                    for b in 0..D {
-                        l[a][b] += v_half * st.grad[e][b];
+        let (st, v, vl) = (&self.stencil, &self.node_v, &self.node_v_lagrangian);
+        par::for_chunks_mut(&mut self.points.vel_grad, 1, |r, out| {
+            for (k, p) in r.enumerate() {
+                let (nodes, _, grads) = st.row(p);
+                let mut l: Mat3 = tensor::ZERO;
+                for (&i, g) in nodes.iter().zip(grads) {
+                    for a in 0..D {
+                        let v_half = 0.5 * (v[i][a] + vl[i][a]);
+                        for b in 0..D {
+                            l[a][b] += v_half * g[b];
+                        }
                     }
                 }
+                out[k] = l;
             }
-            self.points.vel_grad[p] = l;
-        }
+        });
     }
 
     /// Step 8: deformation gradient, volume, closure stress, artificial viscosity and the
@@ -253,20 +423,28 @@ impl<const D: usize> Simulation<D> {
         let dt = self.dt;
         let pts = &mut self.points;
         let old_stress = pts.stress.clone();
-        let old_q = pts.visc_pressure.clone();
+        let old_q = pts.visc_stress.clone();
         let old_volume = pts.volume.clone();
-        for p in 0..pts.len() {
-            let inc = tensor::add_scaled(&tensor::IDENTITY, &pts.vel_grad[p], dt);
-            pts.def_grad[p] = tensor::mul(&inc, &pts.def_grad[p]);
-            let j = tensor::det(&pts.def_grad[p]);
-            pts.volume[p] = pts.volume0[p] * j;
-            if !(j > 0.0) {
-                return Err(SolverError::Diverged {
-                    step,
-                    what: format!("particle {p} has a non-positive volume ratio J = {j:e}"),
-                    cause: "time step too large or the particle was crushed between its neighbours",
-                });
-            }
+        let (vel_grad, volume0) = (&pts.vel_grad, &pts.volume0);
+        let bad = pts
+            .def_grad
+            .par_iter_mut()
+            .zip(pts.volume.par_iter_mut())
+            .enumerate()
+            .filter_map(|(p, (f, vol))| {
+                let inc = tensor::add_scaled(&tensor::IDENTITY, &vel_grad[p], dt);
+                *f = tensor::mul(&inc, f);
+                let j = tensor::det(f);
+                *vol = volume0[p] * j;
+                if j > 0.0 { None } else { Some((p, j)) }
+            })
+            .min_by_key(|b| b.0);
+        if let Some((p, j)) = bad {
+            return Err(SolverError::Diverged {
+                step,
+                what: format!("particle {p} has a non-positive volume ratio J = {j:e}"),
+                cause: "time step too large or the particle was crushed between its neighbours",
+            });
         }
         for (b, range) in self.body_ranges.iter().enumerate() {
             let batch = ClosureBatch {
@@ -281,70 +459,123 @@ impl<const D: usize> Simulation<D> {
             self.closure_evaluations += range.len() as u64;
         }
         let h = self.grid.min_spacing();
+        let viscosity = self.viscosity;
+        let pts_ro: &Particles<D> = pts;
+        let (q_new, work): (Vec<Mat3>, Vec<f64>) = (0..pts_ro.len())
+            .into_par_iter()
+            .with_min_len(CHUNK)
+            .map(|p| {
+                let l = &pts_ro.vel_grad[p];
+                let d = tensor::sym(l);
+                let rho = pts_ro.density(p);
+                let q = match viscosity {
+                    Viscosity::None => tensor::ZERO,
+                    Viscosity::Linear { coefficient } => {
+                        let rate = tensor::trace(&d);
+                        if rate < 0.0 { tensor::add_scaled(&tensor::ZERO, &tensor::IDENTITY, -coefficient * rho * c * h * rate.abs()) } else { tensor::ZERO }
+                    }
+                    Viscosity::Tensor { linear, quadratic } => tensor_viscosity(pts_ro, p, &d, l, rho, c, linear, quadratic),
+                };
+                let mut mid = tensor::add_scaled(&old_stress[p], &pts_ro.stress[p], 1.0);
+                mid = tensor::add_scaled(&mid, &old_q[p], 1.0);
+                mid = tensor::add_scaled(&mid, &q, 1.0);
+                let vol_mid = 0.5 * (old_volume[p] + pts_ro.volume[p]);
+                (q, dt * vol_mid * 0.5 * tensor::ddot(&mid, &d))
+            })
+            .unzip();
+        pts.visc_stress = q_new;
         for p in 0..pts.len() {
-            let d = tensor::sym(&pts.vel_grad[p]);
-            let rate = tensor::trace(&d);
-            pts.visc_pressure[p] = match self.viscosity {
-                Viscosity::Linear { coefficient } if rate < 0.0 => coefficient * pts.density(p) * c * h * rate.abs(),
-                _ => 0.0,
-            };
-            let mut mid = tensor::add_scaled(&old_stress[p], &pts.stress[p], 1.0);
-            for (a, row) in mid.iter_mut().enumerate() {
-                row[a] -= old_q[p] + pts.visc_pressure[p];
-            }
-            let vol_mid = 0.5 * (old_volume[p] + pts.volume[p]);
-            pts.internal_energy[p] += dt * vol_mid * 0.5 * tensor::ddot(&mid, &d);
+            pts.visc_pressure[p] = -tensor::trace(&pts.visc_stress[p]) / 3.0;
+            pts.internal_energy[p] += work[p];
         }
         Ok(())
     }
 
-    /// Steps 9-10: v_p += sum S (v^L - v^n) (3.13), x_p += dt sum S (v^L + v^n)/2 (3.14).
+    /// Steps 9-10: v_p += sum S (v^L - v^n) (3.13), x_p += dt sum S (v^L + v^n)/2 (3.14);
+    /// tracked corners move with the grid velocity at the corner (6.28).
     fn move_points(&mut self) {
-        let (st, dt) = (&self.stencil, self.dt);
+        let (st, dt, grid) = (&self.stencil, self.dt, &self.grid);
+        let (nv, nvl) = (&self.node_v, &self.node_v_lagrangian);
         let pts = &mut self.points;
-        for p in 0..pts.len() {
-            let mut dv = [0.0; D];
-            let mut vbar = [0.0; D];
-            for e in st.entries(p) {
-                let (i, w) = (st.node[e], st.weight[e]);
-                for a in 0..D {
-                    dv[a] += w * (self.node_v_lagrangian[i][a] - self.node_v[i][a]);
-                    vbar[a] += w * 0.5 * (self.node_v_lagrangian[i][a] + self.node_v[i][a]);
+        let track = self.scheme.tracks_corners();
+        let nc = 1usize << D;
+        pts.v
+            .par_chunks_mut(CHUNK)
+            .zip(pts.x.par_chunks_mut(CHUNK))
+            .zip(pts.corners.par_chunks_mut(CHUNK * nc))
+            .enumerate()
+            .for_each(|(c, ((vs, xs), cs))| {
+                for k in 0..vs.len() {
+                    let p = c * CHUNK + k;
+                    let (nodes, weights, _) = st.row(p);
+                    let mut dv = [0.0; D];
+                    let mut vbar = [0.0; D];
+                    for (&i, &w) in nodes.iter().zip(weights) {
+                        for a in 0..D {
+                            dv[a] += w * (nvl[i][a] - nv[i][a]);
+                            vbar[a] += w * 0.5 * (nvl[i][a] + nv[i][a]);
+                        }
+                    }
+                    let before = xs[k];
+                    for a in 0..D {
+                        vs[k][a] += dv[a];
+                        xs[k][a] += dt * vbar[a];
+                    }
+                    let moved = xs[k];
+                    grid.wrap_position(&mut xs[k]);
+                    let corners = &mut cs[k * nc..(k + 1) * nc];
+                    for corner in corners.iter_mut() {
+                        if track {
+                            let sh = shape::cell_shape(grid, corner);
+                            let mut u = [0.0; D];
+                            for m in 0..nc {
+                                if let Some(i) = shape::node_index(grid, &shape::cell_node(&sh.cell, m)) {
+                                    for a in 0..D {
+                                        u[a] += sh.s[m] * 0.5 * (nvl[i][a] + nv[i][a]);
+                                    }
+                                }
+                            }
+                            for a in 0..D {
+                                corner[a] += dt * u[a];
+                            }
+                        } else {
+                            for a in 0..D {
+                                corner[a] += moved[a] - before[a];
+                            }
+                        }
+                        // Keep the corners with their point when it wraps around a periodic axis.
+                        for a in 0..D {
+                            corner[a] += xs[k][a] - moved[a];
+                        }
+                    }
                 }
-            }
-            for a in 0..D {
-                pts.v[p][a] += dv[a];
-                pts.x[p][a] += dt * vbar[a];
-            }
-            self.grid.wrap_position(&mut pts.x[p]);
-        }
+            });
     }
 
     /// Stops a run that is going wrong, naming the particle, the quantity and the likely cause.
     fn guard(&self, step: u64) -> Result<(), SolverError> {
         let pts = &self.points;
-        for p in 0..pts.len() {
-            let finite = pts.x[p].iter().chain(&pts.v[p]).all(|v| v.is_finite()) && tensor::is_finite(&pts.stress[p]);
-            if !finite {
-                return Err(SolverError::Diverged {
-                    step,
-                    what: format!("particle {p} has a non-finite position, velocity or stress"),
-                    cause: "time step too large or a tension instability",
-                });
-            }
+        let bad = (0..pts.len())
+            .into_par_iter()
+            .with_min_len(CHUNK)
+            .find_first(|&p| !(pts.x[p].iter().chain(&pts.v[p]).all(|v| v.is_finite()) && tensor::is_finite(&pts.stress[p])));
+        if let Some(p) = bad {
+            return Err(SolverError::Diverged {
+                step,
+                what: format!("particle {p} has a non-finite position, velocity or stress"),
+                cause: "time step too large or a tension instability",
+            });
         }
-        if D == 1 {
+        if D == 1 && !self.grid.periodic(0) {
             // Neighbours in one body must stay within two cells of each other.
             let h = self.grid.h[0];
-            for r in &self.body_ranges {
-                let mut xs: Vec<(f64, usize)> = r.clone().map(|p| (pts.x0[p][0], p)).collect();
-                xs.sort_by(|a, b| a.0.total_cmp(&b.0));
-                for w in xs.windows(2) {
-                    let gap = (pts.x[w[1].1][0] - pts.x[w[0].1][0]).abs();
-                    if gap > 2.0 * h && !self.grid.periodic(0) {
+            for order in &self.order_1d {
+                for w in order.windows(2) {
+                    let gap = (pts.x[w[1]][0] - pts.x[w[0]][0]).abs();
+                    if gap > 2.0 * h {
                         return Err(SolverError::Diverged {
                             step,
-                            what: format!("particles {} and {} of one body are {:.2} cells apart", w[0].1, w[1].1, gap / h),
+                            what: format!("particles {} and {} of one body are {:.2} cells apart", w[0], w[1], gap / h),
                             cause: "tension instability: too few particles per cell (use sub-points or more particles per cell)",
                         });
                     }
@@ -354,8 +585,105 @@ impl<const D: usize> Simulation<D> {
         Ok(())
     }
 
-    /// Stencil entries of the last step (for schemes and tests).
+    /// Stencil of the last step (for schemes and tests).
     pub fn stencil(&self) -> &Stencil<D> {
         &self.stencil
     }
+}
+
+/// Calls `f` with every node sharing a cell with node `i` (itself included), each once.
+fn for_each_neighbour<const D: usize>(grid: &Grid<D>, i: usize, mut f: impl FnMut(usize)) {
+    let idx = grid.unlinear(i);
+    let mut seen = [usize::MAX; 27];
+    let mut count = 0;
+    for o in 0..ddmp::neighbours(D) {
+        let mut rem = o;
+        let mut lin = Some(0usize);
+        let n: [i64; D] = std::array::from_fn(|a| {
+            let d = (rem % 3) as i64 - 1;
+            rem /= 3;
+            idx[a] as i64 + d
+        });
+        for a in (0..D).rev() {
+            lin = match (lin, grid.wrap(a, n[a])) {
+                (Some(l), Some(w)) => Some(l * grid.nodes_along(a) + w),
+                _ => None,
+            };
+        }
+        if let Some(j) = lin {
+            if !seen[..count].contains(&j) {
+                seen[count] = j;
+                count += 1;
+                f(j);
+            }
+        }
+    }
+}
+
+/// Redistributes the forces of the nodes selected by `light` over the nodes sharing a cell
+/// with them (themselves included), in proportion to sqrt(m): (7.4)-(7.5). The total force is
+/// unchanged (the shares of each node sum to one), so momentum is conserved. A node whose
+/// whole neighbourhood is massless keeps its force.
+fn distribute<const D: usize>(grid: &Grid<D>, mass: &[f64], force: &[[f64; D]], light: impl Fn(f64) -> bool + Sync) -> Vec<[f64; D]> {
+    let sqrt_sum: Vec<f64> = (0..mass.len())
+        .into_par_iter()
+        .map(|l| {
+            if !light(mass[l]) {
+                return 0.0;
+            }
+            let mut s = 0.0;
+            for_each_neighbour(grid, l, |j| s += mass[j].max(0.0).sqrt());
+            s
+        })
+        .collect();
+    (0..mass.len())
+        .into_par_iter()
+        .map(|i| {
+            let mut f = [0.0; D];
+            let own = mass[i].max(0.0).sqrt();
+            for_each_neighbour(grid, i, |l| {
+                let share = if !light(mass[l]) {
+                    if l == i { 1.0 } else { 0.0 }
+                } else if sqrt_sum[l] > 0.0 {
+                    own / sqrt_sum[l]
+                } else if l == i {
+                    1.0
+                } else {
+                    0.0
+                };
+                if share != 0.0 {
+                    for a in 0..D {
+                        f[a] += share * force[l][a];
+                    }
+                }
+            });
+            f
+        })
+        .collect()
+}
+
+/// The tensor artificial viscosity (7.8)-(7.10) of point `p`.
+#[allow(clippy::too_many_arguments)]
+fn tensor_viscosity<const D: usize>(pts: &Particles<D>, p: usize, d: &Mat3, l: &Mat3, rho: f64, c: f64, c_l: f64, c_q: f64) -> Mat3 {
+    let (lambda, g) = tensor::sym_eigen(d);
+    if lambda.iter().all(|&v| v >= 0.0) {
+        return tensor::ZERO;
+    }
+    let norm = tensor::ddot(l, l).sqrt();
+    let tau0 = if norm > 0.0 { tensor::trace(l).abs() / norm } else { 0.0 };
+    let len = (0..D).map(|a| 2.0 * pts.half_vector(p, a).iter().map(|v| v * v).sum::<f64>().sqrt()).sum::<f64>() / D as f64;
+    let mut q = tensor::ZERO;
+    for k in 0..3 {
+        let lk = lambda[k];
+        if lk >= 0.0 {
+            continue;
+        }
+        let coef = rho * len * lk * (tau0 * c_l * c - c_q * len * lk);
+        for i in 0..3 {
+            for j in 0..3 {
+                q[i][j] += coef * g[i][k] * g[j][k];
+            }
+        }
+    }
+    q
 }

@@ -33,6 +33,54 @@ pub fn det(a: &Mat3) -> f64 {
         + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0])
 }
 
+/// Inverse, or `None` when the determinant is not a normal positive or negative number.
+pub fn inverse(a: &Mat3) -> Option<Mat3> {
+    let d = det(a);
+    if !d.is_normal() {
+        return None;
+    }
+    let mut inv = ZERO;
+    for i in 0..3 {
+        for j in 0..3 {
+            let (i1, i2, j1, j2) = ((j + 1) % 3, (j + 2) % 3, (i + 1) % 3, (i + 2) % 3);
+            inv[i][j] = (a[i1][j1] * a[i2][j2] - a[i1][j2] * a[i2][j1]) / d;
+        }
+    }
+    Some(inv)
+}
+
+/// Eigenvalues and unit eigenvectors (columns of the returned matrix) of a symmetric tensor,
+/// by cyclic Jacobi rotations (converges to round-off in a few sweeps for 3x3).
+pub fn sym_eigen(a: &Mat3) -> ([f64; 3], Mat3) {
+    let mut m = *a;
+    let mut v = IDENTITY;
+    for _sweep in 0..32 {
+        let off = m[0][1] * m[0][1] + m[0][2] * m[0][2] + m[1][2] * m[1][2];
+        let scale = m[0][0] * m[0][0] + m[1][1] * m[1][1] + m[2][2] * m[2][2];
+        if off <= 1e-30 * scale || off == 0.0 {
+            break;
+        }
+        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
+            if m[p][q] == 0.0 {
+                continue;
+            }
+            let theta = (m[q][q] - m[p][p]) / (2.0 * m[p][q]);
+            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+            let t = if theta == 0.0 { 1.0 } else { t };
+            let c = 1.0 / (t * t + 1.0).sqrt();
+            let s = t * c;
+            let mut r = IDENTITY;
+            r[p][p] = c;
+            r[q][q] = c;
+            r[p][q] = s;
+            r[q][p] = -s;
+            m = mul(&transpose(&r), &mul(&m, &r));
+            v = mul(&v, &r);
+        }
+    }
+    ([m[0][0], m[1][1], m[2][2]], v)
+}
+
 pub fn trace(a: &Mat3) -> f64 {
     a[0][0] + a[1][1] + a[2][2]
 }
@@ -76,4 +124,36 @@ pub fn to_voigt(a: &Mat3) -> [f64; 6] {
 
 pub fn is_finite(a: &Mat3) -> bool {
     a.iter().flatten().all(|v| v.is_finite())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn inverse_and_eigen_reproduce_the_tensor() {
+        let a: Mat3 = [[2.0, 0.3, -0.1], [0.3, -1.0, 0.4], [-0.1, 0.4, 0.5]];
+        let inv = inverse(&a).expect("regular");
+        let id = mul(&a, &inv);
+        for i in 0..3 {
+            for j in 0..3 {
+                assert!((id[i][j] - IDENTITY[i][j]).abs() < 1e-14);
+            }
+        }
+        let (l, v) = sym_eigen(&a);
+        // A = V diag(l) V^T.
+        let mut back = ZERO;
+        for k in 0..3 {
+            for i in 0..3 {
+                for j in 0..3 {
+                    back[i][j] += l[k] * v[i][k] * v[j][k];
+                }
+            }
+        }
+        for i in 0..3 {
+            for j in 0..3 {
+                assert!((back[i][j] - a[i][j]).abs() < 1e-12, "{back:?}");
+            }
+        }
+    }
 }

@@ -228,19 +228,25 @@ fn default_relax_steps() -> usize {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Scheme {
-    /// Gradient scheme: mpm, ugimp, cpgimp (more as the solver grows).
+    /// Gradient scheme: mpm, ugimp, cpgimp, cpdi (1D), cpdi1, cpdi2, ddmp, ddmp-subpoints.
     pub method: String,
     /// Particles per cell along each axis.
     pub particles_per_cell: usize,
     /// Sub-points per particle (ddmp-subpoints only).
     #[serde(default = "default_one")]
     pub sub_points: usize,
-    /// none, linear.
+    /// none, linear (Ch. 6.3), tensor (7.8)-(7.10).
     #[serde(default = "default_viscosity")]
     pub artificial_viscosity: String,
     /// Coefficient of the linear viscosity (0.5 in Ch. 6.3).
     #[serde(default = "default_viscosity_coefficient")]
     pub viscosity_coefficient: f64,
+    /// c_L of the tensor viscosity (7.8) (1.5 in Ch. 7.2).
+    #[serde(default = "default_tensor_c_l")]
+    pub viscosity_c_l: f64,
+    /// c_q of the tensor viscosity (7.8) (2.0 in Ch. 7.2).
+    #[serde(default = "default_tensor_c_q")]
+    pub viscosity_c_q: f64,
     /// c dt / h; give `cfl` or `timestep`.
     #[serde(default)]
     pub cfl: Option<f64>,
@@ -262,6 +268,12 @@ fn default_viscosity() -> String {
 }
 fn default_viscosity_coefficient() -> f64 {
     0.5
+}
+fn default_tensor_c_l() -> f64 {
+    1.5
+}
+fn default_tensor_c_q() -> f64 {
+    2.0
 }
 fn default_small_mass() -> f64 {
     0.04
@@ -708,22 +720,36 @@ impl Scene {
     }
 
     fn validate_scheme(&mut self, loc: &Locator<'_>, max_speed: f64) -> Result<(f64, u64), SceneError> {
+        let dim = self.domain.dimension;
         let s = &mut self.scheme;
-        if continuum::SchemeKind::from_name(&s.method).is_none() {
-            let names: Vec<&str> = continuum::SchemeKind::NAMES.iter().map(|(n, _)| *n).collect();
+        let names: Vec<&str> = continuum::SchemeKind::NAMES.iter().map(|(n, _)| *n).collect();
+        let Some(kind) = continuum::SchemeKind::from_name(&s.method) else {
             return Err(loc.err("scheme.method", format!("{:?}", s.method), format!("allowed: {}", names.join(", "))));
+        };
+        if !kind.supports_dimension(dim) {
+            let ok: Vec<&str> = continuum::SchemeKind::NAMES.iter().filter(|(_, k)| k.supports_dimension(dim)).map(|(n, _)| *n).collect();
+            return Err(loc.err("scheme.method", format!("{:?}", s.method), format!("`{}` is the 1D CPDI; a {dim}D scene allows: {}", s.method, ok.join(", "))));
         }
         if !(1..=64).contains(&s.particles_per_cell) {
             return Err(loc.err("scheme.particles_per_cell", s.particles_per_cell, "allowed: 1 to 64 per axis"));
         }
-        if s.sub_points != 1 {
+        if kind == continuum::SchemeKind::DdmpSubpoints {
+            if !(1..=64).contains(&s.sub_points) {
+                return Err(loc.err("scheme.sub_points", s.sub_points, "allowed: 1 to 64 sub-points per particle"));
+            }
+        } else if s.sub_points != 1 {
             return Err(loc.err("scheme.sub_points", s.sub_points, format!("sub-points need method \"ddmp-subpoints\"; `{}` uses 1", s.method)));
         }
-        if !["none", "linear"].contains(&s.artificial_viscosity.as_str()) {
-            return Err(loc.err("scheme.artificial_viscosity", format!("{:?}", s.artificial_viscosity), "allowed: \"none\", \"linear\""));
+        if !["none", "linear", "tensor"].contains(&s.artificial_viscosity.as_str()) {
+            return Err(loc.err("scheme.artificial_viscosity", format!("{:?}", s.artificial_viscosity), "allowed: \"none\", \"linear\", \"tensor\""));
         }
         if !(s.viscosity_coefficient.is_finite() && s.viscosity_coefficient >= 0.0) {
             return Err(loc.err("scheme.viscosity_coefficient", s.viscosity_coefficient, "must be finite and >= 0"));
+        }
+        for (key, v) in [("scheme.viscosity_c_l", s.viscosity_c_l), ("scheme.viscosity_c_q", s.viscosity_c_q)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(loc.err(key, v, "must be finite and >= 0"));
+            }
         }
         if !(s.small_mass_fraction.is_finite() && (0.0..1.0).contains(&s.small_mass_fraction)) {
             return Err(loc.err("scheme.small_mass_fraction", s.small_mass_fraction, "must lie in [0, 1)"));

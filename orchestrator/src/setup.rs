@@ -113,7 +113,10 @@ pub fn simulation<const D: usize>(scene: &Scene, dt: f64) -> Result<Simulation<D
     let scheme = SchemeKind::from_name(&scene.scheme.method).unwrap_or(SchemeKind::Mpm);
     let viscosity = match scene.scheme.artificial_viscosity.as_str() {
         "linear" => Viscosity::Linear { coefficient: scene.scheme.viscosity_coefficient },
+        "tensor" => Viscosity::Tensor { linear: scene.scheme.viscosity_c_l, quadratic: scene.scheme.viscosity_c_q },
         _ => Viscosity::None,
     };
-    Ok(Simulation::new(grid, points, scheme, closures, viscosity, dt)?)
+    Ok(Simulation::new(grid, points, scheme, closures, viscosity, dt)?
+        .with_sub_points(scene.scheme.sub_points)
+        .with_small_mass_fraction(scene.scheme.small_mass_fraction))
 }
