@@ -133,105 +133,227 @@ fn needs_rebuild(pot: &Potential, b: &BoxView) -> bool {
     false
 }
 
+/// Per-thread scratch of the force kernel: unwrapped positions, image shifts, and the
+/// in-cut-off pairs of the density pass (list index and distance) reused by the force pass.
+#[derive(Default)]
+struct ForceScratch {
+    xu: Vec<[f64; 3]>,
+    shift: Vec<[f64; 3]>,
+    pair_k: Vec<u32>,
+    pair_r: Vec<f64>,
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<ForceScratch> = std::cell::RefCell::new(ForceScratch::default());
+}
+
+/// Make sure the box has a neighbour list (lists of idle boxes are released; rebuilding
+/// from the stored reference positions gives exactly the list the box had).
+fn ensure_list(pot: &Potential, b: &mut BoxView) {
+    if !b.list.is_built(b.x.len()) {
+        let rebuilds = b.meta.rebuilds;
+        build_from_reference(pot, b);
+        b.meta.rebuilds = rebuilds;
+    }
+}
+
+/// Release a box's neighbour list (it is rebuilt, identically, when next needed).
+pub fn release_list(b: &mut BoxView) {
+    b.list.release();
+}
+
 /// Forces, potential energy and pair virial of one box. `rho`/`fp` are scratch.
 pub fn compute_forces(pot: &Potential, b: &mut BoxView, rho: &mut Vec<f64>, fp: &mut Vec<f64>) {
+    ensure_list(pot, b);
+    SCRATCH.with(|s| {
+        let s = &mut *s.borrow_mut();
+        // Unwrapped positions and per-code shifts n * L: dx = xu_i - xu_j - shift[code].
+        let l = b.meta.l;
+        s.xu.clear();
+        s.xu.extend(b.x.iter().zip(b.img.iter()).map(|(p, im)| {
+            [p[0] + im[0] as f64 * l[0], p[1] + im[1] as f64 * l[1], p[2] + im[2] as f64 * l[2]]
+        }));
+        s.shift.clear();
+        s.shift.extend(b.list.images.iter().map(|n| [n[0] as f64 * l[0], n[1] as f64 * l[1], n[2] as f64 * l[2]]));
+        for f in b.f.iter_mut() {
+            *f = [0.0; 3];
+        }
+        let (pe, w) = match pot {
+            Potential::Eam(t) if t.masses.len() == 1 => eam_forces::<true>(t, b, s, rho, fp),
+            Potential::Eam(t) => eam_forces::<false>(t, b, s, rho, fp),
+            Potential::LjCut(lj) => lj_forces(lj, b, s),
+        };
+        b.meta.pe = pe;
+        b.meta.virial = w;
+    });
+}
+
+/// Cubic spline value at fraction `p` of row `c` (LAMMPS coefficient layout).
+#[inline(always)]
+fn spline_value(c: &[f64; 7], p: f64) -> f64 {
+    ((c[3] * p + c[4]) * p + c[5]) * p + c[6]
+}
+
+/// Cubic spline derivative at fraction `p` of row `c`.
+#[inline(always)]
+fn spline_deriv(c: &[f64; 7], p: f64) -> f64 {
+    (c[0] * p + c[1]) * p + c[2]
+}
+
+/// EAM: density pass over the half list (keeping the in-cut-off pairs and their r),
+/// embedding pass, force pass over the kept pairs. `ONE`: single-element fast path.
+fn eam_forces<const ONE: bool>(
+    t: &crate::potential::EamTables,
+    b: &mut BoxView,
+    s: &mut ForceScratch,
+    rho: &mut Vec<f64>,
+    fp: &mut Vec<f64>,
+) -> (f64, [f64; 6]) {
     let n = b.x.len();
-    let l = b.meta.l;
-    for f in b.f.iter_mut() {
-        *f = [0.0; 3];
+    let ne = t.masses.len();
+    let types = b.types;
+    let list = &*b.list;
+    let (xu, shift) = (&s.xu[..], &s.shift[..]);
+    let cut2 = t.cutforcesq;
+    let (rdr, nr) = (t.rdr, t.nr);
+    // dens[tj * ne + ti]: density at an atom of element ti from one of element tj.
+    let dens: Vec<&[[f64; 7]]> = (0..ne * ne).map(|k| &t.rhor[t.type2rhor[k / ne][k % ne]][..]).collect();
+    let z2: Vec<&[[f64; 7]]> = (0..ne * ne).map(|k| &t.z2r[t.type2z2r[k / ne][k % ne]][..]).collect();
+    let index = |r: f64| {
+        let p = r * rdr + 1.0;
+        let m = (p as usize).min(nr - 1);
+        (m, (p - m as f64).min(1.0))
+    };
+    rho.clear();
+    rho.resize(n, 0.0);
+    s.pair_k.clear();
+    s.pair_r.clear();
+    for i in 0..n {
+        let xi = xu[i];
+        let ti = types[i] as usize;
+        let mut rho_i = 0.0;
+        let row = list.start[i] as usize..list.start[i + 1] as usize;
+        for (k, (&j, &c)) in row.clone().zip(list.j[row.clone()].iter().zip(&list.code[row])) {
+            let (xj, sh) = (xu[j as usize], shift[c as usize]);
+            let d = [xi[0] - xj[0] - sh[0], xi[1] - xj[1] - sh[1], xi[2] - xj[2] - sh[2]];
+            let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            if r2 < cut2 {
+                let r = r2.sqrt();
+                s.pair_k.push(k as u32);
+                s.pair_r.push(r);
+                let (m, p) = index(r);
+                let j = j as usize;
+                if ONE {
+                    let v = spline_value(&dens[0][m], p);
+                    rho_i += v;
+                    rho[j] += v;
+                } else {
+                    let tj = types[j] as usize;
+                    rho_i += spline_value(&dens[tj * ne + ti][m], p);
+                    rho[j] += spline_value(&dens[ti * ne + tj][m], p);
+                }
+            }
+        }
+        rho[i] += rho_i;
     }
     let mut pe = 0.0;
+    fp.clear();
+    fp.resize(n, 0.0);
+    for i in 0..n {
+        let (phi, d) = t.embed(types[i] as usize, rho[i]);
+        fp[i] = d;
+        pe += phi;
+    }
     let mut w = [0.0f64; 6];
+    let f = &mut *b.f;
+    let mut q = 0;
+    for i in 0..n {
+        let xi = xu[i];
+        let ti = types[i] as usize;
+        let fp_i = fp[i];
+        let mut fi = [0.0; 3];
+        let end = list.start[i + 1];
+        while q < s.pair_k.len() && s.pair_k[q] < end {
+            let k = s.pair_k[q] as usize;
+            let r = s.pair_r[q];
+            q += 1;
+            let j = list.j[k] as usize;
+            let (xj, sh) = (xu[j], shift[list.code[k] as usize]);
+            let d = [xi[0] - xj[0] - sh[0], xi[1] - xj[1] - sh[1], xi[2] - xj[2] - sh[2]];
+            let (m, p) = index(r);
+            let (rho_ip, rho_jp, c) = if ONE {
+                let v = spline_deriv(&dens[0][m], p);
+                (v, v, &z2[0][m])
+            } else {
+                let tj = types[j] as usize;
+                // rho_ip: d rho_i(r)/dr of element i's density (as LAMMPS's rhoip).
+                (spline_deriv(&dens[ti * ne + tj][m], p), spline_deriv(&dens[tj * ne + ti][m], p), &z2[ti * ne + tj][m])
+            };
+            let z2p = spline_deriv(c, p);
+            let z2v = spline_value(c, p);
+            let recip = 1.0 / r;
+            let phi = z2v * recip;
+            let phip = z2p * recip - phi * recip;
+            let psip = fp_i * rho_jp + fp[j] * rho_ip + phip;
+            let fpair = -psip * recip;
+            pe += phi;
+            let fd = [d[0] * fpair, d[1] * fpair, d[2] * fpair];
+            fi[0] += fd[0];
+            fi[1] += fd[1];
+            fi[2] += fd[2];
+            let fj = &mut f[j];
+            fj[0] -= fd[0];
+            fj[1] -= fd[1];
+            fj[2] -= fd[2];
+            w[0] += d[0] * fd[0];
+            w[1] += d[1] * fd[1];
+            w[2] += d[2] * fd[2];
+            w[3] += d[0] * fd[1];
+            w[4] += d[0] * fd[2];
+            w[5] += d[1] * fd[2];
+        }
+        let fo = &mut f[i];
+        fo[0] += fi[0];
+        fo[1] += fi[1];
+        fo[2] += fi[2];
+    }
+    (pe, w)
+}
+
+/// Lennard-Jones (tests only): one pass over the half list.
+fn lj_forces(lj: &crate::potential::LjCut, b: &mut BoxView, s: &ForceScratch) -> (f64, [f64; 6]) {
+    let cut2 = lj.cutoff * lj.cutoff;
+    let s6 = lj.sigma.powi(6);
+    let (lj1, lj2) = (48.0 * lj.epsilon * s6 * s6, 24.0 * lj.epsilon * s6);
+    let (lj3, lj4) = (4.0 * lj.epsilon * s6 * s6, 4.0 * lj.epsilon * s6);
     let list = &*b.list;
-    let x = &*b.x;
-    let img = &*b.img;
-    let types = b.types;
-    let del = |i: usize, k: usize| -> [f64; 3] {
-        let j = list.j[k] as usize;
-        let n = list.image[k];
-        let mut out = [0.0; 3];
-        for d in 0..3 {
-            let shift = (img[i][d] - img[j][d] - n[d]) as f64 * l[d];
-            out[d] = x[i][d] - x[j][d] + shift;
-        }
-        out
-    };
-    let mut tally = |f: &mut [[f64; 3]], i: usize, j: usize, dx: [f64; 3], fpair: f64| {
-        for d in 0..3 {
-            f[i][d] += dx[d] * fpair;
-            f[j][d] -= dx[d] * fpair;
-        }
-        w[0] += dx[0] * dx[0] * fpair;
-        w[1] += dx[1] * dx[1] * fpair;
-        w[2] += dx[2] * dx[2] * fpair;
-        w[3] += dx[0] * dx[1] * fpair;
-        w[4] += dx[0] * dx[2] * fpair;
-        w[5] += dx[1] * dx[2] * fpair;
-    };
-    match pot {
-        Potential::Eam(t) => {
-            let cut2 = t.cutforcesq();
-            rho.clear();
-            rho.resize(n, 0.0);
-            for i in 0..n {
-                let ti = types[i] as usize;
-                for k in list.start[i] as usize..list.start[i + 1] as usize {
-                    let dx = del(i, k);
-                    let r2 = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2];
-                    if r2 < cut2 {
-                        let j = list.j[k] as usize;
-                        let tj = types[j] as usize;
-                        let r = r2.sqrt();
-                        rho[i] += t.density(ti, tj, r);
-                        rho[j] += t.density(tj, ti, r);
-                    }
+    let mut pe = 0.0;
+    let mut w = [0.0f64; 6];
+    for i in 0..b.x.len() {
+        for k in list.start[i] as usize..list.start[i + 1] as usize {
+            let j = list.j[k] as usize;
+            let (xi, xj, sh) = (s.xu[i], s.xu[j], s.shift[list.code[k] as usize]);
+            let d = [xi[0] - xj[0] - sh[0], xi[1] - xj[1] - sh[1], xi[2] - xj[2] - sh[2]];
+            let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            if r2 < cut2 {
+                let r2inv = 1.0 / r2;
+                let r6inv = r2inv * r2inv * r2inv;
+                let fpair = r6inv * (lj1 * r6inv - lj2) * r2inv;
+                pe += r6inv * (lj3 * r6inv - lj4);
+                for c in 0..3 {
+                    b.f[i][c] += d[c] * fpair;
+                    b.f[j][c] -= d[c] * fpair;
                 }
-            }
-            fp.clear();
-            fp.resize(n, 0.0);
-            for i in 0..n {
-                let (phi, d) = t.embed(types[i] as usize, rho[i]);
-                fp[i] = d;
-                pe += phi;
-            }
-            for i in 0..n {
-                let ti = types[i] as usize;
-                for k in list.start[i] as usize..list.start[i + 1] as usize {
-                    let dx = del(i, k);
-                    let r2 = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2];
-                    if r2 < cut2 {
-                        let j = list.j[k] as usize;
-                        let r = r2.sqrt();
-                        let (phi, psip) = t.pair(ti, types[j] as usize, r, fp[i], fp[j]);
-                        let fpair = -psip / r;
-                        pe += phi;
-                        tally(b.f, i, j, dx, fpair);
-                    }
-                }
-            }
-        }
-        Potential::LjCut(lj) => {
-            let cut2 = lj.cutoff * lj.cutoff;
-            let s6 = lj.sigma.powi(6);
-            let (lj1, lj2) = (48.0 * lj.epsilon * s6 * s6, 24.0 * lj.epsilon * s6);
-            let (lj3, lj4) = (4.0 * lj.epsilon * s6 * s6, 4.0 * lj.epsilon * s6);
-            for i in 0..n {
-                for k in list.start[i] as usize..list.start[i + 1] as usize {
-                    let dx = del(i, k);
-                    let r2 = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2];
-                    if r2 < cut2 {
-                        let r2inv = 1.0 / r2;
-                        let r6inv = r2inv * r2inv * r2inv;
-                        let fpair = r6inv * (lj1 * r6inv - lj2) * r2inv;
-                        pe += r6inv * (lj3 * r6inv - lj4);
-                        tally(b.f, i, list.j[k] as usize, dx, fpair);
-                    }
-                }
+                w[0] += d[0] * d[0] * fpair;
+                w[1] += d[1] * d[1] * fpair;
+                w[2] += d[2] * d[2] * fpair;
+                w[3] += d[0] * d[1] * fpair;
+                w[4] += d[0] * d[2] * fpair;
+                w[5] += d[1] * d[2] * fpair;
             }
         }
     }
-    b.meta.pe = pe;
-    b.meta.virial = w;
+    (pe, w)
 }
 
 /// Mass-weighted mean velocity (A/ps).

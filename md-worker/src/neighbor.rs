@@ -3,33 +3,78 @@
 //! A pair is stored once as (i, j, n): atom j's image at `x_j + n * L` lies within
 //! `cutoff + skin` of atom i. A box shorter than twice the cut-off simply has several
 //! entries for the same j with different n, so forces stay exact for any box size.
-//! Images are integers, so the list stays valid while the box is stretched.
+//! Images are integers, so the list stays valid while the box is stretched. Each pair
+//! stores its image as a 16-bit code into a small dense table (`images`), so a pair costs
+//! 6 bytes and the force kernel turns codes into displacement shifts `n * L` once per step.
 
 use serde::{Deserialize, Serialize};
 
-/// Neighbour list of one box, CSR layout (`start[i]..start[i+1]` indexes `j` and `image`).
+/// Neighbour list of one box, CSR layout (`start[i]..start[i+1]` indexes `j` and `code`).
+/// An empty `start` means "not built" (lists of idle boxes are released to save memory).
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct NeighborList {
-    /// Row starts, length n_atoms + 1.
+    /// Row starts, length n_atoms + 1 (empty when not built).
     pub start: Vec<u32>,
     /// Neighbour atom (box-local index).
     pub j: Vec<u32>,
-    /// Image of the neighbour.
-    pub image: Vec<[i32; 3]>,
+    /// Image of the neighbour, as an index into `images`.
+    pub code: Vec<u16>,
+    /// Image vectors n (in box lengths) by code.
+    pub images: Vec<[i32; 3]>,
+}
+
+impl NeighborList {
+    /// Whether the list is built for `n` atoms.
+    pub fn is_built(&self, n: usize) -> bool {
+        self.start.len() == n + 1
+    }
+
+    /// Drop the list and give its memory back.
+    pub fn release(&mut self) {
+        *self = NeighborList::default();
+    }
+
+    /// Pairs in the list.
+    pub fn len(&self) -> usize {
+        self.j.len()
+    }
+
+    /// Whether the list holds no pair.
+    pub fn is_empty(&self) -> bool {
+        self.j.is_empty()
+    }
 }
 
 /// Build the half list of atoms at `x` (already wrapped into `[lo, lo + l)`) with radius `rs`.
-/// Pairs come out in a fixed order (cells, then atom index), so the same input gives the
-/// same list.
+/// Bins are at least `rs / 2` wide. Pairs come out in a fixed order (atom index, then
+/// stencil cell, then atom index), so the same input gives the same list.
+///
+/// # Panics
+/// If a box is so small against `rs` that more than 65536 images would be needed
+/// (a box side below ~rs / 19, far from any physical box).
 pub fn build(x: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rs: f64, list: &mut NeighborList) {
     let n = x.len();
     let mut nc = [1usize; 3];
     let mut reach = [1i32; 3];
+    let mut half = [0i32; 3]; // largest |image| per axis
     for d in 0..3 {
-        nc[d] = ((l[d] / rs).floor() as usize).max(1);
+        nc[d] = ((2.0 * l[d] / rs).floor() as usize).clamp(1, 1 << 10);
         let cell = l[d] / nc[d] as f64;
         reach[d] = (rs / cell).ceil() as i32;
+        half[d] = (reach[d] + nc[d] as i32 - 1) / nc[d] as i32;
     }
+    let span = [2 * half[0] + 1, 2 * half[1] + 1, 2 * half[2] + 1];
+    let ncodes = (span[0] * span[1] * span[2]) as usize;
+    assert!(ncodes <= 1 << 16, "box {l:?} too small for a neighbour radius of {rs} A");
+    list.images.clear();
+    for a in -half[0]..=half[0] {
+        for b in -half[1]..=half[1] {
+            for c in -half[2]..=half[2] {
+                list.images.push([a, b, c]);
+            }
+        }
+    }
+    let code_of = |img: [i32; 3]| (((img[0] + half[0]) * span[1] + img[1] + half[1]) * span[2] + img[2] + half[2]) as u16;
     let ncell = nc[0] * nc[1] * nc[2];
     let cell_of = |p: &[f64; 3]| -> [usize; 3] {
         let mut c = [0usize; 3];
@@ -56,39 +101,43 @@ pub fn build(x: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rs: f64, list: &mut Neig
         order[fill[f] as usize] = i as u32;
         fill[f] += 1;
     }
+    // Stencil: wrapped cell offset and image per axis, precomputed once per cell row.
     let rs2 = rs * rs;
     list.start.clear();
     list.j.clear();
-    list.image.clear();
+    list.code.clear();
+    list.start.reserve(n + 1);
     list.start.push(0);
+    let mut stencil: [Vec<(usize, i32)>; 3] = Default::default();
     for i in 0..n {
         let ci = cells[i];
-        for ox in -reach[0]..=reach[0] {
-            for oy in -reach[1]..=reach[1] {
-                for oz in -reach[2]..=reach[2] {
-                    let o = [ox, oy, oz];
-                    let mut cw = [0usize; 3];
-                    let mut img = [0i32; 3];
-                    for d in 0..3 {
-                        let c = ci[d] as i32 + o[d];
-                        cw[d] = c.rem_euclid(nc[d] as i32) as usize;
-                        img[d] = c.div_euclid(nc[d] as i32);
-                    }
-                    let f = flat(cw);
+        let xi = x[i];
+        for d in 0..3 {
+            stencil[d].clear();
+            for o in -reach[d]..=reach[d] {
+                let c = ci[d] as i32 + o;
+                stencil[d].push((c.rem_euclid(nc[d] as i32) as usize, c.div_euclid(nc[d] as i32)));
+            }
+        }
+        for &(cx, ix) in &stencil[0] {
+            let sx = ix as f64 * l[0] - xi[0];
+            for &(cy, iy) in &stencil[1] {
+                let sy = iy as f64 * l[1] - xi[1];
+                for &(cz, iz) in &stencil[2] {
+                    let sz = iz as f64 * l[2] - xi[2];
+                    let img = [ix, iy, iz];
+                    let self_image_kept = img > [0, 0, 0];
+                    let f = flat([cx, cy, cz]);
                     for &j in &order[count[f] as usize..count[f + 1] as usize] {
-                        let j = j as usize;
-                        let keep = j > i || (j == i && img > [0, 0, 0]);
-                        if !keep {
+                        let ju = j as usize;
+                        if !(ju > i || (ju == i && self_image_kept)) {
                             continue;
                         }
-                        let mut r2 = 0.0;
-                        for d in 0..3 {
-                            let dx = x[j][d] + img[d] as f64 * l[d] - x[i][d];
-                            r2 += dx * dx;
-                        }
-                        if r2 < rs2 {
-                            list.j.push(j as u32);
-                            list.image.push(img);
+                        let p = x[ju];
+                        let (dx, dy, dz) = (p[0] + sx, p[1] + sy, p[2] + sz);
+                        if dx * dx + dy * dy + dz * dz < rs2 {
+                            list.j.push(j);
+                            list.code.push(code_of(img));
                         }
                     }
                 }

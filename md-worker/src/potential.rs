@@ -111,20 +111,20 @@ pub struct EamTables {
     pub elements: Vec<String>,
     /// Masses (amu), per element.
     pub masses: Vec<f64>,
-    nrho: usize,
-    nr: usize,
-    rdr: f64,
-    rdrho: f64,
-    rhomax: f64,
+    pub(crate) nrho: usize,
+    pub(crate) nr: usize,
+    pub(crate) rdr: f64,
+    pub(crate) rdrho: f64,
+    pub(crate) rhomax: f64,
     /// Cut-off (A).
     pub cutoff: f64,
-    cutforcesq: f64,
-    frho: Vec<Spline>,
-    rhor: Vec<Spline>,
-    z2r: Vec<Spline>,
+    pub(crate) cutforcesq: f64,
+    pub(crate) frho: Vec<Spline>,
+    pub(crate) rhor: Vec<Spline>,
+    pub(crate) z2r: Vec<Spline>,
     /// type2rhor[i][j]: which rhor spline, as LAMMPS.
-    type2rhor: Vec<Vec<usize>>,
-    type2z2r: Vec<Vec<usize>>,
+    pub(crate) type2rhor: Vec<Vec<usize>>,
+    pub(crate) type2z2r: Vec<Vec<usize>>,
 }
 
 /// A reader of whitespace-separated numbers spanning lines, tracking line numbers.
