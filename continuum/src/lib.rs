@@ -12,6 +12,7 @@
 //! cross-section; in 2D per unit thickness).
 
 pub mod closure;
+pub mod coupling;
 pub mod ddmp;
 pub mod diagnostics;
 pub mod exact;

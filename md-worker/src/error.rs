@@ -35,6 +35,17 @@ pub enum MdError {
     /// A feature that this engine does not provide was requested.
     #[error("unsupported: {0}")]
     Unsupported(String),
+    /// A remote worker failed, was lost, or sent a bad reply.
+    #[error("worker {worker}: {msg}")]
+    Worker {
+        /// Address or name of the worker.
+        worker: String,
+        /// What happened.
+        msg: String,
+    },
+    /// A GPU back end is unavailable (no driver, NVRTC or device) or a device call failed.
+    #[error("cuda: {0}")]
+    Device(String),
     /// A request named a box that this back end does not hold.
     #[error("unknown box (point id {0})")]
     UnknownBox(u64),

@@ -10,13 +10,19 @@
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod backend;
+#[cfg(feature = "cuda")]
+pub mod cuda;
 pub mod data;
+pub mod device;
 pub mod error;
 pub mod kernel;
 pub mod lattice;
 pub mod neighbor;
+pub mod pool;
 pub mod potential;
+pub mod server;
 pub mod units;
+pub mod wire;
 
 pub use backend::{
     BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, Diagnostics, InitialAtoms, MdBackend, PointId, ReferenceBackend,

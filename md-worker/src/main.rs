@@ -20,6 +20,19 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
+    /// Host boxes for coordinators over gRPC (mscale.coupling.v1), with health and reflection.
+    /// Prints `listening on ADDR` once ready (port 0 picks a free port).
+    Serve {
+        /// Address to listen on, e.g. 127.0.0.1:50051 or 0.0.0.0:50051.
+        #[arg(long, default_value = "127.0.0.1:50051")]
+        listen: String,
+        /// auto, cpu or cuda (cuda needs the `cuda` feature and a device).
+        #[arg(long, default_value = "auto")]
+        device: String,
+        /// Worker threads for the cpu back end (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+    },
     /// Energy, kinetic energy and virial stress of a LAMMPS data file (JSON on stdout).
     Eval {
         /// EAM potential file (.eam, .eam.alloy, .eam.fs).
@@ -93,6 +106,7 @@ enum Cmd {
 fn main() {
     let cli = Cli::parse();
     let res = match cli.cmd {
+        Cmd::Serve { listen, device, threads } => serve(&listen, &device, threads),
         Cmd::Eval { potential, data, forces } => eval(&potential, &data, forces),
         Cmd::Run { potential, data, steps, dt, velocity_gradient, remap, thermo, write_data, dump } => {
             run(&potential, &data, steps, dt, &velocity_gradient, &remap, thermo, write_data, dump)
@@ -304,4 +318,34 @@ fn kind_atoms(k: LatticeKind) -> usize {
         LatticeKind::Bcc => 2,
         LatticeKind::Sc => 1,
     }
+}
+
+/// `md-worker serve`.
+fn serve(listen: &str, device: &str, threads: Option<usize>) -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let backend = match device {
+        "cpu" | "auto" => "cpu",
+        "cuda" => return Err(bad("--device cuda: this build has no CUDA back end for serving yet; use --device cpu")),
+        other => return Err(bad(format!("--device {other:?}: expected auto, cpu or cuda"))),
+    };
+    let pool = match threads {
+        Some(0) => return Err(bad("--threads must be at least 1")),
+        Some(t) => Some(Arc::new(rayon::ThreadPoolBuilder::new().num_threads(t).build()?)),
+        None => None,
+    };
+    let opts = md_worker::server::ServeOptions { backend: backend.into(), threads: pool, device: format!("cpu ({} threads)", threads.unwrap_or_else(rayon::current_num_threads)) };
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    rt.block_on(async {
+        let listener = tokio::net::TcpListener::bind(listen).await.map_err(|e| bad(format!("--listen {listen}: {e}")))?;
+        let addr = listener.local_addr()?;
+        println!("listening on {addr}");
+        std::io::stdout().flush()?;
+        let shutdown = async {
+            let _ = tokio::signal::ctrl_c().await;
+        };
+        md_worker::server::serve(listener, opts, shutdown).await.map_err(|e| anyhow::anyhow!("serving on {addr}: {e}"))
+    })
 }

@@ -281,9 +281,6 @@ impl Endpoint for Remote {
     }
 
     fn open(&mut self, potential: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
-        if self.session.is_some() {
-            return Err(MdError::Unsupported("opening more boxes on a remote worker after the first open".into()));
-        }
         let pref = pb::PotentialRef { name: potential.name.clone(), sha256: potential.sha256.clone() };
         let present = self.rt.block_on(self.client.has_potential(pref.clone())).map_err(|s| self.err(s))?.into_inner().present;
         let req = pb::OpenRequest {
@@ -292,6 +289,7 @@ impl Endpoint for Remote {
             potential_bytes: if present { Vec::new() } else { potential.bytes.as_ref().clone() },
             boxes: specs.iter().map(wire::spec_to_pb).collect(),
             backend: String::new(),
+            session: self.session.unwrap_or(0),
         };
         let resp = self.rt.block_on(self.client.open(req)).map_err(|s| self.err(s))?.into_inner();
         self.session = Some(resp.session);

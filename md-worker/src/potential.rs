@@ -35,6 +35,12 @@ impl Potential {
     pub fn from_file(path: &Path) -> Result<Self, MdError> {
         let name = path.to_string_lossy().to_string();
         let text = std::fs::read_to_string(path).map_err(|e| MdError::Io { file: name.clone(), source: e })?;
+        Self::from_text(&name, &text)
+    }
+
+    /// Parse potential text; `name` (a file name) decides the format as in [`Potential::from_file`].
+    pub fn from_text(name: &str, text: &str) -> Result<Self, MdError> {
+        let name = name.to_string();
         let fmt = if name.ends_with(".eam.alloy") || name.ends_with(".setfl") {
             EamFormat::Setfl
         } else if name.ends_with(".eam.fs") {
@@ -47,7 +53,7 @@ impl Potential {
                 format!("{name}: cannot tell the format; expected a name ending in .eam, .eam.alloy, .setfl or .eam.fs"),
             ));
         };
-        Ok(Potential::Eam(EamTables::parse(&text, &name, fmt)?))
+        Ok(Potential::Eam(EamTables::parse(text, &name, fmt)?))
     }
 
     /// Interaction cut-off (A).

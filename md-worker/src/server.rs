@@ -101,6 +101,16 @@ impl MdWorker for WorkerService {
             }
         };
         let specs = req.boxes.iter().map(wire::spec_from_pb).collect::<Result<Vec<_>, _>>()?;
+        if req.session != 0 {
+            let backend = self.session(req.session)?;
+            let name = blocking(move || {
+                let mut b = lock(&backend);
+                b.open(&specs)?;
+                Ok(b.name().to_string())
+            })
+            .await?;
+            return Ok(Response::new(pb::OpenResponse { session: req.session, backend: name, precision: "double".into() }));
+        }
         let name = if req.backend.is_empty() { self.opts.backend.clone() } else { req.backend.clone() };
         let threads = self.opts.threads.clone();
         let backend = blocking(move || {

@@ -24,6 +24,9 @@ enum Command {
         /// Override a scene field: --set dotted.key=value (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
+        /// Running MD workers (`md-worker serve`) to use instead of in-process MD: HOST:PORT,...
+        #[arg(long, value_delimiter = ',', value_name = "HOST:PORT,...")]
+        workers: Vec<String>,
     },
     /// Reports over many runs of a scene.
     #[command(subcommand)]
@@ -50,6 +53,9 @@ enum ReportCommand {
         /// Report directory (default runs/<scene>-report).
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Running MD workers to use instead of in-process MD: HOST:PORT,...
+        #[arg(long, value_delimiter = ',', value_name = "HOST:PORT,...")]
+        workers: Vec<String>,
     },
 }
 
@@ -82,9 +88,9 @@ fn dispatch(cli: Cli) -> i32 {
                 exit::BAD_INPUT
             }
         },
-        Command::Report(ReportCommand::ErrorVsTime { scene, sweep, set, out }) => {
+        Command::Report(ReportCommand::ErrorVsTime { scene, sweep, set, out, workers }) => {
             let out = out.unwrap_or_else(|| orchestrator::report::default_out(&scene));
-            match orchestrator::report::error_vs_time(&scene, &set, &sweep, &out) {
+            match orchestrator::report::error_vs_time(&scene, &set, &sweep, &out, &workers) {
                 Ok(rows) => {
                     println!("{} runs; report in {}/report.csv and report.png", rows.len(), out.display());
                     exit::OK
@@ -99,7 +105,7 @@ fn dispatch(cli: Cli) -> i32 {
                 }
             }
         }
-        Command::Run { scene, out, set } => {
+        Command::Run { scene, out, set, workers } => {
             let loaded = match scene::load(&scene, &set) {
                 Ok(l) => l,
                 Err(e) => {
@@ -108,7 +114,8 @@ fn dispatch(cli: Cli) -> i32 {
                 }
             };
             let out = out.unwrap_or_else(|| run::default_out_dir(&loaded.scene));
-            let opts = run::RunOptions::new(out.clone(), std::env::args().collect());
+            let mut opts = run::RunOptions::new(out.clone(), std::env::args().collect());
+            opts.workers = workers;
             match run::run(&loaded, &opts) {
                 Ok(run::Outcome::Completed(summary)) => {
                     println!("completed {} steps in {:.2} s; outputs in {}", summary["steps"], summary["wall_seconds"].as_f64().unwrap_or(0.0), out.display());
@@ -122,7 +129,7 @@ fn dispatch(cli: Cli) -> i32 {
                     exit::RUN_FAILED
                 }
                 Err(e) => {
-                    let bad_input = e.downcast_ref::<orchestrator::setup::SetupError>().is_some_and(|s| !matches!(s, orchestrator::setup::SetupError::Solver(_)));
+                    let bad_input = e.downcast_ref::<orchestrator::setup::SetupError>().is_some_and(|s| matches!(s, orchestrator::setup::SetupError::EmptyBody(_) | orchestrator::setup::SetupError::MdUnavailable(_)));
                     eprintln!("mscale: {e:#}");
                     if bad_input { exit::BAD_INPUT } else { exit::RUN_FAILED }
                 }

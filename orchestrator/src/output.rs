@@ -31,8 +31,9 @@ fn num(out: &mut String, v: f64) {
 
 const AXES: [&str; 3] = ["x", "y", "z"];
 
-/// Particle table: `id,x0,(y0,z0),x,(y,z),vx,(vy,vz),mass,volume,density,pressure,sxx..syz`.
-pub fn particles_csv<const D: usize>(pts: &Particles<D>) -> String {
+/// Particle table: `id,x0,(y0,z0),x,(y,z),vx,(vy,vz),mass,volume,density,pressure,sxx..syz`,
+/// then the `extra` columns (one value per point; non-finite values are written empty).
+pub fn particles_csv<const D: usize>(pts: &Particles<D>, extra: &[(&str, Vec<f64>)]) -> String {
     let mut s = String::with_capacity(pts.len() * 200);
     s.push_str("id");
     for a in AXES.iter().take(D) {
@@ -44,7 +45,11 @@ pub fn particles_csv<const D: usize>(pts: &Particles<D>) -> String {
     for a in AXES.iter().take(D) {
         let _ = write!(s, ",v{a}");
     }
-    s.push_str(",mass,volume,density,pressure,sxx,syy,szz,sxy,sxz,syz\n");
+    s.push_str(",mass,volume,density,pressure,sxx,syy,szz,sxy,sxz,syz");
+    for (name, _) in extra {
+        let _ = write!(s, ",{name}");
+    }
+    s.push('\n');
     for p in 0..pts.len() {
         let _ = write!(s, "{p}");
         for v in pts.x0[p].iter().chain(&pts.x[p]).chain(&pts.v[p]) {
@@ -54,6 +59,10 @@ pub fn particles_csv<const D: usize>(pts: &Particles<D>) -> String {
         for v in [pts.mass[p], pts.volume[p], pts.density(p), pts.pressure(p)].into_iter().chain(tensor::to_voigt(&pts.stress[p])) {
             s.push(',');
             num(&mut s, v);
+        }
+        for (_, col) in extra {
+            s.push(',');
+            num(&mut s, col.get(p).copied().unwrap_or(f64::NAN));
         }
         s.push('\n');
     }

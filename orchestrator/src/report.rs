@@ -58,7 +58,7 @@ pub struct Row {
 
 /// Validates every combination first (a bad value is refused before anything runs), then runs
 /// them one after another and writes `report.csv` and `report.png` in `out`.
-pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: &Path) -> Result<Vec<Row>, ReportError> {
+pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: &Path, workers: &[String]) -> Result<Vec<Row>, ReportError> {
     let combos = combinations(sweeps);
     let mut loaded = Vec::new();
     for combo in &combos {
@@ -68,7 +68,7 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
     let mut rows = Vec::new();
     for (k, (combo, l)) in combos.iter().zip(&loaded).enumerate() {
         tracing::info!("report run {}/{}: {}", k + 1, combos.len(), combo.join(" "));
-        let opts = RunOptions { out: out.join("runs").join(format!("{k:03}")), command_line: std::env::args().collect(), progress_bar: false };
+        let opts = RunOptions { out: out.join("runs").join(format!("{k:03}")), command_line: std::env::args().collect(), progress_bar: false, workers: workers.to_vec() };
         let summary = match run::run(l, &opts).map_err(ReportError::Io)? {
             Outcome::Completed(s) | Outcome::Failed(s, _) => s,
         };

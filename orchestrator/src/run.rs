@@ -7,6 +7,8 @@ use crate::setup;
 use anyhow::{Context, Result};
 use continuum::exact::{IsothermalRiemann, PressureErrors, State};
 use continuum::Simulation;
+use continuum::coupling::MdShared;
+use std::sync::{Arc, Mutex};
 use serde_json::{json, Value};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -24,12 +26,30 @@ pub struct RunOptions {
     pub command_line: Vec<String>,
     /// Draw a progress bar (otherwise log lines every 10 %).
     pub progress_bar: bool,
+    /// MD workers (`host:port`); empty runs MD in this process.
+    pub workers: Vec<String>,
 }
 
 impl RunOptions {
     pub fn new(out: PathBuf, command_line: Vec<String>) -> Self {
-        RunOptions { out, command_line, progress_bar: std::io::stderr().is_terminal() }
+        RunOptions { out, command_line, progress_bar: std::io::stderr().is_terminal(), workers: Vec::new() }
     }
+}
+
+/// The MD pool of a scene with md bodies (one potential per run), or `None`.
+fn md_shared(loaded: &LoadedScene, workers: &[String]) -> Result<Option<Arc<Mutex<MdShared>>>> {
+    let mut potentials = loaded.scene.bodies.values().filter_map(|b| match &b.material {
+        Material::Md(m) => Some(m.potential.clone()),
+        _ => None,
+    });
+    let Some(first) = potentials.next() else { return Ok(None) };
+    if let Some(other) = potentials.find(|p| *p != first) {
+        anyhow::bail!("all md bodies of a run must share one potential; found {} and {}", first.display(), other.display());
+    }
+    let potential = md_worker::pool::PotentialSource::from_file(&first)?;
+    let pool = crate::md::pool(workers)?;
+    tracing::info!("MD on {}", pool.endpoint_names().join(", "));
+    Ok(Some(Arc::new(Mutex::new(MdShared { pool, potential, points: Vec::new(), step: 0 }))))
 }
 
 /// Default run directory: `runs/<scene>-<UTC timestamp>`.
@@ -80,11 +100,23 @@ struct Snapshots {
     pvd: Vec<(f64, String)>,
 }
 
-fn write_snapshot<const D: usize>(sim: &Simulation<D>, scene: &Scene, dir: &Path, snaps: &mut Snapshots) -> Result<()> {
+/// Per-point MD columns of the particle files (empty without MD).
+fn md_columns(md: Option<&Arc<Mutex<MdShared>>>, n: usize) -> Vec<(&'static str, Vec<f64>)> {
+    let Some(m) = md.and_then(|m| m.lock().ok()) else { return Vec::new() };
+    let col = |f: &dyn Fn(&continuum::coupling::MdPointState) -> f64| (0..n).map(|p| m.points.get(p).and_then(|s| s.as_ref()).map_or(f64::NAN, f)).collect::<Vec<_>>();
+    vec![
+        ("md_temperature_k", col(&|s| s.last.temperature_k)),
+        ("md_potential_ev", col(&|s| s.last.potential_energy_ev)),
+        ("md_kinetic_ev", col(&|s| s.last.kinetic_energy_ev)),
+        ("md_energy_added_ev", col(&|s| s.added_ev)),
+    ]
+}
+
+fn write_snapshot<const D: usize>(sim: &Simulation<D>, scene: &Scene, dir: &Path, snaps: &mut Snapshots, md: Option<&Arc<Mutex<MdShared>>>) -> Result<()> {
     let step = sim.step;
     if scene.output.particles {
         let file = format!("particles_{step:08}.csv");
-        output::write_atomic(&dir.join("snapshots").join(&file), output::particles_csv(&sim.points).as_bytes())?;
+        output::write_atomic(&dir.join("snapshots").join(&file), output::particles_csv(&sim.points, &md_columns(md, sim.points.len())).as_bytes())?;
         snaps.index.push_str(&format!("{step},{:e},{file}\n", sim.time));
         output::write_atomic(&dir.join("snapshots/index.csv"), snaps.index.as_bytes())?;
     }
@@ -103,7 +135,8 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create the run directory {}", dir.display()))?;
     output::write_atomic(&dir.join("scene.resolved.toml"), scene.to_toml().as_bytes())?;
     let wall = Instant::now();
-    let mut sim = setup::simulation::<D>(scene, loaded.dt)?;
+    let md = md_shared(loaded, &opts.workers)?;
+    let mut sim = setup::simulation::<D>(scene, loaded.dt, md.as_ref())?;
     let setup_s = wall.elapsed().as_secs_f64();
     tracing::info!(points = sim.points.len(), nodes = sim.grid.node_count(), steps = loaded.steps, dt = sim.dt, "running {}", scene.name);
 
@@ -111,7 +144,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     let mut snaps = Snapshots { index: "step,time,file\n".into(), pvd: Vec::new() };
     let mut output_s = 0.0;
     let t = Instant::now();
-    write_snapshot(&sim, scene, dir, &mut snaps)?;
+    write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
     output_s += t.elapsed().as_secs_f64();
 
     let bar = progress_bar(opts.progress_bar, loaded.steps, scene.scheme.end_time);
@@ -120,6 +153,11 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     let mut last_log = Instant::now();
     let mut failure = None;
     while sim.step < loaded.steps {
+        if let Some(md) = &md {
+            if let Ok(mut m) = md.lock() {
+                m.step = sim.step + 1;
+            }
+        }
         let t = Instant::now();
         let result = sim.step();
         continuum_s += t.elapsed().as_secs_f64();
@@ -132,7 +170,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         max_abs_momentum = max_abs_momentum.max(momentum_scale(&sim));
         if sim.step % every == 0 && sim.step < loaded.steps {
             let t = Instant::now();
-            write_snapshot(&sim, scene, dir, &mut snaps)?;
+            write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
             output_s += t.elapsed().as_secs_f64();
         }
         match &bar {
@@ -152,10 +190,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     }
     let t = Instant::now();
     if failure.is_none() {
-        write_snapshot(&sim, scene, dir, &mut snaps)?;
+        write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
     }
     if scene.output.particles {
-        output::write_atomic(&dir.join("particles_final.csv"), output::particles_csv(&sim.points).as_bytes())?;
+        output::write_atomic(&dir.join("particles_final.csv"), output::particles_csv(&sim.points, &md_columns(md.as_ref(), sim.points.len())).as_bytes())?;
     }
     let reference = reference(scene);
     let errors = reference.as_ref().map(|(rp, jump)| pressure_errors(&sim, rp, *jump));
@@ -164,7 +202,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     }
     output_s += t.elapsed().as_secs_f64();
 
-    let summary = summary(loaded, opts, &sim, SummaryTimes { wall: wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s }, max_kinetic, max_abs_momentum, errors, failure.as_deref())?;
+    let summary = summary(loaded, opts, &sim, SummaryTimes { wall: wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s }, max_kinetic, max_abs_momentum, errors, failure.as_deref(), md.as_ref())?;
     output::write_atomic(&dir.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
     Ok(match failure {
         None => Outcome::Completed(summary),
@@ -240,7 +278,14 @@ fn summary<const D: usize>(
     momentum_scale: f64,
     errors: Option<PressureErrors>,
     failure: Option<&str>,
+    md: Option<&Arc<Mutex<MdShared>>>,
 ) -> Result<Value> {
+    let md = md.and_then(|m| m.lock().ok());
+    let pool_times = md.as_ref().map(|m| m.pool.times).unwrap_or_default();
+    let backend = match &md {
+        Some(m) => format!("md: {} on {}", m.pool.kinds().join(", "), m.pool.endpoint_names().join(", ")),
+        None => "none (constitutive laws only)".into(),
+    };
     let scene = &loaded.scene;
     let (init, now) = (sim.initial, sim.totals());
     let energy_scale = init.energy().abs().max(max_kinetic).max(f64::MIN_POSITIVE);
@@ -275,7 +320,13 @@ fn summary<const D: usize>(
             "energy_final": finite_or_null(now.energy()),
             "energy_drift": finite_or_null((now.energy() - init.energy()).abs() / energy_scale),
         },
-        "time_breakdown_s": { "setup": times.setup, "continuum": times.continuum, "output": times.output },
+        "time_breakdown_s": {
+            "setup": times.setup,
+            "continuum": times.continuum - pool_times.step_wall,
+            "md": pool_times.md_compute,
+            "serialisation_transfer_idle": pool_times.step_wall - pool_times.md_compute,
+            "output": times.output,
+        },
         "errors": errors.map(|e| json!({
             "reference": "isothermal-riemann",
             "pressure_l1": finite_or_null(e.l1),
@@ -287,7 +338,7 @@ fn summary<const D: usize>(
             "version": env!("CARGO_PKG_VERSION"),
             "commit": option_env!("MSCALE_COMMIT").unwrap_or("unknown"),
             "features": crate::FEATURES,
-            "backend": if scene.needs_md() { "md" } else { "none (constitutive laws only)" },
+            "backend": backend,
             "precision": "f64",
             "inputs": inputs,
         },

@@ -204,6 +204,15 @@ pub struct MdMaterial {
     /// Relax the box lengths to zero mean stress at temperature.
     #[serde(default)]
     pub relax_box: bool,
+    /// How boxes follow the velocity gradient: `affine` (LAMMPS `fix deform ... remap x`,
+    /// diagonal gradients only), `seed` (thesis Ch. 5.2, any gradient), or `auto` (affine in
+    /// 1D, seed otherwise).
+    #[serde(default = "default_deformation")]
+    pub deformation: String,
+}
+
+fn default_deformation() -> String {
+    "auto".into()
 }
 
 fn default_md_timestep() -> f64 {
@@ -534,7 +543,11 @@ impl Scene {
             files.extend(file);
         }
         self.validate_boundary(loc)?;
-        let (dt, steps) = self.validate_scheme(loc, max_speed)?;
+        let user_timestep = self.scheme.timestep.is_some() && self.scheme.cfl.is_none();
+        let (mut dt, mut steps) = self.validate_scheme(loc, max_speed)?;
+        if let Some(md_step) = self.md_step(loc)? {
+            (dt, steps) = self.fit_to_md_step(loc, dt, md_step, user_timestep, max_speed)?;
+        }
         if let Some(r) = &self.reference {
             self.validate_reference(loc, r)?;
         }
@@ -677,15 +690,30 @@ impl Scene {
                 if !(md.timestep_fs > 0.0 && md.timestep_fs <= 5.0) {
                     return Err(loc.err(&k("material.timestep_fs"), md.timestep_fs, "the MD time step must lie in (0, 5] fs"));
                 }
-                if !["last", "average"].contains(&md.stress_sampling.as_str()) {
-                    return Err(loc.err(&k("material.stress_sampling"), format!("{:?}", md.stress_sampling), "allowed: \"last\", \"average\""));
+                if md.stress_sampling != "last" {
+                    return Err(loc.err(&k("material.stress_sampling"), format!("{:?}", md.stress_sampling), "allowed: \"last\" (the seed's choice; \"average\" is not implemented yet)"));
                 }
-                if !["double", "mixed"].contains(&md.precision.as_str()) {
-                    return Err(loc.err(&k("material.precision"), format!("{:?}", md.precision), "allowed: \"double\", \"mixed\""));
+                if md.precision != "double" {
+                    return Err(loc.err(&k("material.precision"), format!("{:?}", md.precision), "allowed: \"double\" (the CPU back ends compute in double; \"mixed\" belongs to the CUDA back end)"));
                 }
-                // Wave speed is measured from the boxes at run time; a generous metal estimate
-                // bounds the time step check here.
-                Ok((8000.0, Some(file)))
+                if md.deformation == "auto" {
+                    md.deformation = if dim == 1 { "affine".into() } else { "seed".into() };
+                }
+                if !["affine", "seed"].contains(&md.deformation.as_str()) || (md.deformation == "affine" && dim > 1) {
+                    return Err(loc.err(&k("material.deformation"), format!("{:?}", md.deformation), "allowed: \"seed\" (any dimension), \"affine\" (1D only: it takes diagonal gradients), \"auto\""));
+                }
+                if md.relax_steps > 1_000_000 {
+                    return Err(loc.err(&k("material.relax_steps"), md.relax_steps, "at most 1e6 relaxation steps"));
+                }
+                // From here on the path is absolute, so the resolved scene reads back anywhere.
+                let file = file.canonicalize().unwrap_or(file);
+                md.potential = file.clone();
+                let props = crate::md::lattice_properties(&file, &md.lattice, md.lattice_constant_angstrom)
+                    .map_err(|e| loc.err(&k("material.potential"), format!("{:?}", md.potential), format!("{e}")))?;
+                if (rho - props.density).abs() > 0.01 * props.density {
+                    return Err(loc.err(&k("density"), rho, format!("an md body's density must match its lattice: {:.1} kg/m^3 for {} at a0 = {} A", props.density, md.lattice, md.lattice_constant_angstrom)));
+                }
+                Ok((props.wave_speed, Some(file)))
             }
         }
     }
@@ -815,6 +843,44 @@ impl Scene {
             return Err(loc.err("reference.right", format!("{:?}", r.right), "both bodies must have the same sound speed"));
         }
         Ok(())
+    }
+
+    /// The MD time step (s) shared by every md body, if there are any.
+    fn md_step(&self, loc: &Locator<'_>) -> Result<Option<f64>, SceneError> {
+        let mut step: Option<(String, f64)> = None;
+        for (name, b) in &self.bodies {
+            if let Material::Md(m) = &b.material {
+                match &step {
+                    Some((first, fs)) if *fs != m.timestep_fs => {
+                        return Err(loc.err(&format!("bodies.{name}.material.timestep_fs"), m.timestep_fs, format!("every md body must use the same MD time step; body `{first}` uses {fs} fs")));
+                    }
+                    Some(_) => {}
+                    None => step = Some((name.clone(), m.timestep_fs)),
+                }
+            }
+        }
+        Ok(step.map(|(_, fs)| fs * 1e-15))
+    }
+
+    /// A continuum step is a whole number of MD steps: a step from `cfl` is rounded down to
+    /// one; a given `timestep` must be one.
+    fn fit_to_md_step(&mut self, loc: &Locator<'_>, dt: f64, md_step: f64, user_timestep: bool, speed: f64) -> Result<(f64, u64), SceneError> {
+        let n = dt / md_step;
+        let whole = (n + 1e-9).floor();
+        if whole < 1.0 {
+            return Err(loc.err("scheme.timestep", dt, format!("the continuum step is shorter than one MD step ({md_step:e} s)")));
+        }
+        if user_timestep && (n - n.round()).abs() > 1e-6 * n {
+            return Err(loc.err("scheme.timestep", dt, format!("must be a whole number of MD steps ({md_step:e} s); e.g. {:e} s", whole * md_step)));
+        }
+        let dt = if user_timestep { n.round() * md_step } else { whole * md_step };
+        let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
+        // The same speed as the CFL number of `validate_scheme`: wave speed plus body speed.
+        let speed = speed + self.bodies.values().flat_map(|b| b.velocity.iter()).fold(0.0_f64, |m, v| m.max(v.abs()));
+        let steps = (self.scheme.end_time / dt - 1e-9).ceil().max(1.0) as u64;
+        self.scheme.timestep = Some(dt);
+        self.scheme.cfl = Some(dt * speed / h);
+        Ok((dt, steps))
     }
 
     /// Whether any body needs the MD engine.

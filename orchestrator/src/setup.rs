@@ -5,13 +5,17 @@ use crate::scene::{Body, FaceSpec, Material, Scene, Shape};
 use continuum::closure::{IdealGasIsothermal, LinearElastic, NeoHookean};
 use continuum::solver::Viscosity;
 use continuum::tensor::IDENTITY;
+use continuum::coupling::{MdClosure, MdSettings, MdShared};
+use std::sync::{Arc, Mutex};
 use continuum::{Closure, Face, Grid, Particles, SchemeKind, Simulation};
 
 /// Why a validated scene still cannot be built in this build.
 #[derive(Debug, thiserror::Error)]
 pub enum SetupError {
-    #[error("body `{0}` uses the md closure, which needs the coupling service; this build runs constitutive-law scenes only")]
+    #[error("body `{0}` uses the md closure, but no MD worker pool was given")]
     MdUnavailable(String),
+    #[error("body `{0}`: {1}")]
+    Md(String, String),
     #[error("body `{0}` has no material points: it is thinner than a particle spacing")]
     EmptyBody(String),
     #[error(transparent)]
@@ -59,12 +63,19 @@ fn inside<const D: usize>(body: &Body, x: &[f64; D]) -> bool {
     }
 }
 
-fn closure(body: &Body, name: &str) -> Result<Box<dyn Closure>, SetupError> {
+fn closure(body: &Body, name: &str, points: std::ops::Range<usize>, md: Option<&Arc<Mutex<MdShared>>>) -> Result<Box<dyn Closure>, SetupError> {
     Ok(match &body.material {
         Material::IdealGasIsothermal(g) => Box::new(IdealGasIsothermal { sound_speed: g.sound_speed }),
         Material::LinearElastic(e) => Box::new(LinearElastic { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio, density0: body.density }),
         Material::NeoHookean(e) => Box::new(NeoHookean { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio, density0: body.density }),
-        Material::Md(_) => return Err(SetupError::MdUnavailable(name.to_string())),
+        Material::Md(m) => {
+            let shared = md.ok_or_else(|| SetupError::MdUnavailable(name.to_string()))?;
+            let md_err = |e: String| SetupError::Md(name.to_string(), e);
+            let specs = points.map(|p| crate::md::box_spec(p as u64, body, m)).collect::<anyhow::Result<Vec<_>>>().map_err(|e| md_err(format!("{e:#}")))?;
+            let props = crate::md::lattice_properties(&m.potential, &m.lattice, m.lattice_constant_angstrom).map_err(|e| md_err(format!("{e:#}")))?;
+            let settings = MdSettings { dt_ps: m.timestep_fs * 1e-3, energy_consistency: m.energy_consistency, wave_speed: props.wave_speed };
+            Box::new(MdClosure::open(shared.clone(), settings, &specs).map_err(|e| md_err(e.to_string()))?)
+        }
     })
 }
 
@@ -106,10 +117,11 @@ pub fn points<const D: usize>(scene: &Scene, grid: &Grid<D>) -> Result<Particles
 }
 
 /// Builds the simulation of a validated scene with time step `dt`.
-pub fn simulation<const D: usize>(scene: &Scene, dt: f64) -> Result<Simulation<D>, SetupError> {
+pub fn simulation<const D: usize>(scene: &Scene, dt: f64, md: Option<&Arc<Mutex<MdShared>>>) -> Result<Simulation<D>, SetupError> {
     let grid = grid::<D>(scene);
-    let closures = scene.bodies.iter().map(|(n, b)| closure(b, n)).collect::<Result<Vec<_>, _>>()?;
     let points = points(scene, &grid)?;
+    let ranges = points.body_ranges();
+    let closures = scene.bodies.iter().zip(ranges).map(|((n, b), r)| closure(b, n, r, md)).collect::<Result<Vec<_>, _>>()?;
     let scheme = SchemeKind::from_name(&scene.scheme.method).unwrap_or(SchemeKind::Mpm);
     let viscosity = match scene.scheme.artificial_viscosity.as_str() {
         "linear" => Viscosity::Linear { coefficient: scene.scheme.viscosity_coefficient },
