@@ -139,8 +139,17 @@ fn needs_rebuild(pot: &Potential, b: &BoxView) -> bool {
 struct ForceScratch {
     xu: Vec<[f64; 3]>,
     shift: Vec<[f64; 3]>,
-    pair_k: Vec<u32>,
-    pair_r: Vec<f64>,
+    /// Pairs within the cut-off, row by row (`pair_end[i]` closes row i).
+    pairs: Vec<Pair>,
+    pair_end: Vec<u32>,
+}
+
+/// A pair within the cut-off found by the density pass.
+#[derive(Clone, Copy)]
+struct Pair {
+    d: [f64; 3],
+    r: f64,
+    j: usize,
 }
 
 thread_local! {
@@ -219,30 +228,37 @@ fn eam_forces<const ONE: bool>(
     // dens[tj * ne + ti]: density at an atom of element ti from one of element tj.
     let dens: Vec<&[[f64; 7]]> = (0..ne * ne).map(|k| &t.rhor[t.type2rhor[k / ne][k % ne]][..]).collect();
     let z2: Vec<&[[f64; 7]]> = (0..ne * ne).map(|k| &t.z2r[t.type2z2r[k / ne][k % ne]][..]).collect();
+    // Spline row and fraction of r, as LAMMPS. Only called for 0 <= r < cut-off, so p is
+    // finite and in [1, nr + 1]: the unchecked conversion cannot overflow.
     let index = |r: f64| {
         let p = r * rdr + 1.0;
-        let m = (p as usize).min(nr - 1);
+        // SAFETY: p is finite and 1 <= p < 2^31 (r below the cut-off, rdr = 1/dr).
+        let m = (unsafe { p.to_int_unchecked::<i32>() } as usize).min(nr - 1);
         (m, (p - m as f64).min(1.0))
     };
     rho.clear();
     rho.resize(n, 0.0);
-    s.pair_k.clear();
-    s.pair_r.clear();
+    // Sized for every listed pair, filled by index (cheaper than push).
+    s.pairs.clear();
+    s.pairs.resize(list.len(), Pair { d: [0.0; 3], r: 0.0, j: 0 });
+    s.pair_end.clear();
+    let mut np = 0;
     for i in 0..n {
         let xi = xu[i];
         let ti = types[i] as usize;
         let mut rho_i = 0.0;
         let row = list.start[i] as usize..list.start[i + 1] as usize;
-        for (k, (&j, &c)) in row.clone().zip(list.j[row.clone()].iter().zip(&list.code[row])) {
+        let (js, codes) = (&list.j[row.clone()], &list.code[row]);
+        for (&j, &c) in js.iter().zip(codes) {
             let (xj, sh) = (xu[j as usize], shift[c as usize]);
             let d = [xi[0] - xj[0] - sh[0], xi[1] - xj[1] - sh[1], xi[2] - xj[2] - sh[2]];
             let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
             if r2 < cut2 {
                 let r = r2.sqrt();
-                s.pair_k.push(k as u32);
-                s.pair_r.push(r);
-                let (m, p) = index(r);
                 let j = j as usize;
+                s.pairs[np] = Pair { d, r, j };
+                np += 1;
+                let (m, p) = index(r);
                 if ONE {
                     let v = spline_value(&dens[0][m], p);
                     rho_i += v;
@@ -255,6 +271,7 @@ fn eam_forces<const ONE: bool>(
             }
         }
         rho[i] += rho_i;
+        s.pair_end.push(np as u32);
     }
     let mut pe = 0.0;
     fp.clear();
@@ -266,20 +283,14 @@ fn eam_forces<const ONE: bool>(
     }
     let mut w = [0.0f64; 6];
     let f = &mut *b.f;
-    let mut q = 0;
+    let mut q0 = 0;
     for i in 0..n {
-        let xi = xu[i];
         let ti = types[i] as usize;
         let fp_i = fp[i];
         let mut fi = [0.0; 3];
-        let end = list.start[i + 1];
-        while q < s.pair_k.len() && s.pair_k[q] < end {
-            let k = s.pair_k[q] as usize;
-            let r = s.pair_r[q];
-            q += 1;
-            let j = list.j[k] as usize;
-            let (xj, sh) = (xu[j], shift[list.code[k] as usize]);
-            let d = [xi[0] - xj[0] - sh[0], xi[1] - xj[1] - sh[1], xi[2] - xj[2] - sh[2]];
+        let q1 = s.pair_end[i] as usize;
+        for pr in &s.pairs[q0..q1] {
+            let (d, r, j) = (pr.d, pr.r, pr.j);
             let (m, p) = index(r);
             let (rho_ip, rho_jp, c) = if ONE {
                 let v = spline_deriv(&dens[0][m], p);
@@ -312,6 +323,7 @@ fn eam_forces<const ONE: bool>(
             w[4] += d[0] * fd[2];
             w[5] += d[1] * fd[2];
         }
+        q0 = q1;
         let fo = &mut f[i];
         fo[0] += fi[0];
         fo[1] += fi[1];

@@ -46,8 +46,8 @@ impl NeighborList {
 }
 
 /// Build the half list of atoms at `x` (already wrapped into `[lo, lo + l)`) with radius `rs`.
-/// Bins are at least `rs / 2` wide. Pairs come out in a fixed order (atom index, then
-/// stencil cell, then atom index), so the same input gives the same list.
+/// Bins are at least `rs / 2` wide. Rows are sorted by distance (ties by atom and image),
+/// so the same input gives the same list.
 ///
 /// # Panics
 /// If a box is so small against `rs` that more than 65536 images would be needed
@@ -109,7 +109,9 @@ pub fn build(x: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rs: f64, list: &mut Neig
     list.start.reserve(n + 1);
     list.start.push(0);
     let mut stencil: [Vec<(usize, i32)>; 3] = Default::default();
+    let mut row: Vec<(f64, u32, u16)> = Vec::new();
     for i in 0..n {
+        row.clear();
         let ci = cells[i];
         let xi = x[i];
         for d in 0..3 {
@@ -135,13 +137,20 @@ pub fn build(x: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rs: f64, list: &mut Neig
                         }
                         let p = x[ju];
                         let (dx, dy, dz) = (p[0] + sx, p[1] + sy, p[2] + sz);
-                        if dx * dx + dy * dy + dz * dz < rs2 {
-                            list.j.push(j);
-                            list.code.push(code_of(img));
+                        let r2 = dx * dx + dy * dy + dz * dz;
+                        if r2 < rs2 {
+                            row.push((r2, j, code_of(img)));
                         }
                     }
                 }
             }
+        }
+        // Nearest first: the kernel's cut-off test then mostly goes one way per row, and
+        // spline rows are read in increasing order. Ties broken by (j, image): a total order.
+        row.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        for &(_, j, c) in &row {
+            list.j.push(j);
+            list.code.push(c);
         }
         list.start.push(list.j.len() as u32);
     }
