@@ -190,11 +190,11 @@ pub struct Batch {
     pub v: Vec<[f64; 3]>,
     /// Forces (eV/A).
     pub f: Vec<[f64; 3]>,
-    /// Positions at the last list build.
+    /// Positions at the last list build: empty, kept per call only ([`kernel::with_fresh_list`]).
     pub x_build: Vec<[f64; 3]>,
-    /// Face crossings since the last build.
+    /// Face crossings since the last build: empty, kept per call only.
     pub img: Vec<[i32; 3]>,
-    /// Neighbour lists, one per box.
+    /// Neighbour lists, one per box (released between calls).
     pub lists: Vec<NeighborList>,
 }
 
@@ -208,6 +208,11 @@ fn split<'a, T>(mut s: &'a mut [T], offsets: &[usize]) -> Vec<&'a mut [T]> {
     out
 }
 
+/// `split`, or empty slices when `s` is not kept (per-call scratch).
+fn split_or_empty<'a, T>(s: &'a mut [T], offsets: &[usize]) -> Vec<&'a mut [T]> {
+    if s.is_empty() { offsets.windows(2).map(|_| <&mut [T]>::default()).collect() } else { split(s, offsets) }
+}
+
 impl Batch {
     fn from_states(pot: &Potential, states: Vec<BoxState>) -> Self {
         let mut b = Batch { offsets: vec![0], ..Default::default() };
@@ -218,15 +223,12 @@ impl Batch {
             b.x.extend(s.x);
             b.v.extend(s.v);
             b.f.extend(s.f);
-            b.x_build.extend(s.x_build);
-            b.img.extend(s.img);
+            // x_build and img are per-call scratch (kernel::with_fresh_list): not kept.
             b.lists.push(NeighborList::default());
         }
-        for mut view in b.views() {
-            let rebuilds = view.meta.rebuilds;
-            kernel::build_from_reference(pot, &mut view);
-            view.meta.rebuilds = rebuilds;
-        }
+        // Neighbour lists are built lazily by the first force evaluation, from the stored
+        // reference positions (so exactly the list the box had).
+        let _ = pot;
         b
     }
 
@@ -238,8 +240,8 @@ impl Batch {
             x: self.x[r.clone()].to_vec(),
             v: self.v[r.clone()].to_vec(),
             f: self.f[r.clone()].to_vec(),
-            x_build: self.x_build[r.clone()].to_vec(),
-            img: self.img[r].to_vec(),
+            x_build: self.x[r.clone()].to_vec(),
+            img: vec![[0; 3]; r.len()],
         }
     }
 
@@ -259,8 +261,8 @@ impl Batch {
         let mut x = split(&mut self.x, o).into_iter();
         let mut v = split(&mut self.v, o).into_iter();
         let mut f = split(&mut self.f, o).into_iter();
-        let mut xb = split(&mut self.x_build, o).into_iter();
-        let mut img = split(&mut self.img, o).into_iter();
+        let mut xb = split_or_empty(&mut self.x_build, o).into_iter();
+        let mut img = split_or_empty(&mut self.img, o).into_iter();
         self.meta
             .iter_mut()
             .zip(self.lists.iter_mut())
@@ -393,7 +395,7 @@ fn finite3(v: &[f64]) -> bool {
     v.iter().all(|x| x.is_finite())
 }
 
-fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
+pub(crate) fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
     let bad = |msg: String| Err(MdError::invalid(format!("box spec of point {}", s.id), msg));
     match &s.atoms {
         InitialAtoms::Lattice { a0, cells, .. } => {
@@ -431,7 +433,7 @@ fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
     Ok(())
 }
 
-fn validate_work(w: &BoxWork, mode: DeformMode) -> Result<(), MdError> {
+pub(crate) fn validate_work(w: &BoxWork, mode: DeformMode) -> Result<(), MdError> {
     let what = || format!("box work of point {}", w.id);
     if !(w.dt_ps > 0.0 && w.dt_ps.is_finite()) && w.steps > 0 {
         return Err(MdError::invalid(what(), format!("time step must be > 0 ps, got {}", w.dt_ps)));
@@ -499,18 +501,17 @@ pub fn prepare_box(pot: &Potential, masses: &[f64], s: &BoxSpec) -> Result<BoxSt
     batch.x = state.x;
     batch.v = state.v;
     batch.f = state.f;
-    batch.x_build = state.x_build;
-    batch.img = state.img;
     batch.lists.push(NeighborList::default());
     {
         let mut views = batch.views();
         let b = views.first_mut().ok_or_else(|| MdError::invalid("box spec", "no atoms"))?;
         let (mut rho, mut fp) = (Vec::new(), Vec::new());
-        kernel::rebuild(pot, b);
-        kernel::compute_forces(pot, b, &mut rho, &mut fp);
-        let still = Deformation::new(s.mode, &[[0.0; 3]; 3]);
-        kernel::run_steps(pot, masses, b, &still, s.relax_steps, s.relax_dt_ps, &mut rho, &mut fp);
-        relax_box_lengths(pot, masses, b, s, &mut rho, &mut fp);
+        kernel::with_fresh_list(pot, b, |b| {
+            kernel::compute_forces(pot, b, &mut rho, &mut fp);
+            let still = Deformation::new(s.mode, &[[0.0; 3]; 3]);
+            kernel::run_steps(pot, masses, b, &still, s.relax_steps, s.relax_dt_ps, &mut rho, &mut fp);
+            relax_box_lengths(pot, masses, b, s, &mut rho, &mut fp);
+        });
     }
     Ok(batch.state(0))
 }
@@ -559,7 +560,8 @@ fn advance_box(pot: &Potential, masses: &[f64], b: &mut BoxView, w: &BoxWork) ->
     let shortfall = add_thermal_energy(masses, b, w.energy_to_add_ev);
     let def = Deformation::new(b.meta.mode, &w.velocity_gradient);
     let (mut rho, mut fp) = (Vec::new(), Vec::new());
-    let wraps = kernel::run_steps(pot, masses, b, &def, w.steps, w.dt_ps, &mut rho, &mut fp);
+    // Idle boxes keep no neighbour list nor build reference (memory: see kernel::with_fresh_list).
+    let wraps = kernel::with_fresh_list(pot, b, |b| kernel::run_steps(pot, masses, b, &def, w.steps, w.dt_ps, &mut rho, &mut fp));
     let mut r = measure(masses, b);
     r.diagnostics.energy_shortfall_ev = shortfall;
     r.diagnostics.wraps = wraps;
@@ -686,11 +688,14 @@ impl MdBackend for CpuBackend {
     }
 }
 
-/// A back end by name: `reference` or `cpu`.
+/// A back end by name: `reference`, `cpu`, `cuda` (double) or `cuda-mixed` (the GPU ones fail
+/// with [`MdError::Device`] when there is no usable GPU).
 pub fn backend_by_name(name: &str, pot: Arc<Potential>) -> Result<Box<dyn MdBackend>, MdError> {
     match name {
         "reference" => Ok(Box::new(ReferenceBackend::new(pot))),
         "cpu" => Ok(Box::new(CpuBackend::new(pot))),
-        _ => Err(MdError::invalid("back end", format!("{name:?}; expected reference or cpu"))),
+        "cuda" => crate::device::backend_for_device("cuda", "double", pot),
+        "cuda-mixed" => crate::device::backend_for_device("cuda", "mixed", pot),
+        _ => Err(MdError::invalid("back end", format!("{name:?}; expected reference, cpu, cuda or cuda-mixed"))),
     }
 }

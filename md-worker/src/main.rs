@@ -100,6 +100,13 @@ enum Cmd {
         /// Repetitions (median reported; at least 5).
         #[arg(long, default_value_t = 5)]
         reps: usize,
+        /// auto, cpu or cuda (replaces --backend; cuda needs the `cuda` feature and a GPU,
+        /// auto falls back to cpu with a warning).
+        #[arg(long)]
+        device: Option<String>,
+        /// GPU arithmetic: double or mixed.
+        #[arg(long, default_value = "double")]
+        precision: String,
     },
 }
 
@@ -111,8 +118,8 @@ fn main() {
         Cmd::Run { potential, data, steps, dt, velocity_gradient, remap, thermo, write_data, dump } => {
             run(&potential, &data, steps, dt, &velocity_gradient, &remap, thermo, write_data, dump)
         }
-        Cmd::Bench { potential, lattice, a0, cells, boxes, steps, threads, backend, reps } => {
-            bench(&potential, &lattice, a0, cells, boxes, steps, threads, &backend, reps)
+        Cmd::Bench { potential, lattice, a0, cells, boxes, steps, threads, backend, reps, device, precision } => {
+            bench(&potential, &lattice, a0, cells, boxes, steps, threads, &backend, reps, device.as_deref(), &precision)
         }
     };
     if let Err(e) = res {
@@ -265,6 +272,8 @@ fn bench(
     threads: Option<usize>,
     backend: &str,
     reps: usize,
+    device: Option<&str>,
+    precision: &str,
 ) -> Result<()> {
     let kind: LatticeKind = lattice.parse()?;
     if cells == 0 || boxes == 0 || steps == 0 {
@@ -276,10 +285,12 @@ fn bench(
         Some(t) => Some(Arc::new(rayon::ThreadPoolBuilder::new().num_threads(t).build()?)),
         None => None,
     };
-    let mut b: Box<dyn MdBackend> = match (backend, pool) {
-        ("cpu", Some(pool)) => Box::new(md_worker::CpuBackend::with_pool(pot.clone(), pool)),
-        _ => backend_by_name(backend, pot.clone())?,
+    let mut b: Box<dyn MdBackend> = match (device, backend, pool) {
+        (None | Some("cpu"), "cpu", Some(pool)) | (Some("cpu"), _, Some(pool)) => Box::new(md_worker::CpuBackend::with_pool(pot.clone(), pool)),
+        (None, _, _) => backend_by_name(backend, pot.clone())?,
+        (Some(d), _, _) => md_worker::device::backend_for_device(d, precision, pot.clone())?,
     };
+    let backend = b.name();
     let specs: Vec<BoxSpec> = (0..boxes as u64)
         .map(|id| {
             let mut s = BoxSpec::lattice(id, kind, a0, [cells; 3]);

@@ -12,8 +12,9 @@
 // Reductions are fixed-order trees over thread slots, neighbour lists are full lists (each
 // atom sums its own neighbours in list order), so no atomics are used: results are
 // deterministic for a given device, build and precision.
-// Precision: R = double (`double`) or R = float (`mixed`: pair geometry, splines, densities
-// and forces in f32; positions, velocities, integration, energies and stress in f64).
+// Precision: R = double (`double`) or R = float (`mixed`: spline arithmetic, densities, embedding
+// derivatives and per-atom force sums in f32; distances, positions, velocities, integration,
+// energies and stress in f64).
 
 #ifdef MSCALE_HOST
 #include "shim.h"
@@ -102,16 +103,18 @@ DEVICE inline void pair_delta(const Params& p, const Shared& sh, int gi, int gj,
 }
 
 // LAMMPS pair_eam spline lookups (7 coefficients per knot: 0..2 derivative, 3..6 value).
-template <typename R> DEVICE inline void r_index(const Params& p, R r, int* m, R* frac) {
-    R q = r * (R)p.rdr + (R)1;
+// The knot index and the fraction come from r in f64 (in f32, r * rdr ~ 5000 would keep only
+// ~1e-3 of the fraction); the spline arithmetic itself is in R.
+template <typename R> DEVICE inline void r_index(const Params& p, double r, int* m, R* frac) {
+    double q = r * p.rdr + 1.0;
     int k = (int)q;
     if (k > p.nr - 1) k = p.nr - 1;
-    q = q - (R)k;
+    q = q - (double)k;
     *m = k;
-    *frac = q < (R)1 ? q : (R)1;
+    *frac = (R)(q < 1.0 ? q : 1.0);
 }
 
-template <typename R> DEVICE inline R density(const Params& p, const Tables<R>& tb, int ti, int tj, R r) {
+template <typename R> DEVICE inline R density(const Params& p, const Tables<R>& tb, int ti, int tj, double r) {
     int m;
     R q;
     r_index<R>(p, r, &m, &q);
@@ -135,7 +138,7 @@ template <typename R> DEVICE inline R embed(const Params& p, const Tables<R>& tb
 }
 
 template <typename R>
-DEVICE inline R pair_term(const Params& p, const Tables<R>& tb, int ti, int tj, R r, R fpi, R fpj, R* phi_out) {
+DEVICE inline R pair_term(const Params& p, const Tables<R>& tb, int ti, int tj, double r, R fpi, R fpj, R* phi_out) {
     int m;
     R q;
     r_index<R>(p, r, &m, &q);
@@ -147,7 +150,7 @@ DEVICE inline R pair_term(const Params& p, const Tables<R>& tb, int ti, int tj, 
     c = tb.z2r + ((i64)p.type2z2r[ti * p.nelem + tj] * stride + m) * 7;
     const R z2p = (c[0] * q + c[1]) * q + c[2];
     const R z2 = ((c[3] * q + c[4]) * q + c[5]) * q + c[6];
-    const R recip = (R)1 / r;
+    const R recip = (R)(1.0 / r);
     const R phi = z2 * recip;
     const R phip = z2p * recip - phi * recip;
     *phi_out = phi;
@@ -219,8 +222,8 @@ template <typename R> DEVICE void compute_forces(const Params& p, const Tables<R
             const int gj = sh.off + p.nlist[(i64)gi * p.cap + c];
             double dx[3];
             pair_delta(p, sh, gi, gj, p.nimg[(i64)gi * p.cap + c], dx);
-            const R r2 = (R)dx[0] * (R)dx[0] + (R)dx[1] * (R)dx[1] + (R)dx[2] * (R)dx[2];
-            if (r2 < (R)p.cutforcesq) rho += density<R>(p, tb, ti, p.type[gj], sqrt(r2));
+            const double r2 = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2];
+            if (r2 < p.cutforcesq) rho += density<R>(p, tb, ti, p.type[gj], sqrt(r2));
         }
         p.rho[gi] = (double)rho;
     }
@@ -247,12 +250,12 @@ template <typename R> DEVICE void compute_forces(const Params& p, const Tables<R
             double dd[3];
             pair_delta(p, sh, gi, gj, p.nimg[(i64)gi * p.cap + c], dd);
             const R dx = (R)dd[0], dy = (R)dd[1], dz = (R)dd[2];
-            const R r2 = dx * dx + dy * dy + dz * dz;
-            if (r2 < (R)p.cutforcesq) {
-                const R r = sqrt(r2);
+            const double r2 = dd[0] * dd[0] + dd[1] * dd[1] + dd[2] * dd[2];
+            if (r2 < p.cutforcesq) {
+                const double r = sqrt(r2);
                 R phi;
                 const R psip = pair_term<R>(p, tb, ti, p.type[gj], r, fpi, (R)p.fp[gj], &phi);
-                const R fpair = -psip / r;
+                const R fpair = -psip * (R)(1.0 / r);
                 fx += dx * fpair;
                 fy += dy * fpair;
                 fz += dz * fpair;

@@ -32,6 +32,9 @@ pub fn make_backend(name: &str, pot: Arc<Potential>) -> Box<dyn MdBackend> {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
             Box::new(CpuBackend::with_pool(pot, Arc::new(pool)))
         }
+        #[cfg(feature = "cuda")]
+        "cuda-shim" => Box::new(md_worker::cuda::ShimBackend::new(pot, md_worker::cuda::Precision::Double).unwrap()),
+        "cuda" => md_worker::backend_by_name("cuda", pot).unwrap(),
         _ => panic!("unknown back end {name}"),
     }
 }
@@ -42,7 +45,25 @@ macro_rules! for_each_backend {
     ($($test:ident),* $(,)?) => {
         mod reference { $( #[test] fn $test() { super::$test("reference") } )* }
         mod cpu { $( #[test] fn $test() { super::$test("cpu") } )* }
+        // The CUDA kernels run on the CPU through their host C++ twin (feature `cuda`).
+        #[cfg(feature = "cuda")]
+        mod cuda_shim { $( #[test] fn $test() { super::$test("cuda-shim") } )* }
+        // On a GPU; a visible skip (with the reason) where there is none.
+        mod cuda { $( #[test] fn $test() {
+            match $crate::common::cuda_unavailable() {
+                Some(why) => eprintln!("SKIPPED cuda::{}: {why}", stringify!($test)),
+                None => super::$test("cuda"),
+            }
+        } )* }
     };
+}
+
+/// Why the `cuda` back end cannot run here (None: it can).
+pub fn cuda_unavailable() -> Option<String> {
+    #[cfg(feature = "cuda")]
+    return md_worker::cuda::unavailable_reason();
+    #[cfg(not(feature = "cuda"))]
+    return Some("md-worker built without the `cuda` feature".into());
 }
 
 /// A LAMMPS golden file produced by scripts/make_golden.py.
