@@ -216,6 +216,15 @@ fn split_or_empty<'a, T>(s: &'a mut [T], offsets: &[usize]) -> Vec<&'a mut [T]> 
 impl Batch {
     fn from_states(pot: &Potential, states: Vec<BoxState>) -> Self {
         let mut b = Batch { offsets: vec![0], ..Default::default() };
+        // Exact capacities: growth by doubling would leave up to half of each array unused.
+        let n: usize = states.iter().map(|s| s.x.len()).sum();
+        b.meta.reserve_exact(states.len());
+        b.offsets.reserve_exact(states.len());
+        b.lists.reserve_exact(states.len());
+        b.types.reserve_exact(n);
+        b.x.reserve_exact(n);
+        b.v.reserve_exact(n);
+        b.f.reserve_exact(n);
         for s in states {
             b.offsets.push(b.offsets.last().copied().unwrap_or(0) + s.x.len());
             b.meta.push(s.meta);

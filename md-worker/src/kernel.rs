@@ -171,6 +171,30 @@ pub fn release_list(b: &mut BoxView) {
     b.list.release();
 }
 
+/// Run `f` on the box with list-build reference positions and image counters held only for
+/// the call: atoms are wrapped, the reference taken and the list built first, and the list
+/// released after. Idle boxes so keep only types, positions, velocities and forces (76 bytes
+/// per atom). Every call starts from a fresh list, so a box's trajectory depends on how its
+/// steps are split into calls (at round-off level, deterministically), never on threads.
+pub fn with_fresh_list<R>(pot: &Potential, b: &mut BoxView, f: impl FnOnce(&mut BoxView) -> R) -> R {
+    let n = b.x.len();
+    let (mut xb, mut img) = (vec![[0.0; 3]; n], vec![[0i32; 3]; n]);
+    let mut v = BoxView {
+        meta: &mut *b.meta,
+        types: b.types,
+        x: &mut *b.x,
+        v: &mut *b.v,
+        f: &mut *b.f,
+        x_build: &mut xb,
+        img: &mut img,
+        list: &mut *b.list,
+    };
+    rebuild(pot, &mut v);
+    let r = f(&mut v);
+    v.list.release();
+    r
+}
+
 /// Forces, potential energy and pair virial of one box. `rho`/`fp` are scratch.
 pub fn compute_forces(pot: &Potential, b: &mut BoxView, rho: &mut Vec<f64>, fp: &mut Vec<f64>) {
     ensure_list(pot, b);
