@@ -106,7 +106,7 @@ pub fn build_from_reference(pot: &Potential, b: &mut BoxView) {
 }
 
 /// Whether some pair outside the list may have come within the cut-off.
-fn needs_rebuild(pot: &Potential, b: &BoxView) -> bool {
+pub fn needs_rebuild(pot: &Potential, b: &BoxView) -> bool {
     let m = &*b.meta;
     let mut ratio = [0.0; 3];
     for d in 0..3 {
@@ -582,4 +582,43 @@ fn seed_box_and_wrap(b: &mut BoxView, g: &[[f64; 3]; 3], dt: f64) -> u64 {
         }
     }
     wraps
+}
+
+/// Per-atom pair virials (eV), each pair's `d (x) f` split half and half between its two
+/// atoms (thesis Ch. 6.3), order xx yy zz xy xz yz. `fp` is F'(rho) from the last
+/// [`compute_forces`] (EAM; ignored for LJ). The list must be built.
+pub fn atom_virials(pot: &Potential, b: &BoxView, fp: &[f64]) -> Vec<[f64; 6]> {
+    let n = b.x.len();
+    let l = b.meta.l;
+    let list = &*b.list;
+    let mut w = vec![[0.0f64; 6]; n];
+    let xu: Vec<[f64; 3]> = (0..n).map(|i| std::array::from_fn(|d| b.x[i][d] + b.img[i][d] as f64 * l[d])).collect();
+    for i in 0..n {
+        for k in list.start[i] as usize..list.start[i + 1] as usize {
+            let j = list.j[k] as usize;
+            let im = list.images[list.code[k] as usize];
+            let d: [f64; 3] = std::array::from_fn(|c| xu[i][c] - xu[j][c] - im[c] as f64 * l[c]);
+            let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            let fpair = match pot {
+                Potential::Eam(t) if r2 < t.cutforcesq => {
+                    let r = r2.sqrt();
+                    let (_, psip) = t.pair(b.types[i] as usize, b.types[j] as usize, r, fp[i], fp[j]);
+                    -psip / r
+                }
+                Potential::LjCut(lj) if r2 < lj.cutoff * lj.cutoff => {
+                    let s6 = lj.sigma.powi(6);
+                    let r6inv = 1.0 / (r2 * r2 * r2);
+                    r6inv * (48.0 * lj.epsilon * s6 * s6 * r6inv - 24.0 * lj.epsilon * s6) / r2
+                }
+                _ => continue,
+            };
+            let p = [d[0] * d[0], d[1] * d[1], d[2] * d[2], d[0] * d[1], d[0] * d[2], d[1] * d[2]];
+            for c in 0..6 {
+                let h = 0.5 * p[c] * fpair;
+                w[i][c] += h;
+                w[j][c] += h;
+            }
+        }
+    }
+    w
 }

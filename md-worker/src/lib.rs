@@ -13,6 +13,7 @@ pub mod backend;
 #[cfg(feature = "cuda")]
 pub mod cuda;
 pub mod data;
+pub mod direct;
 pub mod device;
 pub mod error;
 pub mod kernel;

@@ -73,6 +73,9 @@ enum Cmd {
         #[arg(long)]
         dump: Option<PathBuf>,
     },
+    /// Direct MD of a bar: frozen end layers in x, periodic y/z, initial strain regions,
+    /// slab stresses (reference x) as CSV every --every steps.
+    Direct(md_worker::direct::DirectArgs),
     /// Throughput of a back end on lattice boxes: atom-steps/s and ns/atom-step.
     Bench {
         #[arg(long)]
@@ -118,6 +121,7 @@ fn main() {
         Cmd::Run { potential, data, steps, dt, velocity_gradient, remap, thermo, write_data, dump } => {
             run(&potential, &data, steps, dt, &velocity_gradient, &remap, thermo, write_data, dump)
         }
+        Cmd::Direct(a) => md_worker::direct::run_cli(&a).map_err(anyhow::Error::from),
         Cmd::Bench { potential, lattice, a0, cells, boxes, steps, threads, backend, reps, device, precision } => {
             bench(&potential, &lattice, a0, cells, boxes, steps, threads, &backend, reps, device.as_deref(), &precision)
         }
