@@ -91,3 +91,76 @@ pub fn pool(workers: &[String]) -> Result<MdPool> {
     };
     Ok(MdPool::new(endpoints)?)
 }
+
+/// Predicted size and cost of the MD part of a scene.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Estimate {
+    pub md_points: usize,
+    pub atoms: u64,
+    /// MD steps per box over the run (relaxation included).
+    pub md_steps_per_box: u64,
+    pub atom_steps: f64,
+    /// Measured on this machine with the in-process cpu back end, all cores.
+    pub ns_per_atom_step: f64,
+    pub bytes_per_atom: f64,
+    pub memory_bytes: f64,
+    pub wall_seconds: f64,
+}
+
+fn resident_bytes() -> Option<f64> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: f64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    Some(pages * 4096.0)
+}
+
+/// Counts the MD work of a validated scene and measures this machine's throughput on boxes of
+/// the scene's size (a few boxes, a short run), to predict atom-steps, memory and wall time.
+pub fn estimate(loaded: &crate::scene::LoadedScene, md_points_per_body: &[(String, usize)]) -> Result<Option<Estimate>> {
+    let scene = &loaded.scene;
+    let mut atoms = 0u64;
+    let mut atom_steps = 0f64;
+    let mut md_steps_per_box = 0;
+    let mut calibrate = None;
+    let mut md_points = 0;
+    for (name, n) in md_points_per_body {
+        let Some(crate::scene::Material::Md(m)) = scene.bodies.get(name).map(|b| &b.material) else { continue };
+        let kind = lattice_kind(&m.lattice)?;
+        let per_box = (atoms_per_cell(kind) as u64) * (m.cells_per_side as u64).pow(3);
+        let steps = loaded.steps * (loaded.dt / (m.timestep_fs * 1e-15)).round() as u64 + m.relax_steps as u64;
+        md_points += n;
+        atoms += per_box * *n as u64;
+        atom_steps += (per_box * *n as u64) as f64 * steps as f64;
+        md_steps_per_box = md_steps_per_box.max(steps);
+        calibrate.get_or_insert((m.clone(), scene.bodies[name].clone()));
+    }
+    let Some((m, body)) = calibrate else { return Ok(None) };
+    let pot = Arc::new(Potential::from_file(&m.potential)?);
+    let boxes = rayon::current_num_threads().max(1) * 2;
+    let before = resident_bytes();
+    let mut md = md_worker::CpuBackend::new(pot);
+    let specs: Vec<BoxSpec> = (0..boxes as u64).map(|id| box_spec(id, &body, &m)).collect::<Result<_>>()?;
+    md.open(&specs)?;
+    let l = 1e-3 * if m.deformation == "affine" { 1.0 } else { 0.5 };
+    let work: Vec<BoxWork> = (0..boxes as u64).map(|id| BoxWork { id, velocity_gradient: [[-l, 0.0, 0.0], [0.0; 3], [0.0; 3]], steps: 20, dt_ps: m.timestep_fs * 1e-3, energy_to_add_ev: 0.0 }).collect();
+    let mut out = vec![BoxResult::default(); boxes];
+    md.step(&work, &mut out)?;
+    let t = std::time::Instant::now();
+    md.step(&work, &mut out)?;
+    let secs = t.elapsed().as_secs_f64();
+    let atoms_per_box = atoms as f64 / md_points.max(1) as f64;
+    let ns_per_atom_step = secs * 1e9 / (boxes as f64 * atoms_per_box * 20.0);
+    let bytes_per_atom = match (before, resident_bytes()) {
+        (Some(a), Some(b)) if b > a => (b - a) / (boxes as f64 * atoms_per_box),
+        _ => f64::NAN,
+    };
+    Ok(Some(Estimate {
+        md_points,
+        atoms,
+        md_steps_per_box,
+        atom_steps,
+        ns_per_atom_step,
+        bytes_per_atom,
+        memory_bytes: bytes_per_atom * atoms as f64,
+        wall_seconds: atom_steps * ns_per_atom_step * 1e-9,
+    }))
+}

@@ -132,3 +132,20 @@ pub fn simulation<const D: usize>(scene: &Scene, dt: f64, md: Option<&Arc<Mutex<
         .with_sub_points(scene.scheme.sub_points)
         .with_small_mass_fraction(scene.scheme.small_mass_fraction))
 }
+
+/// Size of a scene's work without building closures: (points per body in body order, grid nodes).
+pub fn work_size(scene: &Scene) -> (Vec<(String, usize)>, usize) {
+    fn size<const D: usize>(scene: &Scene) -> (Vec<(String, usize)>, usize) {
+        let grid = grid::<D>(scene);
+        let counts = match points::<D>(scene, &grid) {
+            Ok(p) => p.body_ranges().iter().map(|r| r.len()).collect(),
+            Err(_) => Vec::new(),
+        };
+        (scene.bodies.keys().cloned().zip(counts.into_iter().chain(std::iter::repeat(0))).collect(), grid.node_count())
+    }
+    match scene.domain.dimension {
+        1 => size::<1>(scene),
+        2 => size::<2>(scene),
+        _ => size::<3>(scene),
+    }
+}
