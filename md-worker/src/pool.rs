@@ -209,6 +209,29 @@ impl MdPool {
         Ok(out)
     }
 
+    /// Puts saved box states back (a checkpoint): each state goes to the endpoint that owns its
+    /// box, so the boxes must have been opened first (with the same specs). Refuses a state of
+    /// a box this pool does not hold, before touching any endpoint.
+    pub fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
+        let mut parts: Vec<Vec<BoxState>> = vec![Vec::new(); self.endpoints.len()];
+        for s in states {
+            let e = *self.owner.get(&s.meta.id).ok_or(MdError::UnknownBox(s.meta.id))?;
+            parts[e].push(s);
+        }
+        let results = self.on_every_endpoint(parts, |ep, part| if part.is_empty() { Ok(()) } else { ep.restore(part) });
+        for (e, r) in results.into_iter().enumerate() {
+            r.map_err(|err| lost(&*self.endpoints[e], "restore", err))?;
+        }
+        Ok(())
+    }
+
+    /// Ids of every box this pool holds, ascending.
+    pub fn box_ids(&self) -> Vec<PointId> {
+        let mut ids: Vec<PointId> = self.owner.keys().copied().collect();
+        ids.sort_unstable();
+        ids
+    }
+
     /// Runs `f` on every endpoint with its part, concurrently (one thread per endpoint).
     fn on_every_endpoint<P: Send, R: Send>(&mut self, parts: Vec<P>, f: impl Fn(&mut dyn Endpoint, P) -> R + Sync) -> Vec<R> {
         if self.endpoints.len() == 1 {

@@ -16,8 +16,9 @@ struct Cli {
 enum Command {
     /// Run a scene in this process (the embedded default).
     Run {
-        /// Scene file (TOML).
-        scene: PathBuf,
+        /// Scene file (TOML); with --resume, the run directory's scene.resolved.toml by default.
+        #[arg(required_unless_present = "resume")]
+        scene: Option<PathBuf>,
         /// Run directory (default runs/<scene>-<timestamp>).
         #[arg(long)]
         out: Option<PathBuf>,
@@ -27,6 +28,13 @@ enum Command {
         /// Running MD workers (`md-worker serve`) to use instead of in-process MD: HOST:PORT,...
         #[arg(long, value_delimiter = ',', value_name = "HOST:PORT,...")]
         workers: Vec<String>,
+        /// Write a checkpoint every N steps into <out>/checkpoints (the two newest are kept).
+        /// SIGINT/SIGTERM always write one and stop the run (exit code 1).
+        #[arg(long, value_name = "N", default_value_t = 0)]
+        checkpoint_every: u64,
+        /// Continue the run in DIR from its newest good checkpoint.
+        #[arg(long, value_name = "DIR", conflicts_with = "out")]
+        resume: Option<PathBuf>,
     },
     /// Reports over many runs of a scene.
     #[command(subcommand)]
@@ -105,7 +113,12 @@ fn dispatch(cli: Cli) -> i32 {
                 }
             }
         }
-        Command::Run { scene, out, set, workers } => {
+        Command::Run { scene, out, set, workers, checkpoint_every, resume } => {
+            let scene = match (scene, &resume) {
+                (Some(s), _) => s,
+                (None, Some(dir)) => dir.join("scene.resolved.toml"),
+                (None, None) => unreachable!("clap requires a scene without --resume"),
+            };
             let loaded = match scene::load(&scene, &set) {
                 Ok(l) => l,
                 Err(e) => {
@@ -113,9 +126,15 @@ fn dispatch(cli: Cli) -> i32 {
                     return exit::BAD_INPUT;
                 }
             };
-            let out = out.unwrap_or_else(|| run::default_out_dir(&loaded.scene));
+            let out = resume.clone().or(out).unwrap_or_else(|| run::default_out_dir(&loaded.scene));
             let mut opts = run::RunOptions::new(out.clone(), std::env::args().collect());
             opts.workers = workers;
+            opts.checkpoint_every = checkpoint_every;
+            opts.resume = resume.is_some();
+            match orchestrator::checkpoint::stop_on_signals() {
+                Ok(flag) => opts.cancel = Some(flag),
+                Err(e) => eprintln!("mscale: warning: cannot handle SIGINT/SIGTERM, no checkpoint will be written on them: {e}"),
+            }
             match run::run(&loaded, &opts) {
                 Ok(run::Outcome::Completed(summary)) => {
                     println!("completed {} steps in {:.2} s; outputs in {}", summary["steps"], summary["wall_seconds"].as_f64().unwrap_or(0.0), out.display());
@@ -123,6 +142,10 @@ fn dispatch(cli: Cli) -> i32 {
                         println!("pressure error vs {}: L1 {:.4e}, L2 {:.4e}, spike {:.4e} (of the jump)", e["reference"], e["pressure_l1"].as_f64().unwrap_or(f64::NAN), e["pressure_l2"].as_f64().unwrap_or(f64::NAN), e["pressure_spike"].as_f64().unwrap_or(f64::NAN));
                     }
                     exit::OK
+                }
+                Ok(run::Outcome::Cancelled { checkpoint, step }) => {
+                    eprintln!("mscale: cancelled after step {step}; checkpoint {}\n(continue with: mscale run --resume {})", checkpoint.display(), out.display());
+                    exit::RUN_FAILED
                 }
                 Ok(run::Outcome::Failed(_, why)) => {
                     eprintln!("mscale: the run failed: {why}\n(outputs so far are in {})", out.display());

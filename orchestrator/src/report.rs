@@ -68,9 +68,12 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
     let mut rows = Vec::new();
     for (k, (combo, l)) in combos.iter().zip(&loaded).enumerate() {
         tracing::info!("report run {}/{}: {}", k + 1, combos.len(), combo.join(" "));
-        let opts = RunOptions { out: out.join("runs").join(format!("{k:03}")), command_line: std::env::args().collect(), progress_bar: false, workers: workers.to_vec() };
+        let mut opts = RunOptions::new(out.join("runs").join(format!("{k:03}")), std::env::args().collect());
+        opts.progress_bar = false;
+        opts.workers = workers.to_vec();
         let summary = match run::run(l, &opts).map_err(ReportError::Io)? {
             Outcome::Completed(s) | Outcome::Failed(s, _) => s,
+            Outcome::Cancelled { step, .. } => return Err(ReportError::Io(anyhow::anyhow!("report run {k} was cancelled at step {step}"))),
         };
         let values = combo.iter().map(|c| c.split_once('=').map(|(_, v)| v.to_string()).unwrap_or_default()).collect();
         rows.push(Row { values, summary });

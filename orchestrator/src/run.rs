@@ -1,13 +1,17 @@
 //! `mscale run`: one process runs the whole scene (the embedded default), with a progress bar
 //! on a terminal and periodic log lines otherwise, and writes every output of a run directory.
+//! It checkpoints at an interval and when asked to stop (a flag set by SIGINT/SIGTERM or by the
+//! job service), and resumes from the newest good checkpoint of a run directory to the same
+//! final state, bit for bit, as a run never stopped (see [`crate::checkpoint`]).
 
 use crate::output::{self, Series};
 use crate::scene::{LoadedScene, Material, Scene};
-use crate::setup;
+use crate::{checkpoint, setup};
 use anyhow::{Context, Result};
 use continuum::exact::{IsothermalRiemann, PressureErrors, State};
 use continuum::Simulation;
 use continuum::coupling::MdShared;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use serde_json::{json, Value};
 use std::io::IsTerminal;
@@ -19,7 +23,30 @@ pub enum Outcome {
     Completed(Value),
     /// The solver stopped the run (divergence guard, closure failure); outputs so far are kept.
     Failed(Value, String),
+    /// Stopped on request at the end of `step`; the state is in `checkpoint`.
+    Cancelled { checkpoint: PathBuf, step: u64 },
 }
+
+/// Progress of a run after a step (for the job service's watch stream).
+#[derive(Debug, Clone, Copy)]
+pub struct Progress {
+    pub step: u64,
+    pub steps: u64,
+    /// Simulated time (s).
+    pub time: f64,
+    pub end_time: f64,
+    /// Wall seconds since this session of the run started.
+    pub elapsed_s: f64,
+    /// Steps done in this session (for the ETA).
+    pub session_steps: u64,
+    /// |E - E0| / energy scale (as in summary.json).
+    pub energy_drift: f64,
+    /// Set on the last call (run over, whatever the outcome).
+    pub done: bool,
+}
+
+/// Called after every step.
+pub type ProgressFn = Arc<dyn Fn(&Progress) + Send + Sync>;
 
 pub struct RunOptions {
     pub out: PathBuf,
@@ -28,11 +55,19 @@ pub struct RunOptions {
     pub progress_bar: bool,
     /// MD workers (`host:port`); empty runs MD in this process.
     pub workers: Vec<String>,
+    /// Write a checkpoint every this many steps (0: only when stopped on request).
+    pub checkpoint_every: u64,
+    /// Continue from the newest good checkpoint in `out` instead of starting afresh.
+    pub resume: bool,
+    /// When set (by a signal handler or the job service), the run checkpoints after the current
+    /// step and returns [`Outcome::Cancelled`].
+    pub cancel: Option<Arc<AtomicBool>>,
+    pub progress: Option<ProgressFn>,
 }
 
 impl RunOptions {
     pub fn new(out: PathBuf, command_line: Vec<String>) -> Self {
-        RunOptions { out, command_line, progress_bar: std::io::stderr().is_terminal(), workers: Vec::new() }
+        RunOptions { out, command_line, progress_bar: std::io::stderr().is_terminal(), workers: Vec::new(), checkpoint_every: 0, resume: false, cancel: None, progress: None }
     }
 }
 
@@ -133,26 +168,76 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     let scene = &loaded.scene;
     let dir = &opts.out;
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create the run directory {}", dir.display()))?;
-    output::write_atomic(&dir.join("scene.resolved.toml"), scene.to_toml().as_bytes())?;
+    let resolved = scene.to_toml();
+    let scene_sha = checkpoint::scene_sha256(&resolved);
+    // A resumed run reads its checkpoint before anything in the directory is rewritten.
+    let saved = if opts.resume { Some(checkpoint::load_latest(dir)?) } else { None };
+    if let Some((ck, path)) = &saved {
+        anyhow::ensure!(ck.scene_sha256 == scene_sha, "the checkpoint {} was written for another scene (or other --set overrides) than the one given", path.display());
+    }
+    output::write_atomic(&dir.join("scene.resolved.toml"), resolved.as_bytes())?;
     let wall = Instant::now();
     let md = md_shared(loaded, &opts.workers)?;
     let mut sim = setup::simulation::<D>(scene, loaded.dt, md.as_ref())?;
-    let setup_s = wall.elapsed().as_secs_f64();
+    let mut before = checkpoint::DriverState::default();
+    if let Some((ck, path)) = &saved {
+        let mut guard = md.as_ref().map(|m| m.lock()).transpose().map_err(|_| anyhow::anyhow!("MD state poisoned"))?;
+        ck.restore_into(&mut sim, guard.as_deref_mut()).with_context(|| format!("cannot resume from {}", path.display()))?;
+        before = ck.driver.clone();
+        tracing::info!("resuming {} at step {} (t = {:e} s) from {}", scene.name, ck.step, ck.time, path.display());
+    }
+    let setup_s = before.setup_s + wall.elapsed().as_secs_f64();
     tracing::info!(points = sim.points.len(), nodes = sim.grid.node_count(), steps = loaded.steps, dt = sim.dt, "running {}", scene.name);
 
     let every = (loaded.steps / scene.output.snapshots.max(1) as u64).max(1);
     let mut snaps = Snapshots { index: "step,time,file\n".into(), pvd: Vec::new() };
-    let mut output_s = 0.0;
-    let t = Instant::now();
-    write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
-    output_s += t.elapsed().as_secs_f64();
+    let mut output_s = before.output_s;
+    let (mut max_kinetic, mut max_abs_momentum) = (sim.initial.kinetic.abs(), momentum_scale(&sim));
+    if saved.is_some() {
+        snaps = Snapshots { index: before.snapshot_index.clone(), pvd: before.pvd.clone() };
+        (max_kinetic, max_abs_momentum) = (before.max_kinetic, before.max_abs_momentum);
+    } else {
+        let t = Instant::now();
+        write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
+        output_s += t.elapsed().as_secs_f64();
+    }
 
     let bar = progress_bar(opts.progress_bar, loaded.steps, scene.scheme.end_time);
-    let mut continuum_s = 0.0;
-    let (mut max_kinetic, mut max_abs_momentum) = (sim.initial.kinetic.abs(), momentum_scale(&sim));
+    if let Some(b) = &bar {
+        b.set_position(sim.step);
+    }
+    let mut continuum_s = before.continuum_s;
     let mut last_log = Instant::now();
     let mut failure = None;
+    let (session_start, first_step) = (Instant::now(), sim.step);
+    let cancelled = || opts.cancel.as_ref().is_some_and(|c| c.load(Ordering::SeqCst));
+    let save = |sim: &Simulation<D>, snaps: &Snapshots, max_kinetic: f64, max_abs_momentum: f64, continuum_s: f64, output_s: f64| -> Result<PathBuf> {
+        let driver = checkpoint::DriverState {
+            max_kinetic,
+            max_abs_momentum,
+            snapshot_index: snaps.index.clone(),
+            pvd: snaps.pvd.clone(),
+            wall_s: before.wall_s + wall.elapsed().as_secs_f64(),
+            setup_s,
+            continuum_s,
+            output_s,
+        };
+        let mut guard = md.as_ref().map(|m| m.lock()).transpose().map_err(|_| anyhow::anyhow!("MD state poisoned"))?;
+        let ck = checkpoint::Checkpoint::capture(sim, &scene_sha, guard.as_deref_mut(), driver)?;
+        let path = checkpoint::write(dir, &ck)?;
+        tracing::debug!("checkpoint at step {} in {}", sim.step, path.display());
+        Ok(path)
+    };
     while sim.step < loaded.steps {
+        if cancelled() {
+            if let Some(b) = &bar {
+                b.abandon();
+            }
+            let t = Instant::now();
+            let path = save(&sim, &snaps, max_kinetic, max_abs_momentum, continuum_s, output_s + t.elapsed().as_secs_f64())?;
+            report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, true);
+            return Ok(Outcome::Cancelled { checkpoint: path, step: sim.step });
+        }
         if let Some(md) = &md {
             if let Ok(mut m) = md.lock() {
                 m.step = sim.step + 1;
@@ -173,6 +258,12 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
             write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
             output_s += t.elapsed().as_secs_f64();
         }
+        if opts.checkpoint_every > 0 && sim.step % opts.checkpoint_every == 0 && sim.step < loaded.steps {
+            let t = Instant::now();
+            save(&sim, &snaps, max_kinetic, max_abs_momentum, continuum_s, output_s)?;
+            output_s += t.elapsed().as_secs_f64();
+        }
+        report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, false);
         match &bar {
             Some(b) => {
                 b.set_position(sim.step);
@@ -202,12 +293,30 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     }
     output_s += t.elapsed().as_secs_f64();
 
-    let summary = summary(loaded, opts, &sim, SummaryTimes { wall: wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s }, max_kinetic, max_abs_momentum, errors, failure.as_deref(), md.as_ref())?;
+    let times = SummaryTimes { wall: before.wall_s + wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s };
+    let summary = summary(loaded, opts, &sim, times, max_kinetic, max_abs_momentum, errors, failure.as_deref(), md.as_ref())?;
     output::write_atomic(&dir.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, true);
     Ok(match failure {
         None => Outcome::Completed(summary),
         Some(e) => Outcome::Failed(summary, e),
     })
+}
+
+fn report_progress<const D: usize>(opts: &RunOptions, sim: &Simulation<D>, loaded: &LoadedScene, session_start: Instant, first_step: u64, max_kinetic: f64, done: bool) {
+    let Some(f) = &opts.progress else { return };
+    let (init, now) = (sim.initial, sim.totals());
+    let energy_scale = init.energy().abs().max(max_kinetic).max(f64::MIN_POSITIVE);
+    f(&Progress {
+        step: sim.step,
+        steps: loaded.steps,
+        time: sim.time,
+        end_time: loaded.scene.scheme.end_time,
+        elapsed_s: session_start.elapsed().as_secs_f64(),
+        session_steps: sim.step - first_step,
+        energy_drift: (now.energy() - init.energy()).abs() / energy_scale,
+        done,
+    });
 }
 
 fn momentum_scale<const D: usize>(sim: &Simulation<D>) -> f64 {

@@ -1,0 +1,162 @@
+//! Checkpoints and exact resume of local runs (`mscale run --checkpoint-every`, SIGTERM,
+//! `mscale run --resume`), through the real binary: a resumed run must end with the same
+//! `state_digest` as one never stopped, also from the previous checkpoint when the newest one
+//! is damaged.
+
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+const SMALL: &str = "../tests/data/small.toml";
+const MD_SMALL: &str = "../tests/data/md-small.toml";
+
+fn mscale(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_mscale")).args(args).env("RUST_LOG", "warn").output().expect("cannot start mscale")
+}
+
+fn ok(args: &[&str]) -> Output {
+    let out = mscale(args);
+    assert!(out.status.success(), "mscale {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
+    out
+}
+
+fn summary(dir: &Path) -> Value {
+    serde_json::from_slice(&std::fs::read(dir.join("summary.json")).expect("no summary.json")).expect("bad summary.json")
+}
+
+fn checkpoints(dir: &Path) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir.join("checkpoints")).map(|r| r.flatten().map(|e| e.path()).filter(|p| p.extension().is_some_and(|e| e == "ckpt")).collect()).unwrap_or_default();
+    v.sort();
+    v
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        let t = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &t);
+        } else {
+            std::fs::copy(e.path(), t).unwrap();
+        }
+    }
+}
+
+/// The fields that must not depend on whether a run was stopped and resumed.
+fn same_state(a: &Value, b: &Value) {
+    assert_eq!(a["status"], "completed");
+    assert_eq!(b["status"], "completed");
+    for k in ["state_digest", "steps", "simulated_time_s", "closure_evaluations"] {
+        assert_eq!(a[k], b[k], "{k} differs");
+    }
+    for k in ["energy_final", "energy_drift", "momentum_drift", "momentum_final", "wall_impulse"] {
+        assert_eq!(a["conservation"][k], b["conservation"][k], "conservation.{k} differs");
+    }
+}
+
+/// Runs `scene` once straight through and once with checkpoints; resumes a copy of the
+/// checkpointed run from its newest checkpoint and another copy from the previous one (the
+/// newest cut in half); all three end in the same state.
+fn resume_matches(scene: &str, sets: &[&str], every: &str) {
+    let tmp = tempfile::tempdir().unwrap();
+    let straight = tmp.path().join("straight");
+    let with_sets = |mut a: Vec<String>| {
+        for s in sets {
+            a.push("--set".into());
+            a.push(s.to_string());
+        }
+        a
+    };
+    let args = |dir: &Path, extra: &[&str]| with_sets(["run", scene, "--out", dir.to_str().unwrap()].iter().chain(extra).map(|s| s.to_string()).collect());
+    let run = |a: Vec<String>| ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    run(args(&straight, &[]));
+    let reference = summary(&straight);
+    assert!(checkpoints(&straight).is_empty(), "a run without --checkpoint-every wrote checkpoints");
+
+    let ckpt = tmp.path().join("ckpt");
+    run(args(&ckpt, &["--checkpoint-every", every]));
+    same_state(&reference, &summary(&ckpt));
+    let files = checkpoints(&ckpt);
+    assert_eq!(files.len(), 2, "expected the two newest checkpoints, got {files:?}");
+
+    // Resume from the newest checkpoint: the steps after it are run again.
+    let resumed = tmp.path().join("resumed");
+    copy_dir(&ckpt, &resumed);
+    std::fs::remove_file(resumed.join("summary.json")).unwrap();
+    let out = ok(&["run", "--resume", resumed.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("completed"), "{text}");
+    same_state(&reference, &summary(&resumed));
+
+    // Cut the newest checkpoint short: the previous one is used, and logged.
+    let fallback = tmp.path().join("fallback");
+    copy_dir(&ckpt, &fallback);
+    std::fs::remove_file(fallback.join("summary.json")).unwrap();
+    let newest = checkpoints(&fallback).pop().unwrap();
+    let len = std::fs::metadata(&newest).unwrap().len();
+    std::fs::OpenOptions::new().write(true).open(&newest).unwrap().set_len(len / 2).unwrap();
+    let out = ok(&["run", "--resume", fallback.to_str().unwrap()]);
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(log.contains("damaged") && log.contains("previous checkpoint"), "the fallback is not logged: {log}");
+    same_state(&reference, &summary(&fallback));
+}
+
+#[test]
+fn constitutive_run_resumes_to_the_same_digest() {
+    // 25 steps; checkpoints after steps 15 and 20 are kept.
+    resume_matches(SMALL, &[], "5");
+}
+
+#[test]
+fn md_run_resumes_to_the_same_digest() {
+    // 5 steps of 6 boxes; checkpoints after steps 2 and 4.
+    resume_matches(MD_SMALL, &[], "2");
+}
+
+#[test]
+fn sigterm_checkpoints_and_the_run_resumes_to_the_same_digest() {
+    let tmp = tempfile::tempdir().unwrap();
+    // Long enough (1000 steps of 8000 points, a few seconds, a checkpoint every 100) that
+    // SIGTERM lands mid-run.
+    let sets = ["--set", "domain.cells=[2000]"];
+    let straight = tmp.path().join("straight");
+    ok(&[&["run", SMALL, "--out", straight.to_str().unwrap()][..], &sets].concat());
+    let reference = summary(&straight);
+
+    let stopped = tmp.path().join("stopped");
+    let child = Command::new(env!("CARGO_BIN_EXE_mscale"))
+        .args([&["run", SMALL, "--out", stopped.to_str().unwrap(), "--checkpoint-every", "100"][..], &sets].concat())
+        .env("RUST_LOG", "warn")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let start = std::time::Instant::now();
+    while checkpoints(&stopped).is_empty() {
+        assert!(start.elapsed().as_secs() < 60, "no checkpoint after 60 s");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let pid = child.id().to_string();
+    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    let out = child.wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(!stopped.join("summary.json").exists(), "the run finished before SIGTERM arrived; make it longer");
+    assert_eq!(out.status.code(), Some(1), "{log}");
+    assert!(log.contains("cancelled after step") && log.contains("--resume"), "{log}");
+
+    ok(&["run", "--resume", stopped.to_str().unwrap()]);
+    same_state(&reference, &summary(&stopped));
+}
+
+#[test]
+fn resume_refuses_another_scene() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("a");
+    ok(&["run", SMALL, "--out", dir.to_str().unwrap(), "--checkpoint-every", "5"]);
+    let out = mscale(&["run", SMALL, "--set", "scheme.cfl=0.1", "--resume", dir.to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("another scene"), "{}", String::from_utf8_lossy(&out.stderr));
+    let empty = tmp.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let out = mscale(&["run", SMALL, "--resume", empty.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no checkpoint"), "{}", String::from_utf8_lossy(&out.stderr));
+}
