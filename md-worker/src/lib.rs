@@ -19,6 +19,7 @@ pub mod error;
 pub mod kernel;
 pub mod lattice;
 pub mod neighbor;
+pub mod null;
 pub mod pool;
 pub mod potential;
 pub mod server;

@@ -76,6 +76,17 @@ enum Cmd {
     /// Direct MD of a bar: frozen end layers in x, periodic y/z, initial strain regions,
     /// slab stresses (reference x) as CSV every --every steps.
     Direct(md_worker::direct::DirectArgs),
+    /// Coupling overhead alone: the round trip of one step's batch of POINTS boxes over WORKERS
+    /// loopback workers running the null back end (no MD). Prints JSON with the median.
+    BenchCoupling {
+        #[arg(long, default_value_t = 20_000)]
+        points: usize,
+        #[arg(long, default_value_t = 4)]
+        workers: usize,
+        /// Steps timed (median reported; at least 5).
+        #[arg(long, default_value_t = 20)]
+        reps: usize,
+    },
     /// Throughput of a back end on lattice boxes: atom-steps/s and ns/atom-step.
     Bench {
         #[arg(long)]
@@ -121,6 +132,7 @@ fn main() {
         Cmd::Run { potential, data, steps, dt, velocity_gradient, remap, thermo, write_data, dump } => {
             run(&potential, &data, steps, dt, &velocity_gradient, &remap, thermo, write_data, dump)
         }
+        Cmd::BenchCoupling { points, workers, reps } => bench_coupling(points, workers, reps),
         Cmd::Direct(a) => md_worker::direct::run_cli(&a).map_err(anyhow::Error::from),
         Cmd::Bench { potential, lattice, a0, cells, boxes, steps, threads, backend, reps, device, precision } => {
             bench(&potential, &lattice, a0, cells, boxes, steps, threads, &backend, reps, device.as_deref(), &precision)
@@ -363,4 +375,24 @@ fn serve(listen: &str, device: &str, threads: Option<usize>) -> Result<()> {
         };
         md_worker::server::serve(listener, opts, shutdown).await.map_err(|e| anyhow::anyhow!("serving on {addr}: {e}"))
     })
+}
+
+/// `md-worker bench-coupling`.
+fn bench_coupling(points: usize, workers: usize, reps: usize) -> Result<()> {
+    if points == 0 || workers == 0 || reps < 5 {
+        return Err(bad("--points and --workers must be at least 1, --reps at least 5"));
+    }
+    let (median, times) = md_worker::null::coupling_round_trip(points, workers, reps).map_err(|e| anyhow::anyhow!("{e}"))?;
+    println!(
+        "{}",
+        json!({
+            "what": "round trip of one step batch, null back end (no MD), loopback gRPC",
+            "points": points,
+            "workers": workers,
+            "median_ms": median * 1e3,
+            "all_ms": times.iter().map(|t| t * 1e3).collect::<Vec<_>>(),
+            "command": format!("md-worker bench-coupling --points {points} --workers {workers} --reps {reps}"),
+        })
+    );
+    Ok(())
 }
