@@ -187,6 +187,12 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         tracing::info!("resuming {} at step {} (t = {:e} s) from {}", scene.name, ck.step, ck.time, path.display());
     }
     let setup_s = before.setup_s + wall.elapsed().as_secs_f64();
+    // The MD of setup (relaxation, initial stresses) counts as setup, not as step time.
+    if let Some(m) = &md {
+        if let Ok(mut m) = m.lock() {
+            m.pool.times = Default::default();
+        }
+    }
     tracing::info!(points = sim.points.len(), nodes = sim.grid.node_count(), steps = loaded.steps, dt = sim.dt, "running {}", scene.name);
 
     let every = (loaded.steps / scene.output.snapshots.max(1) as u64).max(1);
