@@ -2,7 +2,6 @@
 # Installs what mscale needs beyond cargo for its optional features. The default build needs
 # none of it. Usage:
 #   bash deploy/setup.sh            # nothing to install for the default build; prints what is optional
-#   bash deploy/setup.sh mpi        # Open MPI + libclang (cargo feature `mpi`)
 #   bash deploy/setup.sh nvrtc      # NVRTC from PyPI (cargo feature `cuda`: kernels compile in CI without a GPU)
 #   bash deploy/setup.sh lammps     # LAMMPS, to regenerate the MD golden data (tests do not need it)
 #   bash deploy/setup.sh all
@@ -33,13 +32,10 @@ PY
 want="${1:-none}"
 case "$want" in
   none)
-    echo "setup: the default build needs only cargo; optional: mpi, nvrtc, lammps, all" ;;
-  mpi|all|nvrtc|lammps) ;;
-  *) echo "setup: unknown component '$want' (expected mpi, nvrtc, lammps or all)" >&2; exit 2 ;;
+    echo "setup: the default build needs only cargo; optional: nvrtc, lammps, all" ;;
+  all|nvrtc|lammps) ;;
+  *) echo "setup: unknown component '$want' (expected nvrtc, lammps or all)" >&2; exit 2 ;;
 esac
-if [ "$want" = mpi ] || [ "$want" = all ]; then
-  need_apt libopenmpi-dev openmpi-bin libclang-dev pkg-config
-fi
 if [ "$want" = lammps ] || [ "$want" = all ]; then
   need_apt lammps lammps-data
 fi
