@@ -6,7 +6,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let out = std::path::PathBuf::from(std::env::var("OUT_DIR")?);
     tonic_build::configure()
         .file_descriptor_set_path(out.join("mscale_descriptor.bin"))
-        .compile_protos(&["mscale/coupling/v1/coupling.proto"], &["."])?;
+        .compile_protos(&["mscale/coupling/v1/coupling.proto", "mscale/orchestrator/v1/orchestrator.proto"], &["."])?;
     println!("cargo:rerun-if-changed=mscale");
     Ok(())
 }

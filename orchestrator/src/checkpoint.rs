@@ -348,6 +348,13 @@ pub fn write(run_dir: &Path, ck: &Checkpoint) -> Result<PathBuf> {
     std::fs::rename(&tmp, &path).with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))?;
     // The rename itself must reach the disk before older checkpoints are removed.
     std::fs::File::open(&dir).and_then(|d| d.sync_all()).with_context(|| format!("cannot sync {}", dir.display()))?;
+    // Temporary files of writers that died (a killed orchestrator) are removed too.
+    for e in std::fs::read_dir(&dir).with_context(|| format!("cannot list {}", dir.display()))?.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        if name.starts_with(".step-") && name.contains(".tmp") && e.path() != tmp {
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
     for (_, old) in list(run_dir)?.into_iter().skip(KEEP) {
         if let Err(e) = std::fs::remove_file(&old) {
             tracing::warn!("cannot remove the old checkpoint {}: {e}", old.display());

@@ -5,12 +5,15 @@
 //! library, so tests drive the same code users do.
 
 pub mod checkpoint;
+pub mod client;
 pub mod md;
 pub mod output;
 pub mod report;
 pub mod run;
 pub mod scene;
+pub mod service;
 pub mod setup;
+pub mod store;
 
 /// Cargo features this binary was built with (reported in provenance).
 pub const FEATURES: &[&str] = &[];

@@ -36,6 +36,67 @@ enum Command {
         #[arg(long, value_name = "DIR", conflicts_with = "out")]
         resume: Option<PathBuf>,
     },
+    /// Run the job service (mscale.orchestrator.v1) with gRPC health and reflection.
+    Serve {
+        /// State directory: the job store (jobs.sqlite), job inputs and run directories.
+        #[arg(long = "state", visible_alias = "state-dir", value_name = "DIR")]
+        state: PathBuf,
+        /// Address to listen on (loopback only: this build has no TLS).
+        #[arg(long, default_value = orchestrator::client::DEFAULT_SERVER)]
+        listen: String,
+        /// File holding the bearer token of mutating calls (default: one is generated into <state>/token).
+        #[arg(long, value_name = "FILE")]
+        token_file: Option<PathBuf>,
+        /// Checkpoint interval (steps) of jobs that name none.
+        #[arg(long, value_name = "N", default_value_t = orchestrator::service::DEFAULT_CHECKPOINT_EVERY)]
+        checkpoint_every: u64,
+    },
+    /// Submit a scene as a job to a running `mscale serve`; prints the job id.
+    Submit {
+        scene: PathBuf,
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+        /// Higher runs first.
+        #[arg(long, default_value_t = 0)]
+        priority: i32,
+        /// Checkpoint interval in steps (0: the server's default).
+        #[arg(long, value_name = "N", default_value_t = 0)]
+        checkpoint_every: u64,
+        #[command(flatten)]
+        conn: Conn,
+    },
+    /// Show one job, or list every job.
+    Status {
+        job: Option<String>,
+        #[command(flatten)]
+        conn: Conn,
+    },
+    /// Follow a job with a progress bar; exit code 0 when it completed, 1 otherwise.
+    Watch {
+        job: String,
+        #[command(flatten)]
+        conn: Conn,
+    },
+    /// Cancel a job (a running one checkpoints first).
+    Cancel {
+        job: String,
+        #[command(flatten)]
+        conn: Conn,
+    },
+    /// Copy one file of a job's run directory (summary.json, snapshots/index.csv, ...).
+    Fetch {
+        job: String,
+        file: String,
+        #[arg(long, value_name = "PATH")]
+        out: PathBuf,
+        #[command(flatten)]
+        conn: Conn,
+    },
+    /// Check that an orchestrator answers (gRPC health); exit code 0 when it serves.
+    Health {
+        #[command(flatten)]
+        conn: Conn,
+    },
     /// Reports over many runs of a scene.
     #[command(subcommand)]
     Report(ReportCommand),
@@ -45,6 +106,17 @@ enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
+}
+
+/// How a client verb reaches the orchestrator.
+#[derive(clap::Args)]
+struct Conn {
+    /// Orchestrator address (HOST:PORT or http://HOST:PORT).
+    #[arg(long, default_value = orchestrator::client::DEFAULT_SERVER)]
+    server: String,
+    /// File holding the bearer token (default: the MSCALE_TOKEN variable).
+    #[arg(long, value_name = "FILE")]
+    token_file: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]
@@ -83,6 +155,13 @@ fn main() -> ExitCode {
 
 fn dispatch(cli: Cli) -> i32 {
     match cli.command {
+        Command::Serve { state, listen, token_file, checkpoint_every } => report(orchestrator::client::serve(state, listen, token_file, checkpoint_every)),
+        Command::Submit { scene, set, priority, checkpoint_every, conn } => report(orchestrator::client::submit(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every)),
+        Command::Status { job, conn } => report(orchestrator::client::status(&conn.server, conn.token_file.as_deref(), job.as_deref())),
+        Command::Watch { job, conn } => report(orchestrator::client::watch(&conn.server, conn.token_file.as_deref(), &job)),
+        Command::Cancel { job, conn } => report(orchestrator::client::cancel(&conn.server, conn.token_file.as_deref(), &job)),
+        Command::Fetch { job, file, out, conn } => report(orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, &file, &out)),
+        Command::Health { conn } => report(orchestrator::client::health(&conn.server, conn.token_file.as_deref())),
         Command::Check { scene, set } => match scene::load(&scene, &set) {
             Ok(loaded) => {
                 print!("{}", loaded.scene.to_toml());
@@ -173,4 +252,12 @@ fn work_size(loaded: &scene::LoadedScene) -> (usize, usize) {
         2 => size::<2>(&loaded.scene),
         _ => size::<3>(&loaded.scene),
     }
+}
+
+/// Exit code of a client verb: its own, or 1 with the error chain printed once.
+fn report(r: anyhow::Result<i32>) -> i32 {
+    r.unwrap_or_else(|e| {
+        eprintln!("mscale: {e:#}");
+        exit::RUN_FAILED
+    })
 }

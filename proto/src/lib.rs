@@ -9,6 +9,13 @@ pub mod coupling {
     }
 }
 
+/// The job service of `mscale serve`.
+pub mod orchestrator {
+    pub mod v1 {
+        tonic::include_proto!("mscale.orchestrator.v1");
+    }
+}
+
 /// Version of `mscale.coupling.v1` this build speaks; checked on `Open`.
 pub const COUPLING_PROTOCOL_VERSION: u32 = 1;
 

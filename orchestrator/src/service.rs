@@ -1,0 +1,568 @@
+//! `mscale serve`: the job service (`mscale.orchestrator.v1`).
+//!
+//! Jobs are scenes submitted with the files they name; they are validated at submit with the
+//! messages of `mscale check`, kept in the SQLite [`Store`] under the state directory, and run
+//! one at a time, by priority, on a dedicated thread with the same run driver as `mscale run`
+//! (so a job ends with the digest `mscale run` gives). Jobs checkpoint at an interval; a job
+//! that was running when the orchestrator died is resumed from its last checkpoint on restart.
+//!
+//! Layout of the state directory: `jobs.sqlite`, `token` (generated when no token file is
+//! given), and `jobs/<id>/input/` (the scene and its files) and `jobs/<id>/run/` (the run
+//! directory: outputs, checkpoints, summary.json).
+//!
+//! Security: mutating calls (SubmitJob, CancelJob) need `authorization: Bearer <token>`,
+//! compared in constant time; requests are bounded in size; FetchResult cannot leave the job's
+//! run directory; nothing runs through a shell. There is no TLS yet, so listening on anything
+//! but a loopback address is refused.
+
+use crate::run::{self, Outcome, Progress, RunOptions};
+use crate::scene;
+use crate::store::{JobRecord, JobState, Store, now_unix};
+use anyhow::{Context, Result, bail};
+use mscale_proto::orchestrator::v1 as pb;
+use pb::orchestrator_server::{Orchestrator, OrchestratorServer};
+use sha2::{Digest, Sha256};
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::{Component, Path, PathBuf};
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+use tokio::sync::watch;
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status};
+
+/// Largest request or response message (bytes): scenes plus potential files, fetched files.
+pub const MAX_MESSAGE: usize = 64 << 20;
+/// Default checkpoint interval (steps) of jobs that name none.
+pub const DEFAULT_CHECKPOINT_EVERY: u64 = 100;
+
+pub struct ServeOptions {
+    pub state_dir: PathBuf,
+    pub listen: String,
+    /// The bearer token mutating calls must carry.
+    pub token: String,
+    pub checkpoint_every: u64,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Compares two byte strings in time that depends only on their lengths.
+pub fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    if a.len() != b.len() {
+        return false;
+    }
+    a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// Reads a token file (surrounding whitespace ignored); refuses an empty one.
+pub fn read_token(path: &Path) -> Result<String> {
+    let t = std::fs::read_to_string(path).with_context(|| format!("cannot read the token file {}", path.display()))?;
+    let t = t.trim().to_string();
+    anyhow::ensure!(!t.is_empty(), "the token file {} is empty", path.display());
+    Ok(t)
+}
+
+/// What the service and the job runner share.
+struct Core {
+    store: Mutex<Store>,
+    state_dir: PathBuf,
+    token: String,
+    checkpoint_every: u64,
+    /// Live progress of jobs somebody watches or that run now.
+    live: Mutex<HashMap<String, watch::Sender<pb::JobEvent>>>,
+    /// The running job and its stop flag.
+    running: Mutex<Option<(String, Arc<AtomicBool>)>>,
+    /// Raised when the orchestrator stops: the running job checkpoints and stays queued.
+    stopping: AtomicBool,
+    wake: (Mutex<bool>, Condvar),
+    next_id: AtomicU64,
+}
+
+fn pb_state(s: JobState) -> pb::JobState {
+    match s {
+        JobState::Queued => pb::JobState::Queued,
+        JobState::Running => pb::JobState::Running,
+        JobState::Completed => pb::JobState::Completed,
+        JobState::Failed => pb::JobState::Failed,
+        JobState::Cancelled => pb::JobState::Cancelled,
+    }
+}
+
+fn to_pb(j: &JobRecord) -> pb::Job {
+    pb::Job {
+        id: j.id.clone(),
+        scene: j.scene.clone(),
+        state: pb_state(j.state) as i32,
+        priority: j.priority,
+        step: j.step,
+        steps: j.steps,
+        sim_time_s: j.sim_time,
+        error: j.error.clone(),
+        state_digest: j.state_digest.clone(),
+        submitted_unix: j.submitted,
+        started_unix: j.started,
+        finished_unix: j.finished,
+        resumes: j.resumes,
+    }
+}
+
+fn event_of(j: &JobRecord) -> pb::JobEvent {
+    pb::JobEvent {
+        job_id: j.id.clone(),
+        state: pb_state(j.state) as i32,
+        step: j.step,
+        steps: j.steps,
+        sim_time_s: j.sim_time,
+        end_time_s: 0.0,
+        percent: if j.steps > 0 { 100.0 * j.step as f64 / j.steps as f64 } else { 0.0 },
+        eta_s: -1.0,
+        energy_drift: 0.0,
+        message: j.error.clone(),
+    }
+}
+
+fn is_final(state: i32) -> bool {
+    matches!(pb::JobState::try_from(state), Ok(pb::JobState::Completed | pb::JobState::Failed | pb::JobState::Cancelled))
+}
+
+impl Core {
+    fn job_dir(&self, id: &str) -> PathBuf {
+        self.state_dir.join("jobs").join(id)
+    }
+
+    fn get(&self, id: &str) -> Result<JobRecord, Status> {
+        lock(&self.store).get(id).map_err(|e| Status::internal(format!("{e:#}")))?.ok_or_else(|| Status::not_found(format!("no job {id:?}")))
+    }
+
+    /// The live channel of a job, created from the store when new.
+    fn channel(&self, id: &str) -> Result<watch::Sender<pb::JobEvent>, Status> {
+        if let Some(tx) = lock(&self.live).get(id) {
+            return Ok(tx.clone());
+        }
+        let ev = event_of(&self.get(id)?);
+        Ok(lock(&self.live).entry(id.to_string()).or_insert_with(|| watch::channel(ev).0).clone())
+    }
+
+    /// Publishes a job's stored state (after a transition).
+    fn publish_stored(&self, id: &str) {
+        if let (Ok(tx), Ok(j)) = (self.channel(id), self.get(id)) {
+            tx.send_modify(|ev| {
+                let progress = (ev.end_time_s, ev.energy_drift);
+                *ev = event_of(&j);
+                (ev.end_time_s, ev.energy_drift) = progress;
+            });
+        }
+    }
+
+    fn wake_runner(&self) {
+        *lock(&self.wake.0) = true;
+        self.wake.1.notify_all();
+    }
+
+    fn new_id(&self) -> String {
+        let n = self.next_id.fetch_add(1, Ordering::SeqCst);
+        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
+        let h = Sha256::digest(format!("{nanos}-{}-{n}", std::process::id()).as_bytes());
+        format!("j{}", &hex::encode(h)[..12])
+    }
+}
+
+/// Runs queued jobs one at a time until the orchestrator stops.
+fn runner(core: Arc<Core>) {
+    loop {
+        if core.stopping.load(Ordering::SeqCst) {
+            return;
+        }
+        let next = match lock(&core.store).next_queued() {
+            Ok(n) => n,
+            Err(e) => {
+                tracing::error!("job store: {e:#}");
+                None
+            }
+        };
+        match next {
+            Some(job) => run_job(&core, job),
+            None => {
+                let mut woken = lock(&core.wake.0);
+                if !*woken {
+                    woken = core.wake.1.wait_timeout(woken, Duration::from_millis(500)).map(|r| r.0).unwrap_or_else(|p| p.into_inner().0);
+                }
+                *woken = false;
+            }
+        }
+    }
+}
+
+fn transition(core: &Core, id: &str, state: JobState, note: &str, digest: &str) {
+    if let Err(e) = lock(&core.store).transition(id, state, note, digest) {
+        tracing::error!("job {id}: cannot record {}: {e:#}", state.as_str());
+    }
+    core.publish_stored(id);
+}
+
+fn run_job(core: &Arc<Core>, job: JobRecord) {
+    let id = job.id.clone();
+    let cancel = Arc::new(AtomicBool::new(false));
+    *lock(&core.running) = Some((id.clone(), cancel.clone()));
+    transition(core, &id, JobState::Running, if job.resumes > 0 { "resumed" } else { "started" }, "");
+    let dir = core.job_dir(&id);
+    let outcome = (|| -> Result<Outcome> {
+        let loaded = scene::load(&dir.join("input/scene.toml"), &job.overrides).map_err(|e| anyhow::anyhow!("{e}"))?;
+        let run_dir = dir.join("run");
+        let mut opts = RunOptions::new(run_dir.clone(), vec!["mscale".into(), "serve".into(), format!("job {id}")]);
+        opts.progress_bar = false;
+        opts.checkpoint_every = if job.checkpoint_every > 0 { job.checkpoint_every } else { core.checkpoint_every };
+        opts.resume = !crate::checkpoint::list(&run_dir)?.is_empty();
+        opts.cancel = Some(cancel.clone());
+        let tx = core.channel(&id).map_err(|s| anyhow::anyhow!("{}", s.message()))?;
+        let (core2, id2) = (core.clone(), id.clone());
+        let last = Mutex::new((Instant::now(), Instant::now()));
+        opts.progress = Some(Arc::new(move |p: &Progress| {
+            let mut last = lock(&last);
+            let now = Instant::now();
+            if !p.done && now.duration_since(last.0) < Duration::from_millis(100) {
+                return;
+            }
+            last.0 = now;
+            let rate = p.session_steps as f64 / p.elapsed_s.max(1e-9);
+            tx.send_modify(|ev| {
+                ev.step = p.step;
+                ev.steps = p.steps;
+                ev.sim_time_s = p.time;
+                ev.end_time_s = p.end_time;
+                ev.percent = 100.0 * p.step as f64 / p.steps.max(1) as f64;
+                ev.eta_s = if p.session_steps > 0 { (p.steps - p.step.min(p.steps)) as f64 / rate } else { -1.0 };
+                ev.energy_drift = p.energy_drift;
+            });
+            if p.done || now.duration_since(last.1) > Duration::from_secs(1) {
+                last.1 = now;
+                if let Err(e) = lock(&core2.store).progress(&id2, p.step, p.steps, p.time) {
+                    tracing::warn!("job {id2}: cannot record progress: {e:#}");
+                }
+            }
+        }));
+        if opts.resume {
+            tracing::info!("job {id}: resuming from its last checkpoint");
+        }
+        run::run(&loaded, &opts)
+    })();
+    *lock(&core.running) = None;
+    match outcome {
+        Ok(Outcome::Completed(summary)) => {
+            let digest = summary["state_digest"].as_str().unwrap_or_default().to_string();
+            tracing::info!("job {id} completed, state_digest {digest}");
+            transition(core, &id, JobState::Completed, "", &digest);
+        }
+        Ok(Outcome::Failed(_, why)) => transition(core, &id, JobState::Failed, &why, ""),
+        Ok(Outcome::Cancelled { checkpoint, step }) if core.stopping.load(Ordering::SeqCst) => {
+            tracing::info!("job {id}: checkpointed at step {step} ({}) as the orchestrator stops", checkpoint.display());
+            transition(core, &id, JobState::Queued, "the orchestrator stopped; resumes from its last checkpoint", "");
+        }
+        Ok(Outcome::Cancelled { step, .. }) => transition(core, &id, JobState::Cancelled, &format!("cancelled by a user after step {step}"), ""),
+        Err(e) => transition(core, &id, JobState::Failed, &format!("{e:#}"), ""),
+    }
+}
+
+/// Applies `f` to every string value of a TOML document.
+pub fn for_each_string(item: &mut toml_edit::Item, f: &mut dyn FnMut(&mut toml_edit::Value)) {
+    fn value(v: &mut toml_edit::Value, f: &mut dyn FnMut(&mut toml_edit::Value)) {
+        match v {
+            toml_edit::Value::String(_) => f(v),
+            toml_edit::Value::Array(a) => a.iter_mut().for_each(|v| value(v, f)),
+            toml_edit::Value::InlineTable(t) => t.iter_mut().for_each(|(_, v)| value(v, f)),
+            _ => {}
+        }
+    }
+    match item {
+        toml_edit::Item::Value(v) => value(v, f),
+        toml_edit::Item::Table(t) => t.iter_mut().for_each(|(_, i)| for_each_string(i, f)),
+        toml_edit::Item::ArrayOfTables(a) => a.iter_mut().for_each(|t| t.iter_mut().for_each(|(_, i)| for_each_string(i, f))),
+        toml_edit::Item::None => {}
+    }
+}
+
+/// A stored input file's name: a prefix of its hash and its base name, nothing else.
+fn stored_name(f: &pb::InputFile) -> String {
+    let base = Path::new(&f.name).file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let base: String = base.chars().map(|c| if c.is_ascii_alphanumeric() || "._-".contains(c) { c } else { '_' }).collect();
+    format!("{}-{base}", &f.sha256[..16.min(f.sha256.len())])
+}
+
+/// Writes a submitted job's inputs into `dir/input` (files checked against their SHA-256, the
+/// scene's references to them rewritten) and validates the scene: the error text is the one
+/// `mscale check` prints.
+fn prepare_inputs(dir: &Path, req: &pb::SubmitJobRequest) -> Result<scene::LoadedScene, Status> {
+    let input = dir.join("input");
+    std::fs::create_dir_all(input.join("files")).map_err(|e| Status::internal(format!("cannot create {}: {e}", input.display())))?;
+    let mut renames = HashMap::new();
+    for f in &req.files {
+        let actual = hex::encode(Sha256::digest(&f.content));
+        if !constant_time_eq(actual.as_bytes(), f.sha256.to_ascii_lowercase().as_bytes()) {
+            return Err(Status::invalid_argument(format!("file {:?}: its content hashes to {actual}, not the SHA-256 {} it was sent with", f.name, f.sha256)));
+        }
+        let name = format!("files/{}", stored_name(f));
+        crate::output::write_atomic(&input.join(&name), &f.content).map_err(|e| Status::internal(format!("{e:#}")))?;
+        renames.insert(f.name.clone(), name);
+    }
+    let mut doc: toml_edit::DocumentMut = match req.scene_text.parse() {
+        Ok(d) => d,
+        // Not TOML: store it as is, so the scene loader reports it with its own message.
+        Err(_) => toml_edit::DocumentMut::new(),
+    };
+    let text = if doc.is_empty() && !req.scene_text.trim().is_empty() {
+        req.scene_text.clone()
+    } else {
+        for_each_string(doc.as_item_mut(), &mut |v| {
+            if let Some(new) = v.as_str().and_then(|s| renames.get(s)) {
+                let decor = v.decor().clone();
+                *v = toml_edit::Value::from(new.as_str());
+                *v.decor_mut() = decor;
+            }
+        });
+        doc.to_string()
+    };
+    let scene_path = input.join("scene.toml");
+    crate::output::write_atomic(&scene_path, text.as_bytes()).map_err(|e| Status::internal(format!("{e:#}")))?;
+    scene::load(&scene_path, &req.overrides).map_err(|mut e| {
+        if !req.scene_file.is_empty() {
+            e.file = req.scene_file.clone();
+        }
+        Status::invalid_argument(e.to_string())
+    })
+}
+
+/// The service: decodes, calls the core, encodes.
+pub struct JobService {
+    core: Arc<Core>,
+}
+
+impl JobService {
+    fn authorize<T>(&self, req: &Request<T>, call: &str) -> Result<(), Status> {
+        let given = req.metadata().get("authorization").and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer ")).unwrap_or("");
+        if given.is_empty() {
+            return Err(Status::unauthenticated(format!("{call} needs a bearer token (mscale: --token-file FILE or MSCALE_TOKEN)")));
+        }
+        if !constant_time_eq(given.as_bytes(), self.core.token.as_bytes()) {
+            return Err(Status::unauthenticated(format!("{call}: the bearer token is not this orchestrator's")));
+        }
+        Ok(())
+    }
+}
+
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, Status> + Send + 'static) -> Result<T, Status> {
+    tokio::task::spawn_blocking(f).await.map_err(|e| Status::internal(format!("task failed: {e}")))?
+}
+
+type EventStream = Pin<Box<dyn Stream<Item = Result<pb::JobEvent, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl Orchestrator for JobService {
+    async fn submit_job(&self, req: Request<pb::SubmitJobRequest>) -> Result<Response<pb::SubmitJobResponse>, Status> {
+        self.authorize(&req, "SubmitJob")?;
+        let req = req.into_inner();
+        let core = self.core.clone();
+        let id = blocking(move || {
+            let id = core.new_id();
+            let dir = core.job_dir(&id);
+            let loaded = match prepare_inputs(&dir, &req) {
+                Ok(l) => l,
+                Err(s) => {
+                    let _ = std::fs::remove_dir_all(&dir);
+                    return Err(s);
+                }
+            };
+            let job = JobRecord {
+                id: id.clone(),
+                scene: loaded.scene.name.clone(),
+                state: JobState::Queued,
+                priority: req.priority,
+                overrides: req.overrides.clone(),
+                checkpoint_every: req.checkpoint_every_steps,
+                step: 0,
+                steps: loaded.steps,
+                sim_time: 0.0,
+                error: String::new(),
+                state_digest: String::new(),
+                submitted: now_unix(),
+                started: 0,
+                finished: 0,
+                resumes: 0,
+            };
+            lock(&core.store).insert(&job).map_err(|e| Status::internal(format!("{e:#}")))?;
+            tracing::info!("job {id} queued: scene {} ({} steps), priority {}", job.scene, job.steps, job.priority);
+            core.wake_runner();
+            Ok(id)
+        })
+        .await?;
+        Ok(Response::new(pb::SubmitJobResponse { job_id: id }))
+    }
+
+    async fn list_jobs(&self, _: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let jobs = lock(&self.core.store).list().map_err(|e| Status::internal(format!("{e:#}")))?;
+        Ok(Response::new(pb::ListJobsResponse { jobs: jobs.iter().map(to_pb).collect() }))
+    }
+
+    async fn get_job(&self, req: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
+        Ok(Response::new(to_pb(&self.core.get(&req.get_ref().job_id)?)))
+    }
+
+    type WatchJobStream = EventStream;
+
+    async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
+        let mut rx = self.core.channel(&req.get_ref().job_id)?.subscribe();
+        let (tx, out) = tokio::sync::mpsc::channel(16);
+        tokio::spawn(async move {
+            loop {
+                let ev = rx.borrow_and_update().clone();
+                let last = is_final(ev.state);
+                if tx.send(Ok(ev)).await.is_err() || last || rx.changed().await.is_err() {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(out))))
+    }
+
+    async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
+        self.authorize(&req, "CancelJob")?;
+        let id = req.into_inner().job_id;
+        let job = self.core.get(&id)?;
+        match job.state {
+            JobState::Queued => transition(&self.core, &id, JobState::Cancelled, "cancelled by a user before it started", ""),
+            JobState::Running => {
+                if let Some((rid, flag)) = lock(&self.core.running).as_ref() {
+                    if *rid == id {
+                        flag.store(true, Ordering::SeqCst);
+                    }
+                }
+            }
+            _ => return Err(Status::failed_precondition(format!("job {id} has already ended ({})", job.state.as_str()))),
+        }
+        Ok(Response::new(to_pb(&self.core.get(&id)?)))
+    }
+
+    async fn fetch_result(&self, req: Request<pb::FetchResultRequest>) -> Result<Response<pb::FetchResultResponse>, Status> {
+        let req = req.into_inner();
+        self.core.get(&req.job_id)?;
+        let run_dir = self.core.job_dir(&req.job_id).join("run");
+        let path = contained(&run_dir, &req.path)?;
+        let len = std::fs::metadata(&path).map_err(|e| Status::not_found(format!("{}: {e}", req.path)))?.len();
+        if len as usize > MAX_MESSAGE - 1024 {
+            return Err(Status::resource_exhausted(format!("{} has {len} bytes, more than one message carries ({MAX_MESSAGE})", req.path)));
+        }
+        let content = std::fs::read(&path).map_err(|e| Status::not_found(format!("{}: {e}", req.path)))?;
+        let sha256 = hex::encode(Sha256::digest(&content));
+        Ok(Response::new(pb::FetchResultResponse { content, sha256 }))
+    }
+}
+
+/// `rel` inside `root`, refusing absolute paths, `..`, and links that lead out.
+pub fn contained(root: &Path, rel: &str) -> Result<PathBuf, Status> {
+    let refuse = || Status::invalid_argument(format!("{rel:?} is not a path inside the job's run directory"));
+    let p = Path::new(rel);
+    if rel.is_empty() || p.components().any(|c| !matches!(c, Component::Normal(_))) {
+        return Err(refuse());
+    }
+    let root = root.canonicalize().map_err(|_| Status::not_found("the job has no run directory yet"))?;
+    let full = root.join(p).canonicalize().map_err(|e| Status::not_found(format!("{rel}: {e}")))?;
+    if !full.starts_with(&root) || !full.is_file() {
+        return Err(refuse());
+    }
+    Ok(full)
+}
+
+/// Runs the orchestrator until SIGINT/SIGTERM. Prints `mscale serve: listening on ADDR` on
+/// stdout once it answers calls.
+pub fn serve(opts: ServeOptions) -> Result<()> {
+    let addr: SocketAddr = opts.listen.parse().with_context(|| format!("--listen {:?} is not an address like 127.0.0.1:50100", opts.listen))?;
+    if !addr.ip().is_loopback() {
+        bail!("refusing to listen on {addr}: this build has no TLS, and tokens must not cross a network in clear text; listen on a loopback address (127.0.0.1 or [::1]) and reach it through an SSH tunnel");
+    }
+    let mut store = Store::open(&opts.state_dir)?;
+    for id in store.requeue_interrupted()? {
+        tracing::info!("job {id} was running when the orchestrator stopped: queued again, resumes from its last checkpoint");
+    }
+    let core = Arc::new(Core {
+        store: Mutex::new(store),
+        state_dir: opts.state_dir.clone(),
+        token: opts.token,
+        checkpoint_every: opts.checkpoint_every,
+        live: Mutex::new(HashMap::new()),
+        running: Mutex::new(None),
+        stopping: AtomicBool::new(false),
+        wake: (Mutex::new(false), Condvar::new()),
+        next_id: AtomicU64::new(0),
+    });
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("cannot start the gRPC runtime")?;
+    let runner_core = core.clone();
+    let runner_thread = std::thread::Builder::new().name("job-runner".into()).spawn(move || runner(runner_core)).context("cannot start the job runner")?;
+    let result = rt.block_on(async {
+        let listener = tokio::net::TcpListener::bind(addr).await.with_context(|| format!("cannot listen on {addr}"))?;
+        let bound = listener.local_addr()?;
+        let (mut health, health_service) = tonic_health::server::health_reporter();
+        health.set_not_serving::<OrchestratorServer<JobService>>().await;
+        let reflection = tonic_reflection::server::Builder::configure().register_encoded_file_descriptor_set(mscale_proto::FILE_DESCRIPTOR_SET).build_v1().context("reflection")?;
+        let service = OrchestratorServer::new(JobService { core: core.clone() }).max_decoding_message_size(MAX_MESSAGE).max_encoding_message_size(MAX_MESSAGE);
+        health.set_serving::<OrchestratorServer<JobService>>().await;
+        println!("mscale serve: listening on {bound}");
+        use std::io::Write;
+        let _ = std::io::stdout().flush();
+        tracing::info!("state in {}", opts.state_dir.display());
+        let shutdown = async {
+            let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).ok();
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = async { match term.as_mut() { Some(t) => { t.recv().await; } None => std::future::pending::<()>().await } } => {}
+            }
+            tracing::info!("stopping: the running job checkpoints and resumes on the next start");
+        };
+        tonic::transport::Server::builder()
+            .timeout(Duration::from_secs(60))
+            .http2_keepalive_interval(Some(Duration::from_secs(30)))
+            .add_service(health_service)
+            .add_service(reflection)
+            .add_service(service)
+            .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), shutdown)
+            .await
+            .context("serving")
+    });
+    core.stopping.store(true, Ordering::SeqCst);
+    if let Some((_, flag)) = lock(&core.running).as_ref() {
+        flag.store(true, Ordering::SeqCst);
+    }
+    core.wake_runner();
+    let _ = runner_thread.join();
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fetch_paths_cannot_leave_the_run_directory() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = dir.path().join("run");
+        std::fs::create_dir_all(run.join("snapshots")).unwrap();
+        std::fs::write(run.join("summary.json"), "{}").unwrap();
+        std::fs::write(run.join("snapshots/index.csv"), "x").unwrap();
+        std::fs::write(dir.path().join("secret"), "s").unwrap();
+        std::os::unix::fs::symlink(dir.path().join("secret"), run.join("link")).unwrap();
+        assert!(contained(&run, "summary.json").is_ok());
+        assert!(contained(&run, "snapshots/index.csv").is_ok());
+        for bad in ["../secret", "/etc/passwd", "snapshots/../../secret", "link", "", "snapshots", "./summary.json"] {
+            assert!(contained(&run, bad).is_err(), "{bad} was let through");
+        }
+    }
+
+    #[test]
+    fn tokens_compare_whole() {
+        assert!(constant_time_eq(b"abc", b"abc"));
+        assert!(!constant_time_eq(b"abc", b"abd"));
+        assert!(!constant_time_eq(b"abc", b"ab"));
+    }
+}

@@ -1,0 +1,209 @@
+//! The job service across real processes on 127.0.0.1: `mscale serve` and the client verbs
+//! (`submit`, `watch`, `status`, `cancel`, `fetch`, `health`). A submitted job ends with the
+//! `state_digest` of `mscale run`, also when the orchestrator is killed with SIGKILL mid-job
+//! and restarted; unauthenticated and invalid submits are refused.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+const SMALL: &str = "../tests/data/small.toml";
+const MD_SMALL: &str = "../tests/data/md-small.toml";
+const TOKEN: &str = "test-token-0123456789";
+
+fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_mscale")
+}
+
+struct Server {
+    child: Child,
+    addr: String,
+    log: PathBuf,
+}
+
+impl Server {
+    fn start(state: &Path, token_file: &Path, log: &Path) -> Server {
+        let err = std::fs::File::create(log).unwrap();
+        let mut child = Command::new(bin())
+            .args(["serve", "--state", state.to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token_file.to_str().unwrap(), "--checkpoint-every", "100"])
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::piped())
+            .stderr(err)
+            .spawn()
+            .expect("cannot start mscale serve");
+        let mut line = String::new();
+        BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+        let addr = line.trim().strip_prefix("mscale serve: listening on ").unwrap_or_else(|| panic!("unexpected first line {line:?}; log: {}", std::fs::read_to_string(log).unwrap_or_default())).to_string();
+        Server { child, addr, log: log.to_path_buf() }
+    }
+
+    fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// Runs a client verb against this server.
+    fn client(&self, args: &[&str]) -> Output {
+        Command::new(bin()).args(args).args(["--server", &self.addr]).env_remove("MSCALE_TOKEN").env("RUST_LOG", "warn").output().unwrap()
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn text(o: &Output) -> String {
+    format!("stdout: {}\nstderr: {}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+fn setup() -> (tempfile::TempDir, PathBuf) {
+    let tmp = tempfile::tempdir().unwrap();
+    let token = tmp.path().join("token");
+    std::fs::write(&token, format!("{TOKEN}\n")).unwrap();
+    (tmp, token)
+}
+
+/// The digest `mscale run` gives for a scene with overrides.
+fn run_digest(dir: &Path, scene: &str, sets: &[&str]) -> String {
+    let mut args = vec!["run", scene, "--out", dir.to_str().unwrap()];
+    for s in sets {
+        args.extend(["--set", s]);
+    }
+    let o = Command::new(bin()).args(&args).env("RUST_LOG", "warn").output().unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let s: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("summary.json")).unwrap()).unwrap();
+    s["state_digest"].as_str().unwrap().to_string()
+}
+
+fn submit(server: &Server, token: &Path, scene: &str, sets: &[&str]) -> String {
+    let mut args = vec!["submit", scene, "--token-file", token.to_str().unwrap()];
+    for s in sets {
+        args.extend(["--set", s]);
+    }
+    let o = server.client(&args);
+    assert!(o.status.success(), "{}", text(&o));
+    String::from_utf8_lossy(&o.stdout).trim().to_string()
+}
+
+/// Watches a job to its end through `mscale watch`; returns the exit code and the status line.
+fn watch(server: &Server, job: &str) -> (i32, String) {
+    let o = server.client(&["watch", job]);
+    (o.status.code().unwrap_or(-1), String::from_utf8_lossy(&o.stdout).to_string())
+}
+
+fn digest_of(status_line: &str) -> String {
+    status_line.split("digest ").nth(1).and_then(|s| s.split_whitespace().next()).unwrap_or_else(|| panic!("no digest in {status_line:?}")).to_string()
+}
+
+#[test]
+fn submitted_jobs_end_with_the_digest_of_mscale_run() {
+    let (tmp, token) = setup();
+    let server = Server::start(&tmp.path().join("state"), &token, &tmp.path().join("serve.log"));
+    let h = server.client(&["health"]);
+    assert!(h.status.success() && String::from_utf8_lossy(&h.stdout).contains("SERVING"), "{}", text(&h));
+
+    for (scene, sets) in [(SMALL, vec!["scheme.cfl=0.1"]), (MD_SMALL, vec![])] {
+        let job = submit(&server, &token, scene, &sets);
+        let (code, line) = watch(&server, &job);
+        assert_eq!(code, 0, "{line}\n{}", server.log());
+        assert!(line.contains("completed"), "{line}");
+        let expected = run_digest(&tmp.path().join(format!("run-{job}")), scene, &sets);
+        assert_eq!(digest_of(&line), expected, "job {job} of {scene}");
+
+        // The summary comes back through FetchResult, checked against its SHA-256.
+        let out = tmp.path().join(format!("{job}.json"));
+        let f = server.client(&["fetch", &job, "summary.json", "--out", out.to_str().unwrap()]);
+        assert!(f.status.success(), "{}", text(&f));
+        let s: serde_json::Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
+        assert_eq!(s["state_digest"].as_str().unwrap(), expected);
+        for bad in ["../input/scene.toml", "/etc/passwd"] {
+            let f = server.client(&["fetch", &job, bad, "--out", tmp.path().join("x").to_str().unwrap()]);
+            assert!(!f.status.success() && String::from_utf8_lossy(&f.stderr).contains("not a path inside"), "{bad}: {}", text(&f));
+        }
+    }
+    let st = server.client(&["status"]);
+    assert_eq!(String::from_utf8_lossy(&st.stdout).matches("completed").count(), 2, "{}", text(&st));
+}
+
+#[test]
+fn unauthenticated_and_invalid_submits_are_refused() {
+    let (tmp, token) = setup();
+    let server = Server::start(&tmp.path().join("state"), &token, &tmp.path().join("serve.log"));
+    let o = server.client(&["submit", SMALL]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("needs a bearer token"), "{}", text(&o));
+    let wrong = tmp.path().join("wrong");
+    std::fs::write(&wrong, "test-token-0123456780").unwrap();
+    let o = server.client(&["submit", SMALL, "--token-file", wrong.to_str().unwrap()]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("Unauthenticated"), "{}", text(&o));
+    let o = server.client(&["cancel", "jnope"]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("needs a bearer token"), "{}", text(&o));
+
+    // A bad scene: refused at submit with the message `mscale check` prints.
+    let bad = tmp.path().join("bad.toml");
+    let scene = std::fs::read_to_string(SMALL).unwrap().replace("particles_per_cell = 4", "particles_per_cell = 0");
+    std::fs::write(&bad, scene).unwrap();
+    let check = Command::new(bin()).args(["check", bad.to_str().unwrap()]).output().unwrap();
+    let expected = String::from_utf8_lossy(&check.stderr).trim().trim_start_matches("mscale: ").to_string();
+    assert!(!check.status.success() && expected.contains("particles_per_cell"), "{expected}");
+    let o = server.client(&["submit", bad.to_str().unwrap(), "--token-file", token.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(String::from_utf8_lossy(&o.stderr).contains(&expected), "expected {expected:?} in {}", text(&o));
+    // A bad override too.
+    let o = server.client(&["submit", SMALL, "--set", "scheme.cfl=-1", "--token-file", token.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("scheme.cfl"), "{}", text(&o));
+
+    let st = server.client(&["status"]);
+    assert!(String::from_utf8_lossy(&st.stdout).contains("no jobs"), "refused submits left jobs: {}", text(&st));
+}
+
+/// 1000 steps of 8000 points, a checkpoint every 100: a few seconds.
+const LONG: [&str; 1] = ["domain.cells=[2000]"];
+
+fn wait_for_checkpoint(state: &Path, job: &str) {
+    let dir = state.join("jobs").join(job).join("run/checkpoints");
+    let start = Instant::now();
+    // Only finished checkpoints count, not the temporary file of one being written.
+    let done = || std::fs::read_dir(&dir).map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".ckpt")).count()).unwrap_or(0);
+    while done() == 0 {
+        assert!(start.elapsed() < Duration::from_secs(120), "no checkpoint of job {job} after 120 s");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+#[test]
+fn a_job_survives_the_orchestrator_killed_mid_run() {
+    let (tmp, token) = setup();
+    let state = tmp.path().join("state");
+    let mut server = Server::start(&state, &token, &tmp.path().join("serve1.log"));
+    let job = submit(&server, &token, SMALL, &LONG);
+    wait_for_checkpoint(&state, &job);
+    server.child.kill().unwrap(); // SIGKILL
+    server.child.wait().unwrap();
+    assert!(!state.join("jobs").join(&job).join("run/summary.json").exists(), "the job ended before the kill; make it longer");
+
+    let server = Server::start(&state, &token, &tmp.path().join("serve2.log"));
+    let (code, line) = watch(&server, &job);
+    assert_eq!(code, 0, "{line}\n{}", server.log());
+    assert!(line.contains("resumed 1x"), "{line}");
+    assert!(server.log().contains("resuming small at step"), "the job did not resume from a checkpoint:\n{}", server.log());
+    assert_eq!(digest_of(&line), run_digest(&tmp.path().join("straight"), SMALL, &LONG));
+}
+
+#[test]
+fn a_cancelled_job_ends_cancelled_and_watch_says_so() {
+    let (tmp, token) = setup();
+    let state = tmp.path().join("state");
+    let server = Server::start(&state, &token, &tmp.path().join("serve.log"));
+    let job = submit(&server, &token, SMALL, &LONG);
+    wait_for_checkpoint(&state, &job);
+    let o = server.client(&["cancel", &job, "--token-file", token.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let (code, line) = watch(&server, &job);
+    assert_eq!(code, 1, "{line}");
+    assert!(line.contains("cancelled") && line.contains("cancelled by a user after step"), "{line}");
+}
