@@ -299,6 +299,34 @@ mod tests {
         assert!((alpha::<3>(&cell_shape(&g3, &[1.5, 2.5, 0.5]).s) - 0.5).abs() < 1e-14);
     }
 
+    /// The root cause of the shock tube's contact (continuum/README.md): for a nodal velocity
+    /// with a kink at node 4 (v_4 = 1, every other node 0), the strain rate sum_i v_i G_i(x)
+    /// of (3.31) is continuous across the node (alpha = 0 on the faces; the B term is a hat
+    /// interpolation of nodal averages), while the hat gradient jumps by 2/h there. Points
+    /// just left and right of a node therefore share one strain history under DDMP.
+    #[test]
+    fn the_modified_gradient_is_continuous_across_a_node() {
+        let grid = Grid::<1> { origin: [0.0], h: [1.0], cells: [8], faces: [(crate::Face::Free, crate::Face::Free)] };
+        let rate = |x: f64| {
+            let mut pts = Particles::<1>::default();
+            pts.push(0, [x], [0.0], 1.0, 1.0 / 64.0, [1.0 / 128.0], Particles::<1>::identity());
+            let mut part = StencilPart::default();
+            part.clear(0);
+            ddmp_row(&grid, &pts, 0, &[[x]], None, &mut Block::default(), &mut part).expect("row");
+            part.end_point();
+            let st = crate::shape::Stencil { parts: vec![part] };
+            let (nodes, _, grads) = st.row(0);
+            nodes.iter().zip(grads).filter(|(i, _)| **i == 4).map(|(_, g)| g[0]).sum::<f64>()
+        };
+        let eps = 1.0 / 128.0;
+        let (left, right) = (rate(4.0 - eps), rate(4.0 + eps));
+        // The hat gradient would give +1 and -1: a jump of 2.
+        assert!((left - right).abs() < 0.05, "DDMP strain rate jumps across the node: {left} vs {right}");
+        // Inside a cell alpha > 0 and the rate differs from the node value.
+        let centre = rate(3.5);
+        assert!(centre > left + 0.1, "centre {centre} vs next to the node {left}");
+    }
+
     #[test]
     fn layouts_multiply_to_n() {
         assert_eq!(sub_point_layout::<1>(16), [16]);

@@ -92,6 +92,22 @@ pub fn pressure_errors(x: &[f64], p: &[f64], exact: impl Fn(f64) -> f64, jump: f
         l1 += e;
         l2 += e * e;
     }
+    let spike = spike_measure(x, p, jump, cell, |_| true);
+    PressureErrors { l1: l1 / n, l2: (l2 / n).sqrt(), spike }
+}
+
+/// The spike measure alone: the largest deviation of a particle's pressure from the median of
+/// its neighbours within one cell (itself included; every particle counts as a neighbour), over
+/// `jump`, taken over the particles `k` with `report(k)` true.
+///
+/// `report` exists to separate two errors the full measure mixes on the shock tube: the
+/// cell-crossing noise the measure was made for, and the contact of the tube. At a contact that
+/// starts on a node, any scheme whose strain rate at a point is continuous in space (DDMP's
+/// (3.31), whose alpha vanishes on cell faces, used for the stress as (4.10) requires) gives the
+/// points on either side the same strain history, so their pressure ratio rho_L / rho_R is
+/// kept (see continuum/README.md). Excluding the points that start within a few cells of the
+/// partition measures the cell-crossing noise alone.
+pub fn spike_measure(x: &[f64], p: &[f64], jump: f64, cell: f64, report: impl Fn(usize) -> bool) -> f64 {
     let mut order: Vec<usize> = (0..x.len()).collect();
     order.sort_by(|&a, &b| x[a].total_cmp(&x[b]));
     let mut spike: f64 = 0.0;
@@ -113,9 +129,11 @@ pub fn pressure_errors(x: &[f64], p: &[f64], exact: impl Fn(f64) -> f64, jump: f
         } else {
             0.5 * (window[window.len() / 2 - 1] + window[window.len() / 2])
         };
-        spike = spike.max((p[order[k]] - median).abs() / jump);
+        if report(order[k]) {
+            spike = spike.max((p[order[k]] - median).abs() / jump);
+        }
     }
-    PressureErrors { l1: l1 / n, l2: (l2 / n).sqrt(), spike }
+    spike
 }
 
 #[cfg(test)]
@@ -136,6 +154,26 @@ mod tests {
         let lhs = st.density * (st.velocity - s).powi(2) + c * c * st.density;
         let rhs = s * s + c * c;
         assert!((lhs - rhs).abs() < 1e-10);
+    }
+
+    #[test]
+    fn the_spike_measure_ignores_a_clean_step_and_sees_a_bump() {
+        // 64 points per cell of width 1, a unit step at x = 10.
+        let x: Vec<f64> = (0..20 * 64).map(|k| (k as f64 + 0.5) / 64.0).collect();
+        let step: Vec<f64> = x.iter().map(|&v| if v < 10.0 { 1.0 } else { 0.0 }).collect();
+        assert_eq!(spike_measure(&x, &step, 1.0, 1.0, |_| true), 0.0);
+        // A bump half a cell wide on the left of the step, and one far from it.
+        let mut bumpy = step.clone();
+        for (k, &v) in x.iter().enumerate() {
+            if (9.5..10.0).contains(&v) {
+                bumpy[k] = 1.4;
+            }
+            if (4.0..4.25).contains(&v) {
+                bumpy[k] = 1.2;
+            }
+        }
+        assert!((spike_measure(&x, &bumpy, 1.0, 1.0, |_| true) - 0.4).abs() < 1e-12);
+        assert!((spike_measure(&x, &bumpy, 1.0, 1.0, |k| (x[k] - 10.0).abs() > 2.0) - 0.2).abs() < 1e-12);
     }
 
     #[test]

@@ -36,6 +36,30 @@ pub enum SolverError {
     Closure { step: u64, source: ClosureError },
 }
 
+/// How velocities and positions advance in time.
+///
+/// `Dhakal` is the cycle of Dhakal Ch. 3.1 that the issue specifies: v^L = v^n + dt a^n,
+/// particle velocities by the increment (3.13), positions and the strain rate with the average
+/// (v^n + v^L) / 2 (3.14), (4.10). Derived on one mode of frequency w (a^n = -w^2 x^n, the
+/// stress of step n being consistent with x^n): x' = x + dt v - dt^2 w^2 x / 2, v' = v - dt w^2 x,
+/// whose amplification matrix has determinant 1 + (w dt)^2 / 2 > 1. The amplitude grows by
+/// T w^2 dt / 4 over a time T: first order in dt (Newmark with gamma = 0). Measured on the 2D
+/// manufactured solution (h = 1/64, dt = 0.4 h/c, T = 0.02 s): velocity error 9.68e-4, exactly
+/// the predicted 3.08 % of the velocity norm 0.0314; at a fixed Courant number the displacement
+/// error then stops converging (a floor near 1 % of G, every scheme).
+///
+/// `Leapfrog` is the staggered update of Gong (4.24), used in her convergence studies:
+/// particle velocities live at half steps, v^{n+1/2} = v^{n-1/2} + dt a^n, positions and the
+/// strain rate use v^{n+1/2} alone, and the first step advances the velocity by dt / 2 (Gong's
+/// v^{1/2} = (v^0 + v^1) / 2). Its amplification matrix has determinant 1 (symplectic, second
+/// order). Particle velocities are then half a step behind positions and stresses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum TimeIntegrator {
+    #[default]
+    Dhakal,
+    Leapfrog,
+}
+
 /// What one step did, for progress reporting.
 #[derive(Debug, Clone, Copy)]
 pub struct StepReport {
@@ -76,6 +100,8 @@ pub struct Simulation<const D: usize> {
     /// Body force per unit mass (m/s^2) as a function of the point's initial position and the
     /// time (manufactured solutions); applied at the start-of-step time.
     pub body_force: Option<BodyForce<D>>,
+    /// Time integration (default: the Ch. 3.1 cycle); see [`TimeIntegrator`].
+    pub integrator: TimeIntegrator,
     stencil: Stencil<D>,
     node_mass: Vec<f64>,
     node_force: Vec<[f64; D]>,
@@ -133,6 +159,7 @@ impl<const D: usize> Simulation<D> {
         let mut sim = Simulation {
             initial: Totals::default(),
             body_force: None,
+            integrator: TimeIntegrator::Dhakal,
             grid,
             points,
             scheme,
@@ -389,7 +416,10 @@ impl<const D: usize> Simulation<D> {
     fn lagrangian_update(&mut self, step: u64, c: f64) -> Result<(), SolverError> {
         let floor = self.empty_floor();
         let limit = ACCELERATION_LIMIT * c * c / self.grid.min_spacing();
-        let (mass, force, v, dt) = (&self.node_mass, &self.node_force, &self.node_v, self.dt);
+        // The leapfrog's first step takes the velocity from t = 0 to t = dt / 2.
+        let first_half = self.integrator == TimeIntegrator::Leapfrog && self.step == 0;
+        let (mass, force, v) = (&self.node_mass, &self.node_force, &self.node_v);
+        let dt = if first_half { 0.5 * self.dt } else { self.dt };
         let bad = self
             .node_v_lagrangian
             .par_iter_mut()
@@ -429,13 +459,14 @@ impl<const D: usize> Simulation<D> {
     /// Step 7 with the half-step nodal velocity (4.10): L_p = sum_i v_i^{n+1/2} (x) G_ip.
     fn velocity_gradients(&mut self) {
         let (st, v, vl) = (&self.stencil, &self.node_v, &self.node_v_lagrangian);
+        let old = self.old_velocity_weight();
         par::for_chunks_mut(&mut self.points.vel_grad, 1, |r, out| {
             for (k, p) in r.enumerate() {
                 let (nodes, _, grads) = st.row(p);
                 let mut l: Mat3 = tensor::ZERO;
                 for (&i, g) in nodes.iter().zip(grads) {
                     for a in 0..D {
-                        let v_half = 0.5 * (v[i][a] + vl[i][a]);
+                        let v_half = old * v[i][a] + (1.0 - old) * vl[i][a];
                         for b in 0..D {
                             l[a][b] += v_half * g[b];
                         }
@@ -523,6 +554,7 @@ impl<const D: usize> Simulation<D> {
     /// Steps 9-10: v_p += sum S (v^L - v^n) (3.13), x_p += dt sum S (v^L + v^n)/2 (3.14);
     /// tracked corners move with the grid velocity at the corner (6.28).
     fn move_points(&mut self) {
+        let old = self.old_velocity_weight();
         let (st, dt, grid) = (&self.stencil, self.dt, &self.grid);
         let (nv, nvl) = (&self.node_v, &self.node_v_lagrangian);
         let pts = &mut self.points;
@@ -542,7 +574,7 @@ impl<const D: usize> Simulation<D> {
                     for (&i, &w) in nodes.iter().zip(weights) {
                         for a in 0..D {
                             dv[a] += w * (nvl[i][a] - nv[i][a]);
-                            vbar[a] += w * 0.5 * (nvl[i][a] + nv[i][a]);
+                            vbar[a] += w * ((1.0 - old) * nvl[i][a] + old * nv[i][a]);
                         }
                     }
                     let before = xs[k];
@@ -560,7 +592,7 @@ impl<const D: usize> Simulation<D> {
                             for m in 0..nc {
                                 if let Some(i) = shape::node_index(grid, &shape::cell_node(&sh.cell, m)) {
                                     for a in 0..D {
-                                        u[a] += sh.s[m] * 0.5 * (nvl[i][a] + nv[i][a]);
+                                        u[a] += sh.s[m] * ((1.0 - old) * nvl[i][a] + old * nv[i][a]);
                                     }
                                 }
                             }
@@ -612,6 +644,15 @@ impl<const D: usize> Simulation<D> {
             }
         }
         Ok(())
+    }
+
+    /// Weight of the start-of-step nodal velocity in the velocity that moves the points and
+    /// drives the strain rate: 1/2 for the Ch. 3.1 cycle (3.14), 0 for the leapfrog.
+    fn old_velocity_weight(&self) -> f64 {
+        match self.integrator {
+            TimeIntegrator::Dhakal => 0.5,
+            TimeIntegrator::Leapfrog => 0.0,
+        }
     }
 
     /// Stencil of the last step (for schemes and tests).

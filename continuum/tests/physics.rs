@@ -4,7 +4,7 @@
 //! the optimised test profile; the full ranges are `#[ignore]`d tests.
 
 use continuum::closure::{lame, IdealGasIsothermal, NeoHookean};
-use continuum::solver::Viscosity;
+use continuum::solver::{TimeIntegrator, Viscosity};
 use continuum::{Closure, Face, Grid, Particles, SchemeKind, Simulation};
 use std::f64::consts::PI;
 use std::sync::Arc;
@@ -210,8 +210,9 @@ fn a_radial_pressure_pulse_stays_symmetric() {
 
 /// The 2D/3D manufactured solution U_a = G sin(pi X_a) sin(c pi t) of Gong (4.41)-(4.46),
 /// neo-Hookean, E = 1e7 Pa, nu = 0.3, rho0 = 1e3, dt = 0.4 h / c, T = 0.02 s, rollers on
-/// every face. Returns the L2 displacement error sqrt(sum_p V0_p |u - u_exact|^2).
-fn manufactured<const D: usize>(scheme: SchemeKind, cells: usize, g: f64) -> f64 {
+/// every face. Returns the L2 displacement and velocity errors sqrt(sum_p V0_p |e|^2) at the
+/// end (the leapfrog's velocities are compared at t - dt / 2, where they live).
+fn manufactured<const D: usize>(scheme: SchemeKind, cells: usize, g: f64, integrator: TimeIntegrator) -> (f64, f64) {
     let (e, nu, rho0) = (1e7, 0.3, 1e3);
     let (lambda, mu) = lame(e, nu);
     let c = (e / rho0).sqrt();
@@ -220,6 +221,7 @@ fn manufactured<const D: usize>(scheme: SchemeKind, cells: usize, g: f64) -> f64
     let pts = points(&grid, [0.0; D], [1.0; D], 2, rho0, |x| std::array::from_fn(|a| c * PI * g * (PI * x[a]).sin()));
     let dt = 0.4 * h / c;
     let mut s = Simulation::new(grid, pts, scheme, vec![Box::new(NeoHookean { youngs_modulus: e, poisson_ratio: nu, density0: rho0 })], Viscosity::None, dt).expect("builds");
+    s.integrator = integrator;
     s.body_force = Some(Arc::new(move |x0: &[f64; D], t: f64| {
         let f: [f64; D] = std::array::from_fn(|a| 1.0 + PI * g * (PI * x0[a]).cos() * (c * PI * t).sin());
         let lnj = f.iter().map(|v| v.ln()).sum::<f64>();
@@ -233,25 +235,52 @@ fn manufactured<const D: usize>(scheme: SchemeKind, cells: usize, g: f64) -> f64
         s.step().unwrap_or_else(|err| panic!("{scheme:?} h = 1/{cells}: {err}"));
     }
     let t = s.time;
+    let tv = if integrator == TimeIntegrator::Leapfrog { t - 0.5 * dt } else { t };
     let p = &s.points;
-    (0..p.len())
-        .map(|k| {
-            let d2: f64 = (0..D).map(|a| (p.x[k][a] - p.x0[k][a] - g * (PI * p.x0[k][a]).sin() * (c * PI * t).sin()).powi(2)).sum();
-            p.volume0[k] * d2
-        })
-        .sum::<f64>()
-        .sqrt()
+    let (mut eu, mut ev) = (0.0, 0.0);
+    for k in 0..p.len() {
+        for a in 0..D {
+            let x0 = p.x0[k][a];
+            eu += p.volume0[k] * (p.x[k][a] - x0 - g * (PI * x0).sin() * (c * PI * t).sin()).powi(2);
+            ev += p.volume0[k] * (p.v[k][a] - c * PI * g * (PI * x0).sin() * (c * PI * tv).cos()).powi(2);
+        }
+    }
+    (eu.sqrt(), ev.sqrt())
 }
 
 fn orders(errors: &[f64]) -> Vec<f64> {
     errors.windows(2).map(|w| (w[0] / w[1]).log2()).collect()
 }
 
+/// Why the default cycle cannot pass test 7 (see [`TimeIntegrator`]): on the manufactured
+/// solution its velocity error after one period is the amplitude growth T w^2 dt / 4 of the
+/// derived amplification matrix (w = c pi), times the velocity norm: within 5 % for cpdi2 and
+/// 15 % for ddmp, whose spatial error is larger (measured at h = 1/32: 1.6 % and 9.7 %). The
+/// leapfrog removes it (at least 5x smaller; measured 18x and 8.4x).
 #[test]
-#[ignore = "known failure for ddmp: displacement error 2.2e-5, 1.26e-6, 1.17e-6 at h = 1/8, 1/16, 1/32 (an error floor); cpdi1/cpdi2 not yet measured"]
+fn the_default_cycle_is_first_order_in_time_and_the_leapfrog_is_not() {
+    let cells = 32;
+    let (c, t_end) = (1e2, 0.02);
+    let dt = 0.4 / (cells as f64 * c);
+    let w = c * PI;
+    // Velocity norm sqrt(int (c pi G sin(pi X))^2 dX) per component, two components.
+    let norm = c * PI * 1e-4 * (0.5f64 * 2.0).sqrt();
+    let predicted = t_end * w * w * dt / 4.0 * norm;
+    for (scheme, tolerance) in [(SchemeKind::Cpdi2, 0.05), (SchemeKind::Ddmp, 0.15)] {
+        let (_, dhakal) = manufactured::<2>(scheme, cells, 1e-4, TimeIntegrator::Dhakal);
+        let (_, leapfrog) = manufactured::<2>(scheme, cells, 1e-4, TimeIntegrator::Leapfrog);
+        eprintln!("{scheme:?} h = 1/{cells}: velocity error {dhakal:.4e} (predicted {predicted:.4e}), leapfrog {leapfrog:.4e}");
+        assert!((dhakal / predicted - 1.0).abs() <= tolerance, "{scheme:?}: velocity error {dhakal:e}, predicted {predicted:e}");
+        assert!(leapfrog * 5.0 <= dhakal, "{scheme:?}: leapfrog velocity error {leapfrog:e} vs {dhakal:e}");
+    }
+}
+
+/// Issue test 7 in 2D over h = 1/8 ... 1/32, with the leapfrog (the full range, 1/64 and
+/// 3D, is the ignored test below; figures in continuum/README.md).
+#[test]
 fn manufactured_solution_converges_at_second_order_in_2d() {
     for scheme in [SchemeKind::Ddmp, SchemeKind::Cpdi1, SchemeKind::Cpdi2] {
-        let e: Vec<f64> = [8, 16, 32].iter().map(|&n| manufactured::<2>(scheme, n, 1e-4)).collect();
+        let e: Vec<f64> = [8, 16, 32].iter().map(|&n| manufactured::<2>(scheme, n, 1e-4, TimeIntegrator::Leapfrog).0).collect();
         let o = orders(&e);
         eprintln!("2D {scheme:?}: errors {e:?} orders {o:?}");
         assert!(o.iter().all(|&v| v >= 1.8), "{scheme:?}: errors {e:?}, orders {o:?}");
@@ -262,11 +291,11 @@ fn manufactured_solution_converges_at_second_order_in_2d() {
 #[ignore = "heavy (h = 1/64 in 2D, h = 1/16 in 3D): run with --ignored; figures in continuum/README.md"]
 fn manufactured_solution_converges_at_second_order_full_range() {
     for scheme in [SchemeKind::Ddmp, SchemeKind::Cpdi1, SchemeKind::Cpdi2] {
-        let e: Vec<f64> = [8, 16, 32, 64].iter().map(|&n| manufactured::<2>(scheme, n, 1e-4)).collect();
+        let e: Vec<f64> = [8, 16, 32, 64].iter().map(|&n| manufactured::<2>(scheme, n, 1e-4, TimeIntegrator::Leapfrog).0).collect();
         let o = orders(&e);
         eprintln!("2D {scheme:?}: errors {e:?} orders {o:?}");
         assert!(o.iter().all(|&v| v >= 1.8), "2D {scheme:?}: errors {e:?}, orders {o:?}");
-        let e: Vec<f64> = [4, 8, 16].iter().map(|&n| manufactured::<3>(scheme, n, 1e-4)).collect();
+        let e: Vec<f64> = [4, 8, 16].iter().map(|&n| manufactured::<3>(scheme, n, 1e-4, TimeIntegrator::Leapfrog).0).collect();
         let o = orders(&e);
         eprintln!("3D {scheme:?}: errors {e:?} orders {o:?}");
         assert!(o.iter().all(|&v| v >= 1.8), "3D {scheme:?}: errors {e:?}, orders {o:?}");
