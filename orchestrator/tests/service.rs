@@ -207,3 +207,33 @@ fn a_cancelled_job_ends_cancelled_and_watch_says_so() {
     assert_eq!(code, 1, "{line}");
     assert!(line.contains("cancelled") && line.contains("cancelled by a user after step"), "{line}");
 }
+
+#[test]
+fn a_hundred_concurrent_status_calls_are_answered_while_a_job_runs() {
+    let (tmp, token) = setup();
+    let state = tmp.path().join("state");
+    let server = Server::start(&state, &token, &tmp.path().join("serve.log"));
+    let job = submit(&server, &token, SMALL, &LONG);
+    wait_for_checkpoint(&state, &job);
+    let threads: Vec<_> = (0..100)
+        .map(|_| {
+            let (addr, job) = (server.addr.clone(), job.clone());
+            std::thread::spawn(move || {
+                let mut c = orchestrator::client::Client::connect(&addr, None).expect("connect");
+                let t = Instant::now();
+                let j = c.get(&job).expect("GetJob");
+                (t.elapsed(), j.state)
+            })
+        })
+        .collect();
+    let mut latencies: Vec<Duration> = threads.into_iter().map(|t| t.join().expect("a status call failed")).map(|(d, _)| d).collect();
+    latencies.sort();
+    assert_eq!(latencies.len(), 100);
+    let p99 = latencies[98];
+    eprintln!("100 concurrent GetJob calls during a run: median {:?}, p99 {:?}, max {:?}", latencies[49], p99, latencies[99]);
+    // Answered while the job computes (it runs off the gRPC runtime): generous bound for a
+    // loaded 2-core machine.
+    assert!(p99 < Duration::from_secs(5), "p99 {p99:?}");
+    let (code, _) = watch(&server, &job);
+    assert_eq!(code, 0);
+}
