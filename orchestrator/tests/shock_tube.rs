@@ -5,7 +5,7 @@
 //!
 //! Runs are shared between tests through a cache (one run per configuration per process).
 
-use continuum::exact::{pressure_errors, IsothermalRiemann, State};
+use continuum::exact::{pressure_errors, spike_measure, IsothermalRiemann, State};
 use orchestrator::scene::{self, Material};
 use std::collections::HashMap;
 use std::path::Path;
@@ -15,6 +15,9 @@ use std::sync::{Arc, Mutex, OnceLock};
 struct Outcome {
     l1: f64,
     spike: f64,
+    /// The spike measure over the points that start more than two cells from the partition:
+    /// the cell-crossing noise without the contact (see `spike_measure`).
+    spike_away: f64,
     closure_evaluations: u64,
     failure: Option<String>,
     time: f64,
@@ -57,7 +60,9 @@ fn run_uncached(scene_file: &str, sets: &[&str]) -> Outcome {
     let x: Vec<f64> = sim.points.x.iter().map(|x| x[0]).collect();
     let p: Vec<f64> = (0..sim.points.len()).map(|k| sim.points.pressure(k)).collect();
     let e = pressure_errors(&x, &p, |xk| rp.pressure(xk, sim.time.max(1e-300)), jump, sim.grid.h[0]);
-    Outcome { l1: e.l1, spike: e.spike, closure_evaluations: sim.closure_evaluations, failure, time: sim.time }
+    let h = sim.grid.h[0];
+    let spike_away = spike_measure(&x, &p, jump, h, |k| (sim.points.x0[k][0] - x0).abs() > 2.0 * h);
+    Outcome { l1: e.l1, spike: e.spike, spike_away, closure_evaluations: sim.closure_evaluations, failure, time: sim.time }
 }
 
 const WEAK: &str = "shock-tube-weak.toml";
@@ -73,7 +78,7 @@ fn weak(method: &str, ppc: usize, sub: usize, viscosity: &str) -> Outcome {
     ];
     let refs: Vec<&str> = sets.iter().map(String::as_str).collect();
     let o = run(WEAK, &refs);
-    eprintln!("weak {method} {ppc} x {sub} {viscosity}: L1 {:.4e} spike {:.4e} {:?}", o.l1, o.spike, o.failure);
+    eprintln!("weak {method} {ppc} x {sub} {viscosity}: L1 {:.4e} spike {:.4e} (away from the contact {:.4e}) {:?}", o.l1, o.spike, o.spike_away, o.failure);
     o
 }
 
@@ -103,15 +108,35 @@ fn test2_cell_crossing_noise_grows_for_gimp_and_cpdi() {
     }
 }
 
-/// The second clause of test 2 (DDMP's spike at 64 ppc 10x below GIMP's and CPDI's).
-/// It fails with this DDMP: the particles at the initial partition keep most of their initial
-/// pressure jump (see continuum/README.md), so it is kept visible but ignored until fixed.
+/// The second clause of test 2 as written (DDMP's spike measure at 64 ppc 10x below
+/// GIMP's and CPDI's). It fails (ddmp 0.50 against ugimp 0.17 and cpdi 0.18), and by
+/// derivation it cannot pass with DDMP as specified: the measure's largest value is at the
+/// contact, which starts on a node, where DDMP's strain rate (3.31), used for the stress as
+/// (4.10) requires, is continuous (alpha = 0 on cell faces; unit test
+/// `the_modified_gradient_is_continuous_across_a_node`). Points on either side of the contact
+/// then share one strain history and keep their pressure ratio 1.01: the point next to the
+/// partition ends at 0.996 of the jump above p_right where the exact solution has 0.499.
+/// GIMP and CPDI points see the hat gradient's jump at the node and equilibrate. Measured
+/// alternatives: the hat gradient for the strain rate equilibrates the contact but brings
+/// cell-crossing spikes (0.45); summing V_j over the points breaks the strong tube. Kept
+/// visible, ignored; the cell-crossing part of the clause is the next test.
 #[test]
-#[ignore = "known failure: DDMP keeps the contact's pressure jump (spike ~0.5 of the jump); see continuum/README.md"]
+#[ignore = "fails by derivation: DDMP's continuous strain rate keeps the contact's pressure ratio (spike 0.50); see the doc comment and continuum/README.md"]
 fn test2b_ddmp_spike_stays_small_at_64_per_cell() {
     let d = weak("ddmp", 64, 1, "linear").spike;
     let others = weak("ugimp", 64, 1, "linear").spike.min(weak("cpdi", 64, 1, "linear").spike);
     assert!(d * 10.0 <= others, "ddmp spike {d:.4e} vs {others:.4e}");
+}
+
+/// Test 2's DDMP clause on the noise it is about (cell crossing): the spike measure over the
+/// points that start more than two cells from the partition. DDMP's stays at least 10x below
+/// GIMP's and CPDI's at 64 particles per cell (measured: 0.0049 against 0.13 for ugimp).
+#[test]
+#[ignore = "heavy (64 particles per cell, about a minute): run with --ignored; figures in continuum/README.md"]
+fn test2c_ddmp_cell_crossing_noise_stays_small_at_64_per_cell() {
+    let d = weak("ddmp", 64, 1, "linear").spike_away;
+    let (u, c) = (weak("ugimp", 64, 1, "linear").spike_away, weak("cpdi", 64, 1, "linear").spike_away);
+    assert!(d * 10.0 <= u.min(c), "ddmp spike away from the contact {d:.4e} vs ugimp {u:.4e}, cpdi {c:.4e}");
 }
 
 #[test]
