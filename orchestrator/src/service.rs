@@ -78,6 +78,8 @@ struct Core {
     running: Mutex<Option<(String, Arc<AtomicBool>)>>,
     /// Raised when the orchestrator stops: the running job checkpoints and stays queued.
     stopping: AtomicBool,
+    /// Tells open watch streams that the orchestrator stops (so shutdown need not wait for them).
+    stop_watchers: watch::Sender<bool>,
     wake: (Mutex<bool>, Condvar),
     next_id: AtomicU64,
 }
@@ -414,13 +416,21 @@ impl Orchestrator for JobService {
 
     async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
         let mut rx = self.core.channel(&req.get_ref().job_id)?.subscribe();
+        let mut stop = self.core.stop_watchers.subscribe();
         let (tx, out) = tokio::sync::mpsc::channel(16);
         tokio::spawn(async move {
             loop {
                 let ev = rx.borrow_and_update().clone();
                 let last = is_final(ev.state);
-                if tx.send(Ok(ev)).await.is_err() || last || rx.changed().await.is_err() {
+                if tx.send(Ok(ev)).await.is_err() || last || *stop.borrow() {
                     return;
+                }
+                tokio::select! {
+                    r = rx.changed() => if r.is_err() { return },
+                    _ = stop.changed() => {
+                        let _ = tx.send(Err(Status::unavailable("the orchestrator is stopping; the job resumes when it restarts"))).await;
+                        return;
+                    }
                 }
             }
         });
@@ -494,6 +504,7 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         live: Mutex::new(HashMap::new()),
         running: Mutex::new(None),
         stopping: AtomicBool::new(false),
+        stop_watchers: watch::channel(false).0,
         wake: (Mutex::new(false), Condvar::new()),
         next_id: AtomicU64::new(0),
     });
@@ -519,6 +530,7 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
                 _ = async { match term.as_mut() { Some(t) => { t.recv().await; } None => std::future::pending::<()>().await } } => {}
             }
             tracing::info!("stopping: the running job checkpoints and resumes on the next start");
+            stop(&core);
         };
         tonic::transport::Server::builder()
             .timeout(Duration::from_secs(60))
@@ -530,13 +542,19 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
             .await
             .context("serving")
     });
+    stop(&core);
+    let _ = runner_thread.join();
+    result
+}
+
+/// Stops the runner (the running job checkpoints and stays queued) and ends watch streams.
+fn stop(core: &Core) {
     core.stopping.store(true, Ordering::SeqCst);
     if let Some((_, flag)) = lock(&core.running).as_ref() {
         flag.store(true, Ordering::SeqCst);
     }
+    core.stop_watchers.send_replace(true);
     core.wake_runner();
-    let _ = runner_thread.join();
-    result
 }
 
 #[cfg(test)]

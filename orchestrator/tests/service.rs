@@ -237,3 +237,35 @@ fn a_hundred_concurrent_status_calls_are_answered_while_a_job_runs() {
     let (code, _) = watch(&server, &job);
     assert_eq!(code, 0);
 }
+
+#[test]
+fn sigterm_stops_the_orchestrator_with_a_checkpoint_and_the_job_resumes() {
+    let (tmp, token) = setup();
+    let state = tmp.path().join("state");
+    let mut server = Server::start(&state, &token, &tmp.path().join("serve1.log"));
+    let job = submit(&server, &token, SMALL, &LONG);
+    wait_for_checkpoint(&state, &job);
+    // A watcher must not hold the shutdown up.
+    let watcher = Command::new(bin()).args(["watch", &job, "--server", &server.addr]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+    assert!(Command::new("kill").args(["-TERM", &server.child.id().to_string()]).status().unwrap().success());
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = server.child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(start.elapsed() < Duration::from_secs(30), "mscale serve did not stop within 30 s of SIGTERM:\n{}", server.log());
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let watch_out = watcher.wait_with_output().unwrap();
+    assert_eq!(watch_out.status.code(), Some(1), "watch of a job interrupted by a stop exits 1");
+    assert!(status.success(), "{}", server.log());
+    assert!(!state.join("jobs").join(&job).join("run/summary.json").exists(), "the job ended before SIGTERM; make it longer");
+    assert!(server.log().contains("as the orchestrator stops"), "{}", server.log());
+
+    let server = Server::start(&state, &token, &tmp.path().join("serve2.log"));
+    let (code, line) = watch(&server, &job);
+    assert_eq!(code, 0, "{line}\n{}", server.log());
+    assert!(server.log().contains("resuming small at step"), "{}", server.log());
+    assert_eq!(digest_of(&line), run_digest(&tmp.path().join("straight"), SMALL, &LONG));
+}
