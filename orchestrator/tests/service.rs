@@ -269,3 +269,14 @@ fn sigterm_stops_the_orchestrator_with_a_checkpoint_and_the_job_resumes() {
     assert!(server.log().contains("resuming small at step"), "{}", server.log());
     assert_eq!(digest_of(&line), run_digest(&tmp.path().join("straight"), SMALL, &LONG));
 }
+
+#[test]
+fn a_non_loopback_listen_address_is_refused_without_tls() {
+    let (tmp, token) = setup();
+    let o = Command::new(bin())
+        .args(["serve", "--state", tmp.path().join("state").to_str().unwrap(), "--listen", "0.0.0.0:0", "--token-file", token.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("refusing to listen on 0.0.0.0:0: this build has no TLS"), "{}", text(&o));
+}
