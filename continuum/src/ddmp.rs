@@ -24,6 +24,13 @@
 //! 0.0309/-/0.0136/- with the exact V_j (the prototype: 0.031/0.021/0.0135/0.0116);
 //! 0.0275/0.0170/0.0124/0.0119 with V_j summed over the points.)
 //!
+//! Consequence at a contact that starts on a node (the shock tube's partition): alpha = 0 on
+//! the cell faces and the B term is continuous, so the strain rate sum_i v_i G_i is continuous
+//! across the node and the points on either side keep their initial pressure ratio (unit test
+//! below; measured and discussed in continuum/README.md). This is the scheme as specified, not
+//! a quadrature error: points given the hat gradient's jump instead equilibrate but cross cells
+//! noisily.
+//!
 //! Costs per step: one scatter of V_j (2^D values per integration point) and one pass building
 //! every point's row from its sub-points (2^D x 3^D x D products per sub-point).
 
