@@ -59,13 +59,13 @@ fn run<const D: usize>(scheme: SchemeKind, cells: usize, g: f64, t_end: f64, ppc
 fn main() {
     let a: Vec<String> = std::env::args().collect();
     let scheme = SchemeKind::from_name(&a[1]).expect("scheme");
-    let d: usize = a[2].parse().unwrap();
-    let cells: usize = a[3].parse().unwrap();
-    let g: f64 = a.get(4).map(|s| s.parse().unwrap()).unwrap_or(1e-4);
-    let t: f64 = a.get(5).map(|s| s.parse().unwrap()).unwrap_or(0.02);
-    let ppc: usize = a.get(6).map(|s| s.parse().unwrap()).unwrap_or(2);
+    let d: usize = a[2].parse().expect("a number");
+    let cells: usize = a[3].parse().expect("a number");
+    let g: f64 = a.get(4).map(|s| s.parse().expect("a number")).unwrap_or(1e-4);
+    let t: f64 = a.get(5).map(|s| s.parse().expect("a number")).unwrap_or(0.02);
+    let ppc: usize = a.get(6).map(|s| s.parse().expect("a number")).unwrap_or(2);
     let lf = a.get(8).map(|s| s == "leapfrog").unwrap_or(false);
-    let cfl: f64 = a.get(7).map(|s| s.parse().unwrap()).unwrap_or(0.4);
+    let cfl: f64 = a.get(7).map(|s| s.parse().expect("a number")).unwrap_or(0.4);
     let (eu, ev) = match d {
         1 => run::<1>(scheme, cells, g, t, ppc, cfl, lf),
         2 => run::<2>(scheme, cells, g, t, ppc, cfl, lf),

@@ -7,9 +7,9 @@ use continuum::{Closure, Face, Grid, Particles, SchemeKind, Simulation};
 fn main() {
     let a: Vec<String> = std::env::args().collect();
     let scheme = SchemeKind::from_name(&a[1]).expect("scheme");
-    let ppc: usize = a[2].parse().unwrap();
-    let sub: usize = a[3].parse().unwrap();
-    let ratio: f64 = a.get(5).map(|s| s.parse().unwrap()).unwrap_or(1.01);
+    let ppc: usize = a[2].parse().expect("a number");
+    let sub: usize = a[3].parse().expect("a number");
+    let ratio: f64 = a.get(5).map(|s| s.parse().expect("a number")).unwrap_or(1.01);
     let cells = 500;
     let grid = Grid::<1> { origin: [0.0], h: [1.0 / cells as f64], cells: [cells], faces: [(Face::Reflective, Face::Reflective)] };
     let mut pts = Particles::default();
