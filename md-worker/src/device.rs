@@ -39,3 +39,16 @@ fn cuda(precision: &str, pot: Arc<Potential>) -> Result<Box<dyn MdBackend>, MdEr
 fn cuda(_precision: &str, _pot: Arc<Potential>) -> Result<Box<dyn MdBackend>, MdError> {
     Err(MdError::Device("this md-worker was built without the `cuda` cargo feature".into()))
 }
+
+/// Why the GPU cannot be used here, or `None` when it can (checked without touching cudarc
+/// beyond its library probes).
+pub fn gpu_unavailable() -> Option<String> {
+    #[cfg(feature = "cuda")]
+    {
+        crate::cuda::unavailable_reason()
+    }
+    #[cfg(not(feature = "cuda"))]
+    {
+        Some("this md-worker was built without the `cuda` cargo feature".into())
+    }
+}

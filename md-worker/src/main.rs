@@ -353,17 +353,22 @@ fn serve(listen: &str, device: &str, threads: Option<usize>) -> Result<()> {
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
         .with_writer(std::io::stderr)
         .init();
-    let backend = match device {
-        "cpu" | "auto" => "cpu",
-        "cuda" => return Err(bad("--device cuda: this build has no CUDA back end for serving yet; use --device cpu")),
-        other => return Err(bad(format!("--device {other:?}: expected auto, cpu or cuda"))),
+    let backend = match (device, md_worker::device::gpu_unavailable()) {
+        ("cpu", _) => "cpu",
+        ("cuda" | "auto", None) => "cuda",
+        ("cuda", Some(why)) => return Err(bad(format!("--device cuda: {why}"))),
+        ("auto", Some(why)) => {
+            tracing::warn!("device auto: no usable GPU ({why}); serving on the cpu back end");
+            "cpu"
+        }
+        (other, _) => return Err(bad(format!("--device {other:?}: expected auto, cpu or cuda"))),
     };
     let pool = match threads {
         Some(0) => return Err(bad("--threads must be at least 1")),
         Some(t) => Some(Arc::new(rayon::ThreadPoolBuilder::new().num_threads(t).build()?)),
         None => None,
     };
-    let opts = md_worker::server::ServeOptions { backend: backend.into(), threads: pool, device: format!("cpu ({} threads)", threads.unwrap_or_else(rayon::current_num_threads)) };
+    let opts = md_worker::server::ServeOptions { backend: backend.into(), threads: pool, device: if backend == "cuda" { "cuda".into() } else { format!("cpu ({} threads)", threads.unwrap_or_else(rayon::current_num_threads)) } };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     rt.block_on(async {
         let listener = tokio::net::TcpListener::bind(listen).await.map_err(|e| bad(format!("--listen {listen}: {e}")))?;
