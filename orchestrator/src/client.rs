@@ -34,12 +34,22 @@ fn status_text(s: &tonic::Status) -> String {
 }
 
 impl Client {
+    /// Plain HTTP/2 (for loopback).
     pub fn connect(server: &str, token: Option<String>) -> Result<Self> {
-        let url = if server.starts_with("http") { server.to_string() } else { format!("http://{server}") };
+        Self::connect_with(server, token, None)
+    }
+
+    /// With `ca` (a PEM file of the certificate authority to trust), over TLS.
+    pub fn connect_with(server: &str, token: Option<String>, ca: Option<&Path>) -> Result<Self> {
+        let scheme = if ca.is_some() { "https" } else { "http" };
+        let url = if server.starts_with("http") { server.to_string() } else { format!("{scheme}://{server}") };
         let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().context("cannot start the gRPC runtime")?;
-        let channel = rt
-            .block_on(tonic::transport::Endpoint::from_shared(url.clone())?.connect_timeout(std::time::Duration::from_secs(10)).connect())
-            .with_context(|| format!("cannot reach the orchestrator at {server}"))?;
+        let mut endpoint = tonic::transport::Endpoint::from_shared(url.clone())?.connect_timeout(std::time::Duration::from_secs(10));
+        if let Some(ca) = ca {
+            let pem = std::fs::read(ca).with_context(|| format!("cannot read the CA file {}", ca.display()))?;
+            endpoint = endpoint.tls_config(tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(pem))).context("bad TLS settings")?;
+        }
+        let channel = rt.block_on(endpoint.connect()).with_context(|| format!("cannot reach the orchestrator at {server}"))?;
         let inner = OrchestratorClient::new(channel.clone()).max_decoding_message_size(MAX_MESSAGE).max_encoding_message_size(MAX_MESSAGE);
         Ok(Client { rt, inner, channel, token, server: server.to_string() })
     }
@@ -159,12 +169,19 @@ pub fn is_final(ev: &pb::JobEvent) -> bool {
 // ---- the verbs, as `mscale` runs them (each returns its exit code) ----
 
 /// `mscale serve`.
-pub fn serve(state: PathBuf, listen: String, token_file: Option<PathBuf>, checkpoint_every: u64) -> Result<i32> {
+pub fn serve(state: PathBuf, listen: String, token_file: Option<PathBuf>, checkpoint_every: u64, tls: Option<(PathBuf, PathBuf)>) -> Result<i32> {
     let token = match token_file {
         Some(f) => crate::service::read_token(&f)?,
         None => generated_token(&state)?,
     };
-    crate::service::serve(crate::service::ServeOptions { state_dir: state, listen, token, checkpoint_every })?;
+    let tls = match tls {
+        Some((cert, key)) => {
+            let read = |p: &Path| std::fs::read(p).with_context(|| format!("cannot read {}", p.display()));
+            Some((read(&cert)?, read(&key)?))
+        }
+        None => None,
+    };
+    crate::service::serve(crate::service::ServeOptions { state_dir: state, listen, token, checkpoint_every, tls })?;
     Ok(crate::exit::OK)
 }
 
@@ -190,9 +207,21 @@ fn generated_token(state: &Path) -> Result<String> {
     Ok(token)
 }
 
+static CA_FILE: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+
+/// Makes the client verbs connect over TLS, trusting this PEM certificate authority
+/// (`--ca-file` or `MSCALE_CA_FILE`).
+pub fn use_ca_file(path: PathBuf) {
+    let _ = CA_FILE.set(path);
+}
+
+fn ca_file() -> Option<PathBuf> {
+    CA_FILE.get().cloned()
+}
+
 /// `mscale submit`.
 pub fn submit(server: &str, token_file: Option<&Path>, scene: &Path, sets: &[String], priority: i32, checkpoint_every: u64) -> Result<i32> {
-    let mut c = Client::connect(server, token(token_file)?)?;
+    let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
     match c.submit(scene, sets, priority, checkpoint_every) {
         Ok(id) => {
             println!("{id}");
@@ -214,7 +243,7 @@ fn line(j: &pb::Job) -> String {
 
 /// `mscale status [JOB]`.
 pub fn status(server: &str, token_file: Option<&Path>, job: Option<&str>) -> Result<i32> {
-    let mut c = Client::connect(server, token(token_file)?)?;
+    let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
     match job {
         Some(id) => println!("{}", line(&c.get(id)?)),
         None => {
@@ -233,7 +262,7 @@ pub fn status(server: &str, token_file: Option<&Path>, job: Option<&str>) -> Res
 /// `mscale watch JOB`: a progress bar on a terminal, a line per second otherwise.
 pub fn watch(server: &str, token_file: Option<&Path>, job: &str) -> Result<i32> {
     use std::io::IsTerminal;
-    let mut c = Client::connect(server, token(token_file)?)?;
+    let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
     let bar = std::io::stderr().is_terminal().then(|| {
         let b = indicatif::ProgressBar::new(1);
         b.set_style(indicatif::ProgressStyle::with_template("{spinner} {bar:40} step {pos}/{len}  {msg}").unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()));
@@ -266,7 +295,7 @@ pub fn watch(server: &str, token_file: Option<&Path>, job: &str) -> Result<i32> 
 
 /// `mscale cancel JOB`.
 pub fn cancel(server: &str, token_file: Option<&Path>, job: &str) -> Result<i32> {
-    let mut c = Client::connect(server, token(token_file)?)?;
+    let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
     let j = c.cancel(job)?;
     println!("{}", line(&j));
     Ok(crate::exit::OK)
@@ -274,7 +303,7 @@ pub fn cancel(server: &str, token_file: Option<&Path>, job: &str) -> Result<i32>
 
 /// `mscale fetch JOB FILE --out PATH`.
 pub fn fetch(server: &str, token_file: Option<&Path>, job: &str, file: &str, out: &Path) -> Result<i32> {
-    let mut c = Client::connect(server, token(token_file)?)?;
+    let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
     let bytes = c.fetch(job, file)?;
     crate::output::write_atomic(out, &bytes)?;
     println!("{} bytes into {}", bytes.len(), out.display());
@@ -283,7 +312,7 @@ pub fn fetch(server: &str, token_file: Option<&Path>, job: &str, file: &str, out
 
 /// `mscale health`.
 pub fn health(server: &str, token_file: Option<&Path>) -> Result<i32> {
-    let mut c = Client::connect(server, token(token_file)?)?;
+    let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
     let s = c.health()?;
     println!("{s}");
     Ok(if s == "SERVING" { crate::exit::OK } else { crate::exit::RUN_FAILED })

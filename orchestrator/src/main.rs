@@ -50,6 +50,12 @@ enum Command {
         /// Checkpoint interval (steps) of jobs that name none.
         #[arg(long, value_name = "N", default_value_t = orchestrator::service::DEFAULT_CHECKPOINT_EVERY)]
         checkpoint_every: u64,
+        /// Serve over TLS with this PEM certificate chain (needs --tls-key; required off loopback).
+        #[arg(long, value_name = "PEM", requires = "tls_key")]
+        tls_cert: Option<PathBuf>,
+        /// PEM private key of --tls-cert.
+        #[arg(long, value_name = "PEM", requires = "tls_cert")]
+        tls_key: Option<PathBuf>,
     },
     /// Submit a scene as a job to a running `mscale serve`; prints the job id.
     Submit {
@@ -117,6 +123,19 @@ struct Conn {
     /// File holding the bearer token (default: the MSCALE_TOKEN variable).
     #[arg(long, value_name = "FILE")]
     token_file: Option<PathBuf>,
+    /// Connect over TLS, trusting this PEM certificate authority.
+    #[arg(long, value_name = "PEM", env = "MSCALE_CA_FILE")]
+    ca_file: Option<PathBuf>,
+}
+
+impl Conn {
+    /// Installs --ca-file for the client verb.
+    fn ca(&self) -> anyhow::Result<()> {
+        if let Some(ca) = &self.ca_file {
+            orchestrator::client::use_ca_file(ca.clone());
+        }
+        Ok(())
+    }
 }
 
 #[derive(Subcommand)]
@@ -155,13 +174,13 @@ fn main() -> ExitCode {
 
 fn dispatch(cli: Cli) -> i32 {
     match cli.command {
-        Command::Serve { state, listen, token_file, checkpoint_every } => report(orchestrator::client::serve(state, listen, token_file, checkpoint_every)),
-        Command::Submit { scene, set, priority, checkpoint_every, conn } => report(orchestrator::client::submit(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every)),
-        Command::Status { job, conn } => report(orchestrator::client::status(&conn.server, conn.token_file.as_deref(), job.as_deref())),
-        Command::Watch { job, conn } => report(orchestrator::client::watch(&conn.server, conn.token_file.as_deref(), &job)),
-        Command::Cancel { job, conn } => report(orchestrator::client::cancel(&conn.server, conn.token_file.as_deref(), &job)),
-        Command::Fetch { job, file, out, conn } => report(orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, &file, &out)),
-        Command::Health { conn } => report(orchestrator::client::health(&conn.server, conn.token_file.as_deref())),
+        Command::Serve { state, listen, token_file, checkpoint_every, tls_cert, tls_key } => report(orchestrator::client::serve(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key))),
+        Command::Submit { scene, set, priority, checkpoint_every, conn } => report(conn.ca().and_then(|_| orchestrator::client::submit(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every))),
+        Command::Status { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::status(&conn.server, conn.token_file.as_deref(), job.as_deref()))),
+        Command::Watch { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::watch(&conn.server, conn.token_file.as_deref(), &job))),
+        Command::Cancel { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::cancel(&conn.server, conn.token_file.as_deref(), &job))),
+        Command::Fetch { job, file, out, conn } => report(conn.ca().and_then(|_| orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, &file, &out))),
+        Command::Health { conn } => report(conn.ca().and_then(|_| orchestrator::client::health(&conn.server, conn.token_file.as_deref()))),
         Command::Check { scene, set } => match scene::load(&scene, &set) {
             Ok(loaded) => {
                 print!("{}", loaded.scene.to_toml());

@@ -12,8 +12,8 @@
 //!
 //! Security: mutating calls (SubmitJob, CancelJob) need `authorization: Bearer <token>`,
 //! compared in constant time; requests are bounded in size; FetchResult cannot leave the job's
-//! run directory; nothing runs through a shell. There is no TLS yet, so listening on anything
-//! but a loopback address is refused.
+//! run directory; nothing runs through a shell. TLS (rustls) is served with `--tls-cert` and
+//! `--tls-key`, and required to listen on anything but a loopback address.
 
 use crate::run::{self, Outcome, Progress, RunOptions};
 use crate::scene;
@@ -44,6 +44,8 @@ pub struct ServeOptions {
     /// The bearer token mutating calls must carry.
     pub token: String,
     pub checkpoint_every: u64,
+    /// PEM certificate chain and private key: serve over TLS (rustls).
+    pub tls: Option<(Vec<u8>, Vec<u8>)>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -489,8 +491,8 @@ pub fn contained(root: &Path, rel: &str) -> Result<PathBuf, Status> {
 /// stdout once it answers calls.
 pub fn serve(opts: ServeOptions) -> Result<()> {
     let addr: SocketAddr = opts.listen.parse().with_context(|| format!("--listen {:?} is not an address like 127.0.0.1:50100", opts.listen))?;
-    if !addr.ip().is_loopback() {
-        bail!("refusing to listen on {addr}: this build has no TLS, and tokens must not cross a network in clear text; listen on a loopback address (127.0.0.1 or [::1]) and reach it through an SSH tunnel");
+    if !addr.ip().is_loopback() && opts.tls.is_none() {
+        bail!("refusing to listen on {addr} without TLS: tokens must not cross a network in clear text; pass --tls-cert and --tls-key, or listen on a loopback address (127.0.0.1 or [::1])");
     }
     let mut store = Store::open(&opts.state_dir)?;
     for id in store.requeue_interrupted()? {
@@ -532,7 +534,11 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
             tracing::info!("stopping: the running job checkpoints and resumes on the next start");
             stop(&core);
         };
-        tonic::transport::Server::builder()
+        let mut builder = tonic::transport::Server::builder();
+        if let Some((cert, key)) = &opts.tls {
+            builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key))).context("bad TLS certificate or key")?;
+        }
+        builder
             .timeout(Duration::from_secs(60))
             .http2_keepalive_interval(Some(Duration::from_secs(30)))
             .add_service(health_service)

@@ -278,5 +278,50 @@ fn a_non_loopback_listen_address_is_refused_without_tls() {
         .output()
         .unwrap();
     assert_eq!(o.status.code(), Some(1), "{}", text(&o));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("refusing to listen on 0.0.0.0:0: this build has no TLS"), "{}", text(&o));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("refusing to listen on 0.0.0.0:0 without TLS"), "{}", text(&o));
+}
+
+/// A certificate authority and a server certificate for localhost and 127.0.0.1 (openssl).
+fn certificates(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
+    let run = |args: &[&str]| {
+        let o = Command::new("openssl").args(args).current_dir(dir).output().expect("openssl is needed for the TLS test");
+        assert!(o.status.success(), "openssl {args:?}: {}", text(&o));
+    };
+    run(&["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=mscale test CA"]);
+    run(&["req", "-newkey", "rsa:2048", "-nodes", "-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=localhost"]);
+    std::fs::write(dir.join("san.ext"), "subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n").unwrap();
+    run(&["x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out", "server.pem", "-days", "2", "-extfile", "san.ext"]);
+    (dir.join("ca.pem"), dir.join("server.pem"), dir.join("server.key"))
+}
+
+#[test]
+fn tls_serves_clients_that_trust_its_authority() {
+    let (tmp, token) = setup();
+    let (ca, cert, key) = certificates(tmp.path());
+    let log = tmp.path().join("serve.log");
+    let mut child = Command::new(bin())
+        .args(["serve", "--state", tmp.path().join("state").to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token.to_str().unwrap()])
+        .args(["--tls-cert", cert.to_str().unwrap(), "--tls-key", key.to_str().unwrap()])
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let addr = line.trim().strip_prefix("mscale serve: listening on ").unwrap_or_else(|| panic!("{line:?} {}", std::fs::read_to_string(&log).unwrap_or_default())).to_string();
+    let server = Server { child, addr, log };
+    let with_ca = |args: &[&str]| server.client(&[args, &["--ca-file", ca.to_str().unwrap()]].concat());
+    let h = with_ca(&["health"]);
+    assert!(h.status.success() && String::from_utf8_lossy(&h.stdout).contains("SERVING"), "{}", text(&h));
+    let job = String::from_utf8_lossy(&with_ca(&["submit", SMALL, "--token-file", token.to_str().unwrap()]).stdout).trim().to_string();
+    let w = with_ca(&["watch", &job]);
+    assert_eq!(w.status.code(), Some(0), "{}", text(&w));
+    // Without the authority (plain HTTP/2, or TLS trusting nothing) the server is not reached.
+    let plain = server.client(&["health"]);
+    assert!(!plain.status.success(), "a plain client talked to the TLS server: {}", text(&plain));
+    let other_ca = tmp.path().join("other");
+    std::fs::create_dir_all(&other_ca).unwrap();
+    let (other, _, _) = certificates(&other_ca);
+    let wrong = server.client(&["health", "--ca-file", other.to_str().unwrap()]);
+    assert!(!wrong.status.success(), "a client trusting another authority connected: {}", text(&wrong));
 }
