@@ -267,6 +267,15 @@ pub struct Scheme {
     /// Small-mass node threshold as a fraction of the mean initial point mass.
     #[serde(default = "default_small_mass")]
     pub small_mass_fraction: f64,
+    /// Time stepping: `dhakal` (the cycle of Ch. 3.1, eqs. 3.13-3.14; first order in time) or
+    /// `leapfrog` (staggered velocities, Gong eq. 4.24; second order: use it for convergence
+    /// studies of smooth problems).
+    #[serde(default = "default_integrator")]
+    pub integrator: String,
+}
+
+fn default_integrator() -> String {
+    "dhakal".into()
 }
 
 fn default_one() -> usize {
@@ -767,6 +776,9 @@ impl Scene {
             }
         } else if s.sub_points != 1 {
             return Err(loc.err("scheme.sub_points", s.sub_points, format!("sub-points need method \"ddmp-subpoints\"; `{}` uses 1", s.method)));
+        }
+        if !["dhakal", "leapfrog"].contains(&s.integrator.as_str()) {
+            return Err(loc.err("scheme.integrator", format!("{:?}", s.integrator), "allowed: \"dhakal\" (Ch. 3.1 cycle), \"leapfrog\""));
         }
         if !["none", "linear", "tensor"].contains(&s.artificial_viscosity.as_str()) {
             return Err(loc.err("scheme.artificial_viscosity", format!("{:?}", s.artificial_viscosity), "allowed: \"none\", \"linear\", \"tensor\""));

@@ -3,7 +3,7 @@
 
 use crate::scene::{Body, FaceSpec, Material, Scene, Shape};
 use continuum::closure::{IdealGasIsothermal, LinearElastic, NeoHookean};
-use continuum::solver::Viscosity;
+use continuum::solver::{TimeIntegrator, Viscosity};
 use continuum::tensor::IDENTITY;
 use continuum::coupling::{MdClosure, MdSettings, MdShared};
 use std::sync::{Arc, Mutex};
@@ -128,9 +128,11 @@ pub fn simulation<const D: usize>(scene: &Scene, dt: f64, md: Option<&Arc<Mutex<
         "tensor" => Viscosity::Tensor { linear: scene.scheme.viscosity_c_l, quadratic: scene.scheme.viscosity_c_q },
         _ => Viscosity::None,
     };
-    Ok(Simulation::new(grid, points, scheme, closures, viscosity, dt)?
+    let mut sim = Simulation::new(grid, points, scheme, closures, viscosity, dt)?
         .with_sub_points(scene.scheme.sub_points)
-        .with_small_mass_fraction(scene.scheme.small_mass_fraction))
+        .with_small_mass_fraction(scene.scheme.small_mass_fraction);
+    sim.integrator = if scene.scheme.integrator == "leapfrog" { TimeIntegrator::Leapfrog } else { TimeIntegrator::Dhakal };
+    Ok(sim)
 }
 
 /// Size of a scene's work without building closures: (points per body in body order, grid nodes).
