@@ -212,7 +212,22 @@ fn run_job(core: &Arc<Core>, job: JobRecord) {
     let id = job.id.clone();
     let cancel = Arc::new(AtomicBool::new(false));
     *lock(&core.running) = Some((id.clone(), cancel.clone()));
-    transition(core, &id, JobState::Running, if job.resumes > 0 { "resumed" } else { "started" }, "");
+    // A job cancelled between being picked and starting stays cancelled and is not run.
+    match lock(&core.store).transition(&id, JobState::Running, if job.resumes > 0 { "resumed" } else { "started" }, "") {
+        Ok(true) => {}
+        Ok(false) => {
+            *lock(&core.running) = None;
+            return;
+        }
+        Err(e) => {
+            tracing::error!("job {id}: cannot record running: {e:#}");
+            *lock(&core.running) = None;
+            // Not in a tight loop while the store fails.
+            std::thread::sleep(Duration::from_secs(1));
+            return;
+        }
+    }
+    core.publish_stored(&id);
     let dir = core.job_dir(&id);
     let outcome = (|| -> Result<Outcome> {
         let loaded = scene::load(&dir.join("input/scene.toml"), &job.overrides).map_err(|e| anyhow::anyhow!("{e}"))?;
