@@ -111,6 +111,9 @@ enum Command {
         scene: PathBuf,
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
+        /// Also predict the MD atom-steps, memory and wall time from a throughput measured now.
+        #[arg(long)]
+        estimate: bool,
     },
 }
 
@@ -181,12 +184,26 @@ fn dispatch(cli: Cli) -> i32 {
         Command::Cancel { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::cancel(&conn.server, conn.token_file.as_deref(), &job))),
         Command::Fetch { job, file, out, conn } => report(conn.ca().and_then(|_| orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, &file, &out))),
         Command::Health { conn } => report(conn.ca().and_then(|_| orchestrator::client::health(&conn.server, conn.token_file.as_deref()))),
-        Command::Check { scene, set } => match scene::load(&scene, &set) {
+        Command::Check { scene, set, estimate } => match scene::load(&scene, &set) {
             Ok(loaded) => {
                 print!("{}", loaded.scene.to_toml());
                 println!("\n# work");
-                let (points, nodes) = work_size(&loaded);
+                let (per_body, nodes) = orchestrator::setup::work_size(&loaded.scene);
+                let points: usize = per_body.iter().map(|(_, n)| n).sum();
                 println!("# points = {points}\n# grid_nodes = {nodes}\n# steps = {}\n# dt_s = {:e}", loaded.steps, loaded.dt);
+                if estimate {
+                    match orchestrator::md::estimate(&loaded, &per_body) {
+                        Ok(Some(e)) => println!(
+                            "# md_points = {}\n# atoms = {}\n# atom_steps = {:.3e}\n# measured_ns_per_atom_step = {:.1} (cpu back end, {} threads, this machine)\n# memory_bytes = {:.3e} ({:.0} bytes/atom measured)\n# predicted_md_wall_seconds = {:.0}",
+                            e.md_points, e.atoms, e.atom_steps, e.ns_per_atom_step, rayon::current_num_threads(), e.memory_bytes, e.bytes_per_atom, e.wall_seconds
+                        ),
+                        Ok(None) => println!("# no md bodies: nothing to estimate beyond the continuum work above"),
+                        Err(e) => {
+                            eprintln!("mscale: estimate: {e:#}");
+                            return exit::RUN_FAILED;
+                        }
+                    }
+                }
                 exit::OK
             }
             Err(e) => {
@@ -256,20 +273,6 @@ fn dispatch(cli: Cli) -> i32 {
                 }
             }
         }
-    }
-}
-
-/// Points and grid nodes a scene will have, without building the simulation.
-fn work_size(loaded: &scene::LoadedScene) -> (usize, usize) {
-    fn size<const D: usize>(s: &scene::Scene) -> (usize, usize) {
-        let grid = orchestrator::setup::grid::<D>(s);
-        let points = orchestrator::setup::points::<D>(s, &grid).map(|p| p.len()).unwrap_or(0);
-        (points, grid.node_count())
-    }
-    match loaded.scene.domain.dimension {
-        1 => size::<1>(&loaded.scene),
-        2 => size::<2>(&loaded.scene),
-        _ => size::<3>(&loaded.scene),
     }
 }
 

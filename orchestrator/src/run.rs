@@ -196,6 +196,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     tracing::info!(points = sim.points.len(), nodes = sim.grid.node_count(), steps = loaded.steps, dt = sim.dt, "running {}", scene.name);
 
     let every = (loaded.steps / scene.output.snapshots.max(1) as u64).max(1);
+    let checkpoint_every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { scene.output.checkpoint_every_steps };
     let mut snaps = Snapshots { index: "step,time,file\n".into(), pvd: Vec::new() };
     let mut output_s = before.output_s;
     let (mut max_kinetic, mut max_abs_momentum) = (sim.initial.kinetic.abs(), momentum_scale(&sim));
@@ -264,7 +265,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
             write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
             output_s += t.elapsed().as_secs_f64();
         }
-        if opts.checkpoint_every > 0 && sim.step % opts.checkpoint_every == 0 && sim.step < loaded.steps {
+        if checkpoint_every > 0 && sim.step % checkpoint_every == 0 && sim.step < loaded.steps {
             let t = Instant::now();
             save(&sim, &snaps, max_kinetic, max_abs_momentum, continuum_s, output_s)?;
             output_s += t.elapsed().as_secs_f64();

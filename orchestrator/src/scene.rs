@@ -356,6 +356,10 @@ pub struct Output {
     /// PNG line profiles (1D).
     #[serde(default = "default_true")]
     pub plots: bool,
+    /// Write a checkpoint every this many steps (0: none at an interval). A command line's
+    /// `--checkpoint-every` (run, submit, serve) takes precedence.
+    #[serde(default)]
+    pub checkpoint_every_steps: u64,
 }
 
 fn default_snapshots() -> usize {
@@ -364,7 +368,7 @@ fn default_snapshots() -> usize {
 
 impl Default for Output {
     fn default() -> Self {
-        Output { snapshots: default_snapshots(), particles: true, vtk: true, plots: true }
+        Output { snapshots: default_snapshots(), particles: true, vtk: true, plots: true, checkpoint_every_steps: 0 }
     }
 }
 
