@@ -229,45 +229,52 @@ pub(crate) fn ddmp_row<const D: usize>(grid: &Grid<D>, pts: &Particles<D>, p: us
         }
     }
     block.reset(std::array::from_fn(|a| lo[a] - 1), std::array::from_fn(|a| hi[a] + 2));
+    // Two passes: the alpha-weighted hat gradients and, per node j, the coefficient
+    // c_j = sum_s (1 - alpha_s) S_j(x_s) / (n V_j); then c_j B_ji once per node j rather than
+    // once per (sub-point, node) pair (a point's sub-points share few nodes).
     let inv_n = 1.0 / subs.len() as f64;
     for x in subs {
         let sh = cell_shape(grid, x);
         let al = alpha::<D>(&sh.s);
         for j in 0..nc {
-            let jn = cell_node(&sh.cell, j);
-            let bj = block.index(&jn);
+            let bj = block.index(&cell_node(&sh.cell, j));
             for d in 0..D {
                 block.g[bj][d] += al * inv_n * sh.g[j][d];
             }
-            let Some(jl) = node_index(grid, &jn) else { continue };
-            let vj = match volume {
-                Some(v) => v[jl],
-                None => exact_volume(grid, &grid.unlinear(jl)),
-            };
-            if !(vj > 0.0) {
+            block.c[bj] += (1.0 - al) * sh.s[j];
+        }
+    }
+    for bj in 0..block.c.len() {
+        let c = block.c[bj];
+        if c == 0.0 {
+            continue;
+        }
+        let jn = block.node(bj);
+        let Some(jl) = node_index(grid, &jn) else { continue };
+        let jw = grid.unlinear(jl);
+        let vj = match volume {
+            Some(v) => v[jl],
+            None => exact_volume(grid, &jw),
+        };
+        if !(vj > 0.0) {
+            continue;
+        }
+        let coef = c * inv_n / vj;
+        for o in 0..nn {
+            let mut rem = o;
+            let di: [i64; D] = std::array::from_fn(|_| {
+                let d = (rem % 3) as i64 - 1;
+                rem /= 3;
+                d
+            });
+            let b = exact_b(grid, &jw, &di);
+            if b.iter().all(|v| *v == 0.0) {
                 continue;
             }
-            let coef = (1.0 - al) * sh.s[j] * inv_n / vj;
-            if coef == 0.0 {
-                continue;
-            }
-            let jw = grid.unlinear(jl);
-            for o in 0..nn {
-                let mut rem = o;
-                let di: [i64; D] = std::array::from_fn(|_| {
-                    let d = (rem % 3) as i64 - 1;
-                    rem /= 3;
-                    d
-                });
-                let b = exact_b(grid, &jw, &di);
-                if b.iter().all(|v| *v == 0.0) {
-                    continue;
-                }
-                let i: [i64; D] = std::array::from_fn(|a| jn[a] + di[a]);
-                let bi = block.index(&i);
-                for d in 0..D {
-                    block.g[bi][d] += coef * b[d];
-                }
+            let i: [i64; D] = std::array::from_fn(|a| jn[a] + di[a]);
+            let bi = block.index(&i);
+            for d in 0..D {
+                block.g[bi][d] += coef * b[d];
             }
         }
     }

@@ -329,11 +329,13 @@ pub(crate) struct Block<const D: usize> {
     dims: [usize; D],
     pub w: Vec<f64>,
     pub g: Vec<[f64; D]>,
+    /// Per-node scratch coefficient (DDMP's B-term weights).
+    pub c: Vec<f64>,
 }
 
 impl<const D: usize> Default for Block<D> {
     fn default() -> Self {
-        Block { lo: [0; D], dims: [0; D], w: Vec::new(), g: Vec::new() }
+        Block { lo: [0; D], dims: [0; D], w: Vec::new(), g: Vec::new(), c: Vec::new() }
     }
 }
 
@@ -346,6 +348,18 @@ impl<const D: usize> Block<D> {
         self.w.resize(n, 0.0);
         self.g.clear();
         self.g.resize(n, [0.0; D]);
+        self.c.clear();
+        self.c.resize(n, 0.0);
+    }
+
+    /// Grid index (unwrapped) of block entry `k`.
+    #[inline]
+    pub fn node(&self, mut k: usize) -> [i64; D] {
+        std::array::from_fn(|a| {
+            let c = k % self.dims[a];
+            k /= self.dims[a];
+            self.lo[a] + c as i64
+        })
     }
 
     #[inline]
@@ -364,12 +378,7 @@ impl<const D: usize> Block<D> {
             if w == 0.0 && g.iter().all(|v| *v == 0.0) {
                 continue;
             }
-            let mut rem = k;
-            let idx: [i64; D] = std::array::from_fn(|a| {
-                let c = rem % self.dims[a];
-                rem /= self.dims[a];
-                self.lo[a] + c as i64
-            });
+            let idx = self.node(k);
             match node_index(grid, &idx) {
                 Some(node) => out.push(node, w, g),
                 None => {
