@@ -74,16 +74,16 @@ fn exact_volume<const D: usize>(grid: &Grid<D>, j: &[usize; D]) -> f64 {
     (0..D).map(|a| if grid.periodic(a) || (j[a] > 0 && j[a] < grid.cells[a]) { grid.h[a] } else { 0.5 * grid.h[a] }).product()
 }
 
-/// B_ji = int S_j grad S_i dV over the grid for i = j + offset, component by component:
-/// B[b] = K_b prod_{a != b} M_a.
+/// B_ji = int S_j grad S_i dV over the grid for i = j + d, component by component:
+/// B[b] = K_b prod_{a != b} M_a, from node j's per-axis tables `t[a][d + 1]` of
+/// [`axis_integrals`] (K, M).
 #[inline]
-fn exact_b<const D: usize>(grid: &Grid<D>, j: &[usize; D], d: &[i64; D]) -> [f64; D] {
-    let t: [(f64, f64); D] = std::array::from_fn(|a| axis_integrals(grid, a, j[a] as i64, d[a]));
+fn b_from_axes<const D: usize>(t: &[[(f64, f64); 3]; D], d: &[i64; D]) -> [f64; D] {
     std::array::from_fn(|b| {
-        let mut v = t[b].0;
+        let mut v = t[b][(d[b] + 1) as usize].0;
         for (a, ta) in t.iter().enumerate() {
             if a != b {
-                v *= ta.1;
+                v *= ta[(d[a] + 1) as usize].1;
             }
         }
         v
@@ -260,6 +260,8 @@ pub(crate) fn ddmp_row<const D: usize>(grid: &Grid<D>, pts: &Particles<D>, p: us
             continue;
         }
         let coef = c * inv_n / vj;
+        // The 1D integrals of node j with its neighbours, per axis (3 D values for 3^D offsets).
+        let t: [[(f64, f64); 3]; D] = std::array::from_fn(|a| std::array::from_fn(|k| axis_integrals(grid, a, jw[a] as i64, k as i64 - 1)));
         for o in 0..nn {
             let mut rem = o;
             let di: [i64; D] = std::array::from_fn(|_| {
@@ -267,7 +269,7 @@ pub(crate) fn ddmp_row<const D: usize>(grid: &Grid<D>, pts: &Particles<D>, p: us
                 rem /= 3;
                 d
             });
-            let b = exact_b(grid, &jw, &di);
+            let b = b_from_axes(&t, &di);
             if b.iter().all(|v| *v == 0.0) {
                 continue;
             }
