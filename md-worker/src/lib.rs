@@ -16,6 +16,7 @@ pub mod data;
 pub mod direct;
 pub mod device;
 pub mod error;
+pub mod join;
 pub mod kernel;
 pub mod lattice;
 pub mod neighbor;

@@ -32,6 +32,8 @@ enum Cmd {
         /// Worker threads for the cpu back end (default: all cores).
         #[arg(long)]
         threads: Option<usize>,
+        #[command(flatten)]
+        join: md_worker::join::JoinArgs,
     },
     /// Energy, kinetic energy and virial stress of a LAMMPS data file (JSON on stdout).
     Eval {
@@ -127,7 +129,7 @@ enum Cmd {
 fn main() {
     let cli = Cli::parse();
     let res = match cli.cmd {
-        Cmd::Serve { listen, device, threads } => serve(&listen, &device, threads),
+        Cmd::Serve { listen, device, threads, join } => serve(&listen, &device, threads, &join),
         Cmd::Eval { potential, data, forces } => eval(&potential, &data, forces),
         Cmd::Run { potential, data, steps, dt, velocity_gradient, remap, thermo, write_data, dump } => {
             run(&potential, &data, steps, dt, &velocity_gradient, &remap, thermo, write_data, dump)
@@ -348,7 +350,7 @@ fn kind_atoms(k: LatticeKind) -> usize {
 }
 
 /// `md-worker serve`.
-fn serve(listen: &str, device: &str, threads: Option<usize>) -> Result<()> {
+fn serve(listen: &str, device: &str, threads: Option<usize>, join: &md_worker::join::JoinArgs) -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
         .with_writer(std::io::stderr)
@@ -368,17 +370,25 @@ fn serve(listen: &str, device: &str, threads: Option<usize>) -> Result<()> {
         Some(t) => Some(Arc::new(rayon::ThreadPoolBuilder::new().num_threads(t).build()?)),
         None => None,
     };
-    let opts = md_worker::server::ServeOptions { backend: backend.into(), threads: pool, device: if backend == "cuda" { "cuda".into() } else { format!("cpu ({} threads)", threads.unwrap_or_else(rayon::current_num_threads)) } };
+    let device = if backend == "cuda" { "cuda".into() } else { format!("cpu ({} threads)", threads.unwrap_or_else(rayon::current_num_threads)) };
+    let kind = md_worker::join::WorkerKind { backend: backend.into(), precision: "double".into(), device: device.clone(), threads: pool.clone() };
+    let opts = md_worker::server::ServeOptions { backend: backend.into(), threads: pool, device };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     rt.block_on(async {
         let listener = tokio::net::TcpListener::bind(listen).await.map_err(|e| bad(format!("--listen {listen}: {e}")))?;
         let addr = listener.local_addr()?;
         println!("listening on {addr}");
         std::io::stdout().flush()?;
+        // With --orchestrator: register and heartbeat (src/join.rs); a refusal ends the worker.
+        let joined = md_worker::join::Join::start(join, addr, kind).map_err(|e| bad(format!("{e:#}")))?;
         let shutdown = async {
-            let _ = tokio::signal::ctrl_c().await;
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = joined.failed() => {}
+            }
         };
-        md_worker::server::serve(listener, opts, shutdown).await.map_err(|e| anyhow::anyhow!("serving on {addr}: {e}"))
+        md_worker::server::serve(listener, opts, shutdown).await.map_err(|e| anyhow::anyhow!("serving on {addr}: {e}"))?;
+        joined.outcome()
     })
 }
 

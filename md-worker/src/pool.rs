@@ -120,15 +120,93 @@ pub struct MdPool {
     endpoints: Vec<Box<dyn Endpoint>>,
     owner: HashMap<PointId, usize>,
     pub times: PoolTimes,
+    /// Relative throughput of each endpoint (empty: equal); `open` spreads boxes by it.
+    weights: Vec<f64>,
+    /// Atoms of each box (from its spec), for the per-endpoint load.
+    atoms: HashMap<PointId, u64>,
+    /// Per endpoint: seconds in step calls and atom-steps done.
+    load: Vec<(f64, f64)>,
 }
+
+/// What one endpoint holds and has done.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct EndpointLoad {
+    pub name: String,
+    pub boxes: usize,
+    pub atoms: u64,
+    /// Wall seconds of its step calls (compute and transfer).
+    pub step_seconds: f64,
+    pub atom_steps: f64,
+}
+
+/// Sizes of contiguous blocks of `n` boxes in proportion to `weights` (largest remainder,
+/// ties to the lower index): deterministic for the same `n` and weights. Non-positive or
+/// non-finite weights count as the mean of the others (1 when none is positive).
+pub fn proportional_blocks(n: usize, weights: &[f64]) -> Vec<usize> {
+    let good: Vec<f64> = weights.iter().copied().filter(|w| w.is_finite() && *w > 0.0).collect();
+    let fill = if good.is_empty() { 1.0 } else { good.iter().sum::<f64>() / good.len() as f64 };
+    let w: Vec<f64> = weights.iter().map(|&x| if x.is_finite() && x > 0.0 { x } else { fill }).collect();
+    let total: f64 = w.iter().sum();
+    let quota: Vec<f64> = w.iter().map(|x| n as f64 * x / total).collect();
+    let mut sizes: Vec<usize> = quota.iter().map(|q| (q.floor() as usize).min(n)).collect();
+    let mut order: Vec<usize> = (0..w.len()).collect();
+    order.sort_by(|&a, &b| (quota[b] - quota[b].floor()).total_cmp(&(quota[a] - quota[a].floor())).then(a.cmp(&b)));
+    let mut left = n.saturating_sub(sizes.iter().sum());
+    for &e in order.iter().cycle().take(left.min(w.len() * 2)) {
+        if left == 0 {
+            break;
+        }
+        sizes[e] += 1;
+        left -= 1;
+    }
+    sizes
+}
+
+fn spec_atoms(s: &BoxSpec) -> u64 {
+    match &s.atoms {
+        crate::InitialAtoms::Lattice { kind, cells, .. } => {
+            let per_cell = match kind {
+                crate::LatticeKind::Fcc => 4,
+                crate::LatticeKind::Bcc => 2,
+                crate::LatticeKind::Sc => 1,
+            };
+            per_cell * cells.iter().map(|&c| c as u64).product::<u64>()
+        }
+        crate::InitialAtoms::Explicit { types, .. } => types.len() as u64,
+    }
+}
+
 
 impl MdPool {
     pub fn new(endpoints: Vec<Box<dyn Endpoint>>) -> Result<Self, MdError> {
         if endpoints.is_empty() {
             return Err(MdError::invalid("pool", "no endpoints"));
         }
-        Ok(MdPool { endpoints, owner: HashMap::new(), times: PoolTimes::default() })
+        let load = vec![(0.0, 0.0); endpoints.len()];
+        Ok(MdPool { endpoints, owner: HashMap::new(), times: PoolTimes::default(), weights: Vec::new(), atoms: HashMap::new(), load })
     }
+
+    /// Spreads the boxes of later `open` calls in proportion to these weights (one per
+    /// endpoint, e.g. measured throughputs) instead of equally. The results do not depend on
+    /// it: every box is computed independently.
+    pub fn set_weights(&mut self, weights: Vec<f64>) -> Result<(), MdError> {
+        if weights.len() != self.endpoints.len() {
+            return Err(MdError::invalid("pool", format!("{} weights for {} endpoints", weights.len(), self.endpoints.len())));
+        }
+        self.weights = weights;
+        Ok(())
+    }
+
+    /// Boxes, atoms and step time of each endpoint, in endpoint order.
+    pub fn endpoint_load(&self) -> Vec<EndpointLoad> {
+        let mut out: Vec<EndpointLoad> = self.endpoints.iter().zip(&self.load).map(|(e, l)| EndpointLoad { name: e.name(), step_seconds: l.0, atom_steps: l.1, ..Default::default() }).collect();
+        for (id, &e) in &self.owner {
+            out[e].boxes += 1;
+            out[e].atoms += self.atoms.get(id).copied().unwrap_or(0);
+        }
+        out
+    }
+
 
     pub fn endpoint_names(&self) -> Vec<String> {
         self.endpoints.iter().map(|e| e.name()).collect()
@@ -142,21 +220,37 @@ impl MdPool {
     /// Opens boxes, spread over the endpoints in contiguous, nearly equal blocks.
     pub fn open(&mut self, potential: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
         let n = self.endpoints.len();
+        let dest: Vec<usize> = if self.weights.is_empty() {
+            (0..specs.len()).map(|k| k * n / specs.len().max(1)).collect()
+        } else {
+            // Shares of all boxes opened so far and these, so that several `open` calls (one
+            // per body) add up to one proportional partition.
+            let mut have = vec![0usize; n];
+            self.owner.values().for_each(|&e| have[e] += 1);
+            let target = proportional_blocks(self.owner.len() + specs.len(), &self.weights);
+            let mut need: Vec<usize> = target.iter().zip(&have).map(|(t, h)| t.saturating_sub(*h)).collect();
+            let mut excess = need.iter().sum::<usize>() - specs.len();
+            for x in need.iter_mut().rev() {
+                let cut = excess.min(*x);
+                *x -= cut;
+                excess -= cut;
+            }
+            need.iter().enumerate().flat_map(|(e, &size)| std::iter::repeat_n(e, size)).collect()
+        };
         let mut parts: Vec<Vec<BoxSpec>> = vec![Vec::new(); n];
         for (k, s) in specs.iter().enumerate() {
             if self.owner.contains_key(&s.id) {
                 return Err(MdError::invalid("box spec", format!("point {} is opened twice", s.id)));
             }
-            let e = k * n / specs.len().max(1);
-            parts[e].push(s.clone());
+            parts[dest[k]].push(s.clone());
         }
         let results = self.on_every_endpoint(parts, |ep, part| if part.is_empty() { Ok(()) } else { ep.open(potential, &part) });
         for (e, r) in results.into_iter().enumerate() {
             r.map_err(|err| lost(&*self.endpoints[e], "open", err))?;
         }
-        let n = self.endpoints.len();
         for (k, s) in specs.iter().enumerate() {
-            self.owner.insert(s.id, k * n / specs.len().max(1));
+            self.owner.insert(s.id, dest[k]);
+            self.atoms.insert(s.id, spec_atoms(s));
         }
         Ok(())
     }
@@ -182,6 +276,8 @@ impl MdPool {
         for (e, r) in results.into_iter().enumerate() {
             let (res, secs) = r.map_err(|err| lost(&*self.endpoints[e], &format!("continuum step {step}"), err))?;
             slowest = slowest.max(secs);
+            self.load[e].0 += secs;
+            self.load[e].1 += slot[e].iter().map(|&k| work[k].steps as f64 * self.atoms.get(&work[k].id).copied().unwrap_or(0) as f64).sum::<f64>();
             if res.len() != slot[e].len() {
                 return Err(MdError::invalid("worker reply", format!("{} returned {} results for {} boxes", self.endpoints[e].name(), res.len(), slot[e].len())));
             }
@@ -372,5 +468,41 @@ impl Endpoint for Remote {
 
     fn kind(&self) -> String {
         self.kind.clone()
+    }
+}
+
+/// Closes the session, so a long-lived worker does not keep the boxes of finished runs
+/// (best effort, bounded to 2 s: the worker may be gone).
+impl Drop for Remote {
+    fn drop(&mut self) {
+        let Some(session) = self.session else { return };
+        self.stream = None;
+        // Not from inside an async context (block_on would panic there); the session then
+        // stays until the worker exits.
+        if tokio::runtime::Handle::try_current().is_ok() {
+            return;
+        }
+        let mut client = self.client.clone();
+        let _ = self.rt.block_on(async move { tokio::time::timeout(std::time::Duration::from_secs(2), client.close(pb::CloseRequest { session })).await });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::proportional_blocks;
+
+    #[test]
+    fn blocks_follow_the_weights_and_cover_every_box() {
+        assert_eq!(proportional_blocks(10, &[1.0, 1.0]), vec![5, 5]);
+        assert_eq!(proportional_blocks(10, &[3.0, 1.0]), vec![8, 2]);
+        assert_eq!(proportional_blocks(7, &[1.0, 1.0, 1.0]), vec![3, 2, 2]);
+        assert_eq!(proportional_blocks(6, &[2.0, 0.0, f64::NAN]), vec![2, 2, 2]);
+        assert_eq!(proportional_blocks(3, &[1e9, 1.0]), vec![3, 0]);
+        assert_eq!(proportional_blocks(0, &[1.0, 2.0]), vec![0, 0]);
+        for n in 0..50 {
+            let w = [0.3, 1.7, 2.2, 0.01];
+            assert_eq!(proportional_blocks(n, &w).iter().sum::<usize>(), n);
+            assert_eq!(proportional_blocks(n, &w), proportional_blocks(n, &w));
+        }
     }
 }

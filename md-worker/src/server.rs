@@ -112,6 +112,9 @@ impl MdWorker for WorkerService {
             .await?;
             return Ok(Response::new(pb::OpenResponse { session: req.session, backend: name, precision: "double".into() }));
         }
+        if crate::join::draining() {
+            return Err(Status::unavailable("this worker is draining (its orchestrator drained it): it takes no new sessions"));
+        }
         let name = if req.backend.is_empty() { self.opts.backend.clone() } else { req.backend.clone() };
         let threads = self.opts.threads.clone();
         let backend = blocking(move || {

@@ -139,6 +139,31 @@ impl Client {
         Ok(r.content)
     }
 
+    /// Registered workers, oldest registration first.
+    pub fn workers(&mut self) -> Result<Vec<pb::Worker>> {
+        let r = self.rt.block_on(self.inner.list_workers(pb::ListWorkersRequest {})).map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?;
+        Ok(r.into_inner().workers)
+    }
+
+    /// The worker gets no new jobs.
+    pub fn drain(&mut self, worker: &str) -> Result<pb::Worker> {
+        let req = self.authorized(pb::DrainWorkerRequest { worker_id: worker.into() })?;
+        let r = self.rt.block_on(self.inner.drain_worker(req)).map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?;
+        Ok(r.into_inner())
+    }
+
+    /// Registers a worker (what `md-worker serve --orchestrator` does); the status on refusal.
+    pub fn register_worker(&mut self, req: pb::RegisterWorkerRequest) -> Result<pb::RegisterWorkerResponse, tonic::Status> {
+        let req = self.authorized(req).map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
+        self.rt.block_on(self.inner.register_worker(req)).map(|r| r.into_inner())
+    }
+
+    /// One heartbeat of a registered worker; the status on refusal.
+    pub fn heartbeat(&mut self, req: pb::HeartbeatRequest) -> Result<pb::HeartbeatResponse, tonic::Status> {
+        let req = self.authorized(req).map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
+        self.rt.block_on(self.inner.heartbeat(req)).map(|r| r.into_inner())
+    }
+
     /// The gRPC health of the orchestrator service (`SERVING`, ...).
     pub fn health(&mut self) -> Result<String> {
         let mut h = tonic_health::pb::health_client::HealthClient::new(self.channel.clone());
@@ -168,12 +193,24 @@ pub fn is_final(ev: &pb::JobEvent) -> bool {
 
 // ---- the verbs, as `mscale` runs them (each returns its exit code) ----
 
+/// The worker pool options of `mscale serve`.
+#[derive(Debug, Clone, Copy)]
+pub struct PoolOptions {
+    /// `md-worker serve` processes to start here.
+    pub local_workers: usize,
+    /// Seconds without a heartbeat after which a worker is declared lost.
+    pub worker_timeout_s: f64,
+}
+
 /// `mscale serve`.
-pub fn serve(state: PathBuf, listen: String, token_file: Option<PathBuf>, checkpoint_every: u64, tls: Option<(PathBuf, PathBuf)>) -> Result<i32> {
-    let token = match token_file {
-        Some(f) => crate::service::read_token(&f)?,
+pub fn serve(state: PathBuf, listen: String, token_file: Option<PathBuf>, checkpoint_every: u64, tls: Option<(PathBuf, PathBuf)>, pool: PoolOptions) -> Result<i32> {
+    anyhow::ensure!(pool.worker_timeout_s.is_finite() && pool.worker_timeout_s > 0.0, "--worker-timeout {} must be a positive number of seconds", pool.worker_timeout_s);
+    let token = match &token_file {
+        Some(f) => crate::service::read_token(f)?,
         None => generated_token(&state)?,
     };
+    let token_file = token_file.unwrap_or_else(|| state.join("token"));
+    let local_ca = tls.as_ref().map(|t| t.0.clone());
     let tls = match tls {
         Some((cert, key)) => {
             let read = |p: &Path| std::fs::read(p).with_context(|| format!("cannot read {}", p.display()));
@@ -181,7 +218,17 @@ pub fn serve(state: PathBuf, listen: String, token_file: Option<PathBuf>, checkp
         }
         None => None,
     };
-    crate::service::serve(crate::service::ServeOptions { state_dir: state, listen, token, checkpoint_every, tls })?;
+    crate::service::serve(crate::service::ServeOptions {
+        state_dir: state,
+        listen,
+        token,
+        checkpoint_every,
+        tls,
+        local_workers: pool.local_workers,
+        token_file,
+        local_ca,
+        worker_timeout: std::time::Duration::from_secs_f64(pool.worker_timeout_s),
+    })?;
     Ok(crate::exit::OK)
 }
 
@@ -239,6 +286,52 @@ fn line(j: &pb::Job) -> String {
     let digest = if j.state_digest.is_empty() { String::new() } else { format!("  digest {}", j.state_digest) };
     let error = if j.error.is_empty() { String::new() } else { format!("  ({})", j.error) };
     format!("{}  {:<9} {:<20} step {}/{}  t = {:.4e} s  priority {}{}{digest}{error}", j.id, state_name(j.state), j.scene, j.step, j.steps, j.sim_time_s, j.priority, if j.resumes > 0 { format!("  resumed {}x", j.resumes) } else { String::new() })
+}
+
+pub fn worker_state_name(state: i32) -> &'static str {
+    match pb::WorkerState::try_from(state) {
+        Ok(pb::WorkerState::Live) => "live",
+        Ok(pb::WorkerState::Draining) => "draining",
+        Ok(pb::WorkerState::Lost) => "lost",
+        _ => "unknown",
+    }
+}
+
+fn worker_line(w: &pb::Worker) -> String {
+    let job = if w.job_id.is_empty() { String::new() } else { format!("  job {}", w.job_id) };
+    let note = if w.note.is_empty() { String::new() } else { format!("  ({})", w.note) };
+    format!(
+        "{}  {:<8} {:<21} {}/{}  {}  {} cores  {:.3e} atom-steps/s ({}){job}{note}",
+        w.id,
+        worker_state_name(w.state),
+        w.address,
+        w.backend,
+        w.precision,
+        w.device,
+        w.cores,
+        w.atom_steps_per_s,
+        w.throughput_source
+    )
+}
+
+/// `mscale workers`: the registered workers.
+pub fn workers(server: &str, token_file: Option<&Path>) -> Result<i32> {
+    let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
+    let ws = c.workers()?;
+    if ws.is_empty() {
+        println!("no workers");
+    }
+    for w in ws {
+        println!("{}", worker_line(&w));
+    }
+    Ok(crate::exit::OK)
+}
+
+/// `mscale drain WORKER`.
+pub fn drain(server: &str, token_file: Option<&Path>, worker: &str) -> Result<i32> {
+    let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
+    println!("{}", worker_line(&c.drain(worker)?));
+    Ok(crate::exit::OK)
 }
 
 /// `mscale status [JOB]`.

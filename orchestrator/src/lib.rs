@@ -14,6 +14,7 @@ pub mod scene;
 pub mod service;
 pub mod setup;
 pub mod store;
+pub mod workers;
 
 /// Cargo features this binary was built with (reported in provenance).
 pub const FEATURES: &[&str] = &[];

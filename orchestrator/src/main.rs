@@ -56,6 +56,24 @@ enum Command {
         /// PEM private key of --tls-cert.
         #[arg(long, value_name = "PEM", requires = "tls_cert")]
         tls_key: Option<PathBuf>,
+        /// Start N `md-worker serve` processes on this machine (the md-worker program next to
+        /// this one) that join the pool; they are killed when the orchestrator exits.
+        #[arg(long, value_name = "N", default_value_t = 0)]
+        local_workers: usize,
+        /// Declare a worker lost after this many seconds without a heartbeat.
+        #[arg(long, value_name = "SECONDS", default_value_t = orchestrator::workers::DEFAULT_TIMEOUT_S)]
+        worker_timeout: f64,
+    },
+    /// List the workers registered with a running `mscale serve`.
+    Workers {
+        #[command(flatten)]
+        conn: Conn,
+    },
+    /// Drain a worker: it gets no new jobs and finishes what it holds.
+    Drain {
+        worker: String,
+        #[command(flatten)]
+        conn: Conn,
     },
     /// Submit a scene as a job to a running `mscale serve`; prints the job id.
     Submit {
@@ -177,7 +195,12 @@ fn main() -> ExitCode {
 
 fn dispatch(cli: Cli) -> i32 {
     match cli.command {
-        Command::Serve { state, listen, token_file, checkpoint_every, tls_cert, tls_key } => report(orchestrator::client::serve(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key))),
+        Command::Serve { state, listen, token_file, checkpoint_every, tls_cert, tls_key, local_workers, worker_timeout } => {
+            let pool = orchestrator::client::PoolOptions { local_workers, worker_timeout_s: worker_timeout };
+            report(orchestrator::client::serve(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key), pool))
+        }
+        Command::Workers { conn } => report(conn.ca().and_then(|_| orchestrator::client::workers(&conn.server, conn.token_file.as_deref()))),
+        Command::Drain { worker, conn } => report(conn.ca().and_then(|_| orchestrator::client::drain(&conn.server, conn.token_file.as_deref(), &worker))),
         Command::Submit { scene, set, priority, checkpoint_every, conn } => report(conn.ca().and_then(|_| orchestrator::client::submit(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every))),
         Command::Status { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::status(&conn.server, conn.token_file.as_deref(), job.as_deref()))),
         Command::Watch { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::watch(&conn.server, conn.token_file.as_deref(), &job))),

@@ -48,6 +48,9 @@ pub struct Progress {
 /// Called after every step.
 pub type ProgressFn = Arc<dyn Fn(&Progress) + Send + Sync>;
 
+/// Given the run's MD state once its pool is open (the job service reads per-worker load).
+pub type MdHook = Arc<dyn Fn(&Arc<Mutex<MdShared>>) + Send + Sync>;
+
 pub struct RunOptions {
     pub out: PathBuf,
     pub command_line: Vec<String>,
@@ -63,16 +66,20 @@ pub struct RunOptions {
     /// step and returns [`Outcome::Cancelled`].
     pub cancel: Option<Arc<AtomicBool>>,
     pub progress: Option<ProgressFn>,
+    /// Relative throughput of each of `workers` (empty: equal shares): boxes are spread in
+    /// proportion to it. The results do not depend on it.
+    pub worker_weights: Vec<f64>,
+    pub md_hook: Option<MdHook>,
 }
 
 impl RunOptions {
     pub fn new(out: PathBuf, command_line: Vec<String>) -> Self {
-        RunOptions { out, command_line, progress_bar: std::io::stderr().is_terminal(), workers: Vec::new(), checkpoint_every: 0, resume: false, cancel: None, progress: None }
+        RunOptions { out, command_line, progress_bar: std::io::stderr().is_terminal(), workers: Vec::new(), checkpoint_every: 0, resume: false, cancel: None, progress: None, worker_weights: Vec::new(), md_hook: None }
     }
 }
 
 /// The MD pool of a scene with md bodies (one potential per run), or `None`.
-fn md_shared(loaded: &LoadedScene, workers: &[String]) -> Result<Option<Arc<Mutex<MdShared>>>> {
+fn md_shared(loaded: &LoadedScene, workers: &[String], weights: &[f64]) -> Result<Option<Arc<Mutex<MdShared>>>> {
     let mut potentials = loaded.scene.bodies.values().filter_map(|b| match &b.material {
         Material::Md(m) => Some(m.potential.clone()),
         _ => None,
@@ -82,7 +89,10 @@ fn md_shared(loaded: &LoadedScene, workers: &[String]) -> Result<Option<Arc<Mute
         anyhow::bail!("all md bodies of a run must share one potential; found {} and {}", first.display(), other.display());
     }
     let potential = md_worker::pool::PotentialSource::from_file(&first)?;
-    let pool = crate::md::pool(workers)?;
+    let mut pool = crate::md::pool(workers)?;
+    if !weights.is_empty() {
+        pool.set_weights(weights.to_vec())?;
+    }
     tracing::info!("MD on {}", pool.endpoint_names().join(", "));
     Ok(Some(Arc::new(Mutex::new(MdShared { pool, potential, points: Vec::new(), step: 0 }))))
 }
@@ -177,7 +187,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     }
     output::write_atomic(&dir.join("scene.resolved.toml"), resolved.as_bytes())?;
     let wall = Instant::now();
-    let md = md_shared(loaded, &opts.workers)?;
+    let md = md_shared(loaded, &opts.workers, &opts.worker_weights)?;
+    if let (Some(hook), Some(m)) = (&opts.md_hook, &md) {
+        hook(m);
+    }
     let mut sim = setup::simulation::<D>(scene, loaded.dt, md.as_ref())?;
     let mut before = checkpoint::DriverState::default();
     if let Some((ck, path)) = &saved {

@@ -10,14 +10,26 @@
 //! given), and `jobs/<id>/input/` (the scene and its files) and `jobs/<id>/run/` (the run
 //! directory: outputs, checkpoints, summary.json).
 //!
-//! Security: mutating calls (SubmitJob, CancelJob) need `authorization: Bearer <token>`,
+//! Workers (`md-worker serve --orchestrator URL`, or `--local-workers N` started here) register
+//! and heartbeat ([`crate::workers`]). A job's MD boxes are spread over the live workers of one
+//! back end and precision in proportion to their throughput, or run in this process when there
+//! are none. A worker that stops answering mid-job (killed) is declared lost and the job rolls
+//! back to its last checkpoint onto the surviving workers (the whole job: continuum and every
+//! box, which by the determinism contract ends with the same digest); with no survivor the job
+//! fails naming the worker and the step. A worker silent for longer than the worker timeout is
+//! declared lost; a job holding boxes on it checkpoints and moves off it.
+//!
+//! Security: mutating calls (SubmitJob, CancelJob, RegisterWorker, Heartbeat, DrainWorker)
+//! need `authorization: Bearer <token>`,
 //! compared in constant time; requests are bounded in size; FetchResult cannot leave the job's
 //! run directory; nothing runs through a shell. TLS (rustls) is served with `--tls-cert` and
 //! `--tls-key`, and required to listen on anything but a loopback address.
 
 use crate::run::{self, Outcome, Progress, RunOptions};
 use crate::scene;
-use crate::store::{JobRecord, JobState, Store, now_unix};
+use crate::store::{JobRecord, JobState, Store, WorkerAd, WorkerRecord, WorkerState, now_unix};
+use crate::workers::{self, Registry, WorkerError};
+use continuum::coupling::MdShared;
 use anyhow::{Context, Result, bail};
 use mscale_proto::orchestrator::v1 as pb;
 use pb::orchestrator_server::{Orchestrator, OrchestratorServer};
@@ -46,6 +58,14 @@ pub struct ServeOptions {
     pub checkpoint_every: u64,
     /// PEM certificate chain and private key: serve over TLS (rustls).
     pub tls: Option<(Vec<u8>, Vec<u8>)>,
+    /// `md-worker serve` processes to start on this machine (`--local-workers`).
+    pub local_workers: usize,
+    /// The token file local workers authenticate with.
+    pub token_file: PathBuf,
+    /// What local workers trust to reach a TLS orchestrator (the certificate file).
+    pub local_ca: Option<PathBuf>,
+    /// A worker without a heartbeat for this long is declared lost.
+    pub worker_timeout: Duration,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -76,14 +96,77 @@ struct Core {
     checkpoint_every: u64,
     /// Live progress of jobs somebody watches or that run now.
     live: Mutex<HashMap<String, watch::Sender<pb::JobEvent>>>,
-    /// The running job and its stop flag.
-    running: Mutex<Option<(String, Arc<AtomicBool>)>>,
+    /// The running job and its flags.
+    running: Mutex<Option<RunningJob>>,
+    /// Registered workers (lock before `store` when both are needed).
+    workers: Mutex<Registry>,
+    /// Jobs wait (up to [`LOCAL_WORKERS_WAIT`]) until this many workers have registered: the
+    /// local workers being started.
+    expect_workers: usize,
+    started: Instant,
     /// Raised when the orchestrator stops: the running job checkpoints and stays queued.
     stopping: AtomicBool,
     /// Tells open watch streams that the orchestrator stops (so shutdown need not wait for them).
     stop_watchers: watch::Sender<bool>,
     wake: (Mutex<bool>, Condvar),
     next_id: AtomicU64,
+}
+
+/// How long jobs wait for `--local-workers` to register before running without them.
+const LOCAL_WORKERS_WAIT: Duration = Duration::from_secs(60);
+/// Times a job moves off lost workers before it fails.
+const MAX_ROLLBACKS: u32 = 16;
+
+/// The job on the runner thread.
+struct RunningJob {
+    id: String,
+    /// Stops the run after its current step, with a checkpoint.
+    stop: Arc<AtomicBool>,
+    /// Set with `stop` by CancelJob.
+    user_cancel: Arc<AtomicBool>,
+    /// Set with `stop` when one of its workers is declared lost: it continues elsewhere.
+    reassign: Arc<AtomicBool>,
+    /// Epochs of the workers holding its boxes.
+    workers: Vec<u64>,
+}
+
+fn pb_worker_state(s: WorkerState) -> pb::WorkerState {
+    match s {
+        WorkerState::Live => pb::WorkerState::Live,
+        WorkerState::Draining => pb::WorkerState::Draining,
+        WorkerState::Lost => pb::WorkerState::Lost,
+    }
+}
+
+fn worker_to_pb(v: &workers::WorkerView) -> pb::Worker {
+    let (w, ad) = (&v.record, &v.record.ad);
+    pb::Worker {
+        id: w.id.clone(),
+        epoch: w.epoch,
+        address: ad.address.clone(),
+        device: ad.device.clone(),
+        backend: ad.backend.clone(),
+        precision: ad.precision.clone(),
+        cores: ad.cores,
+        memory_bytes: ad.memory_bytes,
+        atom_steps_per_s: ad.atom_steps_per_s,
+        throughput_source: ad.throughput_source.clone(),
+        protocol_version: ad.protocol_version,
+        state: pb_worker_state(w.state) as i32,
+        registered_unix: w.registered,
+        last_heartbeat_unix: v.last_heartbeat,
+        note: w.note.clone(),
+        job_id: v.job.clone().unwrap_or_default(),
+    }
+}
+
+fn worker_status(e: WorkerError) -> Status {
+    match &e {
+        WorkerError::Version { .. } => Status::failed_precondition(e.to_string()),
+        WorkerError::Invalid(_) => Status::invalid_argument(e.to_string()),
+        WorkerError::NotFound(_) => Status::not_found(e.to_string()),
+        WorkerError::Store(_) => Status::internal(e.to_string()),
+    }
 }
 
 fn pb_state(s: JobState) -> pb::JobState {
@@ -126,6 +209,7 @@ fn event_of(j: &JobRecord) -> pb::JobEvent {
         eta_s: -1.0,
         energy_drift: 0.0,
         message: j.error.clone(),
+        workers: Vec::new(),
     }
 }
 
@@ -155,11 +239,16 @@ impl Core {
     fn publish_stored(&self, id: &str) {
         if let (Ok(tx), Ok(j)) = (self.channel(id), self.get(id)) {
             tx.send_modify(|ev| {
-                let progress = (ev.end_time_s, ev.energy_drift);
+                let progress = (ev.end_time_s, ev.energy_drift, std::mem::take(&mut ev.workers));
                 *ev = event_of(&j);
-                (ev.end_time_s, ev.energy_drift) = progress;
+                (ev.end_time_s, ev.energy_drift, ev.workers) = progress;
             });
         }
+    }
+
+    /// Whether jobs should still wait for `--local-workers` to register.
+    fn waiting_for_local_workers(&self) -> bool {
+        self.expect_workers > 0 && self.started.elapsed() < LOCAL_WORKERS_WAIT && lock(&self.workers).usable().len() < self.expect_workers
     }
 
     fn wake_runner(&self) {
@@ -181,11 +270,15 @@ fn runner(core: Arc<Core>) {
         if core.stopping.load(Ordering::SeqCst) {
             return;
         }
-        let next = match lock(&core.store).next_queued() {
-            Ok(n) => n,
-            Err(e) => {
-                tracing::error!("job store: {e:#}");
-                None
+        let next = if core.waiting_for_local_workers() {
+            None
+        } else {
+            match lock(&core.store).next_queued() {
+                Ok(n) => n,
+                Err(e) => {
+                    tracing::error!("job store: {e:#}");
+                    None
+                }
             }
         };
         match next {
@@ -201,6 +294,30 @@ fn runner(core: Arc<Core>) {
     }
 }
 
+/// Declares silent workers lost, every fraction of the timeout, until the orchestrator stops;
+/// a running job holding boxes on one checkpoints and moves off it.
+fn monitor(core: Arc<Core>) {
+    let period = (lock(&core.workers).timeout() / 4).clamp(Duration::from_millis(50), Duration::from_millis(500));
+    while !core.stopping.load(Ordering::SeqCst) {
+        std::thread::sleep(period);
+        let mut reg = lock(&core.workers);
+        for (epoch, silent) in reg.expired() {
+            let why = format!("no heartbeat for {:.1} s (the worker timeout is {:.1} s)", silent.as_secs_f64(), reg.timeout().as_secs_f64());
+            match reg.declare_lost(&mut lock(&core.store), epoch, &why) {
+                Ok(true) => {
+                    if let Some(run) = lock(&core.running).as_ref().filter(|r| r.workers.contains(&epoch)) {
+                        tracing::warn!("job {}: moves off the lost worker w{epoch} (checkpoint after this step)", run.id);
+                        run.reassign.store(true, Ordering::SeqCst);
+                        run.stop.store(true, Ordering::SeqCst);
+                    }
+                }
+                Ok(false) => {}
+                Err(e) => tracing::error!("cannot record worker w{epoch} as lost: {e:#}"),
+            }
+        }
+    }
+}
+
 fn transition(core: &Core, id: &str, state: JobState, note: &str, digest: &str) {
     if let Err(e) = lock(&core.store).transition(id, state, note, digest) {
         tracing::error!("job {id}: cannot record {}: {e:#}", state.as_str());
@@ -208,10 +325,16 @@ fn transition(core: &Core, id: &str, state: JobState, note: &str, digest: &str) 
     core.publish_stored(id);
 }
 
+/// How one attempt of a job on a set of workers ended.
+enum Attempt {
+    Done(Outcome),
+    Error(anyhow::Error),
+}
+
 fn run_job(core: &Arc<Core>, job: JobRecord) {
     let id = job.id.clone();
-    let cancel = Arc::new(AtomicBool::new(false));
-    *lock(&core.running) = Some((id.clone(), cancel.clone()));
+    let flags = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)));
+    *lock(&core.running) = Some(RunningJob { id: id.clone(), stop: flags.0.clone(), user_cancel: flags.1.clone(), reassign: flags.2.clone(), workers: Vec::new() });
     // A job cancelled between being picked and starting stays cancelled and is not run.
     match lock(&core.store).transition(&id, JobState::Running, if job.resumes > 0 { "resumed" } else { "started" }, "") {
         Ok(true) => {}
@@ -228,62 +351,199 @@ fn run_job(core: &Arc<Core>, job: JobRecord) {
         }
     }
     core.publish_stored(&id);
-    let dir = core.job_dir(&id);
-    let outcome = (|| -> Result<Outcome> {
-        let loaded = scene::load(&dir.join("input/scene.toml"), &job.overrides).map_err(|e| anyhow::anyhow!("{e}"))?;
-        let run_dir = dir.join("run");
-        let mut opts = RunOptions::new(run_dir.clone(), vec!["mscale".into(), "serve".into(), format!("job {id}")]);
-        opts.progress_bar = false;
-        opts.checkpoint_every = if job.checkpoint_every > 0 { job.checkpoint_every } else { core.checkpoint_every };
-        opts.resume = !crate::checkpoint::list(&run_dir)?.is_empty();
-        opts.cancel = Some(cancel.clone());
-        let tx = core.channel(&id).map_err(|s| anyhow::anyhow!("{}", s.message()))?;
-        let (core2, id2) = (core.clone(), id.clone());
-        let last = Mutex::new((Instant::now(), Instant::now()));
-        opts.progress = Some(Arc::new(move |p: &Progress| {
-            let mut last = lock(&last);
-            let now = Instant::now();
-            if !p.done && now.duration_since(last.0) < Duration::from_millis(100) {
-                return;
-            }
-            last.0 = now;
-            let rate = p.session_steps as f64 / p.elapsed_s.max(1e-9);
-            tx.send_modify(|ev| {
-                ev.step = p.step;
-                ev.steps = p.steps;
-                ev.sim_time_s = p.time;
-                ev.end_time_s = p.end_time;
-                ev.percent = 100.0 * p.step as f64 / p.steps.max(1) as f64;
-                ev.eta_s = if p.session_steps > 0 { (p.steps - p.step.min(p.steps)) as f64 / rate } else { -1.0 };
-                ev.energy_drift = p.energy_drift;
-            });
-            if p.done || now.duration_since(last.1) > Duration::from_secs(1) {
-                last.1 = now;
-                if let Err(e) = lock(&core2.store).progress(&id2, p.step, p.steps, p.time) {
-                    tracing::warn!("job {id2}: cannot record progress: {e:#}");
-                }
-            }
-        }));
-        if opts.resume {
-            tracing::info!("job {id}: resuming from its last checkpoint");
-        }
-        run::run(&loaded, &opts)
-    })();
+    let outcome = run_on_workers(core, &job, &flags.0, &flags.2);
     *lock(&core.running) = None;
+    let stopping = core.stopping.load(Ordering::SeqCst);
     match outcome {
-        Ok(Outcome::Completed(summary)) => {
+        Attempt::Done(Outcome::Completed(summary)) => {
             let digest = summary["state_digest"].as_str().unwrap_or_default().to_string();
             tracing::info!("job {id} completed, state_digest {digest}");
             transition(core, &id, JobState::Completed, "", &digest);
         }
-        Ok(Outcome::Failed(_, why)) => transition(core, &id, JobState::Failed, &why, ""),
-        Ok(Outcome::Cancelled { checkpoint, step }) if core.stopping.load(Ordering::SeqCst) => {
+        Attempt::Done(Outcome::Failed(_, why)) => {
+            tracing::error!("job {id} failed: {why}");
+            transition(core, &id, JobState::Failed, &why, "")
+        }
+        Attempt::Done(Outcome::Cancelled { checkpoint, step }) if stopping && !flags.1.load(Ordering::SeqCst) => {
             tracing::info!("job {id}: checkpointed at step {step} ({}) as the orchestrator stops", checkpoint.display());
             transition(core, &id, JobState::Queued, "the orchestrator stopped; resumes from its last checkpoint", "");
         }
-        Ok(Outcome::Cancelled { step, .. }) => transition(core, &id, JobState::Cancelled, &format!("cancelled by a user after step {step}"), ""),
-        Err(e) => transition(core, &id, JobState::Failed, &format!("{e:#}"), ""),
+        Attempt::Done(Outcome::Cancelled { step, .. }) => transition(core, &id, JobState::Cancelled, &format!("cancelled by a user after step {step}"), ""),
+        Attempt::Error(e) => {
+            tracing::error!("job {id} failed: {e:#}");
+            transition(core, &id, JobState::Failed, &format!("{e:#}"), "")
+        }
     }
+}
+
+/// Runs a job on the usable workers (in-process when there are none), moving it off workers
+/// that are lost on the way: the run rolls back to its last checkpoint (from the start when
+/// it has none) onto the surviving workers of the same back end and precision.
+fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, reassign: &Arc<AtomicBool>) -> Attempt {
+    let id = &job.id;
+    let run_dir = core.job_dir(id).join("run");
+    let loaded = match scene::load(&core.job_dir(id).join("input/scene.toml"), &job.overrides) {
+        Ok(l) => l,
+        Err(e) => return Attempt::Error(anyhow::anyhow!("{e}")),
+    };
+    // Once boxes lived on workers of one kind, they only move to workers of that kind.
+    let mut kind: Option<String> = None;
+    let mut rollbacks = 0;
+    loop {
+        let assigned = workers::choose(&lock(&core.workers).usable(), kind.as_deref());
+        if let (Some(k), true) = (&kind, assigned.is_empty()) {
+            return Attempt::Done(Outcome::Failed(serde_json::Value::Null, format!("no live worker of back end {k} is left to take the job's boxes")));
+        }
+        let epochs: Vec<u64> = assigned.iter().map(|w| w.epoch).collect();
+        lock(&core.workers).set_busy(&epochs, id);
+        if let Some(r) = lock(&core.running).as_mut() {
+            r.workers = epochs.clone();
+        }
+        let last_step = Arc::new(AtomicU64::new(0));
+        let result = match attempt(core, job, &loaded, &run_dir, &assigned, stop, &last_step) {
+            Ok(o) => Attempt::Done(o),
+            Err(e) => Attempt::Error(e),
+        };
+        lock(&core.workers).set_busy(&epochs, "");
+        let step = last_step.load(Ordering::SeqCst);
+        let why = match &result {
+            Attempt::Done(Outcome::Cancelled { step, .. }) if reassign.load(Ordering::SeqCst) && !core.stopping.load(Ordering::SeqCst) && !is_user_cancel(core, id) => {
+                reassign.store(false, Ordering::SeqCst);
+                stop.store(false, Ordering::SeqCst);
+                kind = assigned.first().map(WorkerRecord::kind);
+                note(core, id, &format!("a worker was declared lost; checkpointed after step {step} and continues on the live workers"));
+                continue;
+            }
+            Attempt::Done(Outcome::Failed(_, why)) if !assigned.is_empty() => why.clone(),
+            Attempt::Error(e) if !assigned.is_empty() => format!("{e:#}"),
+            _ => return result,
+        };
+        // Did it fail because workers are gone? (Not: an error of a worker that still answers.)
+        let lost: Vec<&WorkerRecord> = assigned
+            .iter()
+            .filter(|w| {
+                let gone = lock(&core.workers).get(w.epoch).is_none_or(|r| r.state == WorkerState::Lost);
+                gone || !workers::answers(&w.ad.address, Duration::from_secs(3))
+            })
+            .collect();
+        if lost.is_empty() {
+            return result;
+        }
+        let at = step + 1;
+        let names = lost.iter().map(|w| format!("{} at {}", w.id, w.ad.address)).collect::<Vec<_>>().join(", ");
+        {
+            let mut reg = lock(&core.workers);
+            for w in &lost {
+                if let Err(e) = reg.declare_lost(&mut lock(&core.store), w.epoch, &format!("stopped answering during step {at} of job {id}")) {
+                    tracing::error!("cannot record worker {} as lost: {e:#}", w.id);
+                }
+            }
+        }
+        let k = assigned[0].kind();
+        let survivors = workers::choose(&lock(&core.workers).usable(), Some(&k));
+        if survivors.is_empty() {
+            return Attempt::Done(Outcome::Failed(
+                serde_json::Value::Null,
+                format!("worker {names} was lost at step {at} ({why}); no live worker of back end {k} is left to restore its boxes onto"),
+            ));
+        }
+        rollbacks += 1;
+        if rollbacks > MAX_ROLLBACKS {
+            return Attempt::Done(Outcome::Failed(serde_json::Value::Null, format!("worker {names} was lost at step {at}; the job lost workers {rollbacks} times and gives up")));
+        }
+        let from = crate::checkpoint::list(&run_dir).ok().and_then(|l| l.first().map(|c| c.0));
+        let from = from.map_or("the start (no checkpoint yet)".to_string(), |s| format!("its checkpoint of step {s}"));
+        let onto = survivors.iter().map(|w| w.id.as_str()).collect::<Vec<_>>().join(", ");
+        note(core, id, &format!("worker {names} was lost at step {at}; rolled back to {from} onto {onto}"));
+        tracing::warn!("job {id}: worker {names} was lost at step {at} ({why}); rolling back to {from} onto {onto}");
+        kind = Some(k);
+    }
+}
+
+fn is_user_cancel(core: &Core, id: &str) -> bool {
+    lock(&core.running).as_ref().is_some_and(|r| r.id == id && r.user_cancel.load(Ordering::SeqCst))
+}
+
+fn note(core: &Core, id: &str, text: &str) {
+    if let Err(e) = lock(&core.store).note(id, text) {
+        tracing::error!("job {id}: cannot record {text:?}: {e:#}");
+    }
+}
+
+/// The job's workers as a watch event shows them, with their load in this attempt.
+fn job_workers(core: &Core, assigned: &[WorkerRecord], md: Option<&Arc<Mutex<MdShared>>>) -> Vec<pb::JobWorker> {
+    let load = md.and_then(|m| m.try_lock().ok().map(|m| m.pool.endpoint_load())).unwrap_or_default();
+    let reg = lock(&core.workers);
+    assigned
+        .iter()
+        .enumerate()
+        .map(|(k, w)| {
+            let l = load.get(k).cloned().unwrap_or_default();
+            pb::JobWorker {
+                worker_id: w.id.clone(),
+                address: w.ad.address.clone(),
+                state: pb_worker_state(reg.get(w.epoch).map_or(WorkerState::Lost, |r| r.state)) as i32,
+                boxes: l.boxes as u32,
+                advertised_atom_steps_per_s: w.ad.atom_steps_per_s,
+                measured_atom_steps_per_s: if l.step_seconds > 0.0 { l.atom_steps / l.step_seconds } else { 0.0 },
+            }
+        })
+        .collect()
+}
+
+/// One run of a job on `assigned` (in-process when empty), from its newest checkpoint if any.
+fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_dir: &Path, assigned: &[WorkerRecord], stop: &Arc<AtomicBool>, last_step: &Arc<AtomicU64>) -> Result<Outcome> {
+    let id = job.id.clone();
+    let mut opts = RunOptions::new(run_dir.to_path_buf(), vec!["mscale".into(), "serve".into(), format!("job {id}")]);
+    opts.progress_bar = false;
+    opts.checkpoint_every = if job.checkpoint_every > 0 { job.checkpoint_every } else { core.checkpoint_every };
+    opts.resume = !crate::checkpoint::list(run_dir)?.is_empty();
+    opts.cancel = Some(stop.clone());
+    opts.workers = assigned.iter().map(|w| w.ad.address.clone()).collect();
+    opts.worker_weights = assigned.iter().map(|w| w.ad.atom_steps_per_s).collect();
+    let md_slot: Arc<Mutex<Option<Arc<Mutex<MdShared>>>>> = Arc::default();
+    let slot = md_slot.clone();
+    opts.md_hook = Some(Arc::new(move |m: &Arc<Mutex<MdShared>>| *lock(&slot) = Some(m.clone())));
+    let tx = core.channel(&id).map_err(|s| anyhow::anyhow!("{}", s.message()))?;
+    let (core2, id2, assigned2, last_step) = (core.clone(), id.clone(), assigned.to_vec(), last_step.clone());
+    let last = Mutex::new((Instant::now(), Instant::now()));
+    opts.progress = Some(Arc::new(move |p: &Progress| {
+        last_step.store(p.step, Ordering::SeqCst);
+        let mut last = lock(&last);
+        let now = Instant::now();
+        if !p.done && now.duration_since(last.0) < Duration::from_millis(100) {
+            return;
+        }
+        last.0 = now;
+        let rate = p.session_steps as f64 / p.elapsed_s.max(1e-9);
+        let workers = if assigned2.is_empty() { Vec::new() } else { job_workers(&core2, &assigned2, lock(&md_slot).as_ref()) };
+        tx.send_modify(|ev| {
+            ev.step = p.step;
+            ev.steps = p.steps;
+            ev.sim_time_s = p.time;
+            ev.end_time_s = p.end_time;
+            ev.percent = 100.0 * p.step as f64 / p.steps.max(1) as f64;
+            ev.eta_s = if p.session_steps > 0 { (p.steps - p.step.min(p.steps)) as f64 / rate } else { -1.0 };
+            ev.energy_drift = p.energy_drift;
+            ev.workers = workers;
+        });
+        if p.done || now.duration_since(last.1) > Duration::from_secs(1) {
+            last.1 = now;
+            if let Err(e) = lock(&core2.store).progress(&id2, p.step, p.steps, p.time) {
+                tracing::warn!("job {id2}: cannot record progress: {e:#}");
+            }
+        }
+    }));
+    if opts.resume {
+        tracing::info!("job {id}: resuming from its last checkpoint");
+    }
+    if assigned.is_empty() {
+        tracing::info!("job {id}: no live workers; MD (if any) runs in this process");
+    } else {
+        let shares = assigned.iter().map(|w| format!("{} at {} ({:.3e} atom-steps/s)", w.id, w.ad.address, w.ad.atom_steps_per_s)).collect::<Vec<_>>().join(", ");
+        tracing::info!("job {id}: on workers {shares}");
+    }
+    run::run(loaded, &opts)
 }
 
 /// Applies `f` to every string value of a TOML document.
@@ -461,10 +721,9 @@ impl Orchestrator for JobService {
         match job.state {
             JobState::Queued => transition(&self.core, &id, JobState::Cancelled, "cancelled by a user before it started", ""),
             JobState::Running => {
-                if let Some((rid, flag)) = lock(&self.core.running).as_ref() {
-                    if *rid == id {
-                        flag.store(true, Ordering::SeqCst);
-                    }
+                if let Some(run) = lock(&self.core.running).as_ref().filter(|r| r.id == id) {
+                    run.user_cancel.store(true, Ordering::SeqCst);
+                    run.stop.store(true, Ordering::SeqCst);
                 }
             }
             _ => return Err(Status::failed_precondition(format!("job {id} has already ended ({})", job.state.as_str()))),
@@ -484,6 +743,64 @@ impl Orchestrator for JobService {
         let content = std::fs::read(&path).map_err(|e| Status::not_found(format!("{}: {e}", req.path)))?;
         let sha256 = hex::encode(Sha256::digest(&content));
         Ok(Response::new(pb::FetchResultResponse { content, sha256 }))
+    }
+
+    async fn register_worker(&self, req: Request<pb::RegisterWorkerRequest>) -> Result<Response<pb::RegisterWorkerResponse>, Status> {
+        self.register(req).await
+    }
+
+    async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Result<Response<pb::HeartbeatResponse>, Status> {
+        self.authorize(&req, "Heartbeat")?;
+        let r = req.into_inner();
+        let drain = lock(&self.core.workers).heartbeat(&r.worker_id, r.epoch, r.protocol_version).map_err(worker_status)?;
+        Ok(Response::new(pb::HeartbeatResponse { drain }))
+    }
+
+    async fn drain_worker(&self, req: Request<pb::DrainWorkerRequest>) -> Result<Response<pb::Worker>, Status> {
+        self.authorize(&req, "DrainWorker")?;
+        let id = req.into_inner().worker_id;
+        let core = self.core.clone();
+        let view = blocking(move || {
+            let mut reg = lock(&core.workers);
+            let w = reg.drain(&mut lock(&core.store), &id).map_err(worker_status)?;
+            Ok(reg.list().into_iter().find(|v| v.record.epoch == w.epoch).ok_or_else(|| Status::internal("drained worker vanished"))?)
+        })
+        .await?;
+        Ok(Response::new(worker_to_pb(&view)))
+    }
+
+    async fn list_workers(&self, _: Request<pb::ListWorkersRequest>) -> Result<Response<pb::ListWorkersResponse>, Status> {
+        let workers = lock(&self.core.workers).list().iter().map(worker_to_pb).collect();
+        Ok(Response::new(pb::ListWorkersResponse { workers }))
+    }
+}
+
+/// The worker RPCs, off the trait impl to keep it to decoding and encoding.
+impl JobService {
+    async fn register(&self, req: Request<pb::RegisterWorkerRequest>) -> Result<Response<pb::RegisterWorkerResponse>, Status> {
+        self.authorize(&req, "RegisterWorker")?;
+        let r = req.into_inner();
+        let ad = WorkerAd {
+            address: r.address,
+            device: r.device,
+            backend: r.backend,
+            precision: r.precision,
+            cores: r.cores,
+            memory_bytes: r.memory_bytes,
+            atom_steps_per_s: r.atom_steps_per_s,
+            throughput_source: r.throughput_source,
+            protocol_version: r.protocol_version,
+        };
+        let core = self.core.clone();
+        let (w, timeout) = blocking(move || {
+            let mut reg = lock(&core.workers);
+            let w = reg.register(&mut lock(&core.store), ad).map_err(worker_status)?;
+            Ok((w, reg.timeout()))
+        })
+        .await?;
+        tracing::info!("worker {} registered: {} ({}, {}/{}), {:.3e} atom-steps/s ({})", w.id, w.ad.address, w.ad.device, w.ad.backend, w.ad.precision, w.ad.atom_steps_per_s, w.ad.throughput_source);
+        self.core.wake_runner();
+        Ok(Response::new(pb::RegisterWorkerResponse { worker_id: w.id, epoch: w.epoch, timeout_s: timeout.as_secs_f64() }))
     }
 }
 
@@ -513,7 +830,11 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
     for id in store.requeue_interrupted()? {
         tracing::info!("job {id} was running when the orchestrator stopped: queued again, resumes from its last checkpoint");
     }
+    let registry = Registry::load(&store, opts.worker_timeout)?;
     let core = Arc::new(Core {
+        workers: Mutex::new(registry),
+        expect_workers: opts.local_workers,
+        started: Instant::now(),
         store: Mutex::new(store),
         state_dir: opts.state_dir.clone(),
         token: opts.token,
@@ -525,12 +846,20 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         wake: (Mutex::new(false), Condvar::new()),
         next_id: AtomicU64::new(0),
     });
+    let listener = std::net::TcpListener::bind(addr).with_context(|| format!("cannot listen on {addr}"))?;
+    listener.set_nonblocking(true)?;
+    let bound = listener.local_addr()?;
+    // Started from this (the main) thread: they die with the process (see LocalWorkers), and
+    // are killed when `_local` is dropped, after the runner stopped.
+    let scheme = if opts.tls.is_some() { "https" } else { "http" };
+    let _local = workers::LocalWorkers::start(opts.local_workers, &format!("{scheme}://{bound}"), &opts.token_file, opts.local_ca.as_deref(), &opts.state_dir.join("workers"))?;
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("cannot start the gRPC runtime")?;
     let runner_core = core.clone();
     let runner_thread = std::thread::Builder::new().name("job-runner".into()).spawn(move || runner(runner_core)).context("cannot start the job runner")?;
+    let monitor_core = core.clone();
+    let monitor_thread = std::thread::Builder::new().name("worker-monitor".into()).spawn(move || monitor(monitor_core)).context("cannot start the worker monitor")?;
     let result = rt.block_on(async {
-        let listener = tokio::net::TcpListener::bind(addr).await.with_context(|| format!("cannot listen on {addr}"))?;
-        let bound = listener.local_addr()?;
+        let listener = tokio::net::TcpListener::from_std(listener)?;
         let (mut health, health_service) = tonic_health::server::health_reporter();
         health.set_not_serving::<OrchestratorServer<JobService>>().await;
         let reflection = tonic_reflection::server::Builder::configure().register_encoded_file_descriptor_set(mscale_proto::FILE_DESCRIPTOR_SET).build_v1().context("reflection")?;
@@ -565,14 +894,15 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
     });
     stop(&core);
     let _ = runner_thread.join();
+    let _ = monitor_thread.join();
     result
 }
 
 /// Stops the runner (the running job checkpoints and stays queued) and ends watch streams.
 fn stop(core: &Core) {
     core.stopping.store(true, Ordering::SeqCst);
-    if let Some((_, flag)) = lock(&core.running).as_ref() {
-        flag.store(true, Ordering::SeqCst);
+    if let Some(run) = lock(&core.running).as_ref() {
+        run.stop.store(true, Ordering::SeqCst);
     }
     core.stop_watchers.send_replace(true);
     core.wake_runner();
