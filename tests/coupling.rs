@@ -80,3 +80,106 @@ fn a_worker_killed_mid_run_stops_the_run_naming_it_and_the_step() {
     let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary")).expect("json");
     assert_eq!(s["status"], "failed");
 }
+
+/// Runs the small coupled scene with `sets`, in-process or on `workers`; returns the run directory.
+fn run_small(out: &Path, sets: &[&str], workers: Option<&str>) -> std::path::PathBuf {
+    let scene = repo().join("tests/data/md-small.toml");
+    let mut args = vec!["run", scene.to_str().expect("utf8"), "--out", out.to_str().expect("utf8")];
+    for s in sets {
+        args.extend(["--set", s]);
+    }
+    if let Some(w) = workers {
+        args.extend(["--workers", w]);
+    }
+    let o = mscale(&args);
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    out.to_path_buf()
+}
+
+#[test]
+fn average_stress_sampling_runs_and_gives_the_same_digest_in_process_and_remote() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let avg = ["bodies.left.material.stress_sampling=average", "bodies.right.material.stress_sampling=average"];
+    let local = run_small(&tmp.path().join("local"), &avg, None);
+    let (a, b) = (Worker::start(1), Worker::start(2));
+    let two = run_small(&tmp.path().join("two"), &avg, Some(&format!("{},{}", a.addr, b.addr)));
+    assert_eq!(digest(&local), digest(&two), "average sampling: in-process vs two remote workers");
+    let resolved = std::fs::read_to_string(local.join("scene.resolved.toml")).expect("resolved scene");
+    assert!(resolved.contains("stress_sampling = \"average\""), "{resolved}");
+    // The choice reaches the boxes: the stresses (and so the run) differ from `last`.
+    let last = run_small(&tmp.path().join("last"), &[], None);
+    assert_ne!(digest(&local), digest(&last), "average and last sampling gave the same run");
+}
+
+/// Dump frames of a file: (timestep, atom lines).
+fn dump_frames(path: &Path) -> Vec<(u64, Vec<String>)> {
+    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let mut frames = Vec::new();
+    let mut lines = text.lines().peekable();
+    while let Some(l) = lines.next() {
+        assert_eq!(l, "ITEM: TIMESTEP", "{}", path.display());
+        let step: u64 = lines.next().expect("step").parse().expect("step number");
+        assert_eq!(lines.next(), Some("ITEM: NUMBER OF ATOMS"));
+        let n: usize = lines.next().expect("count").parse().expect("atom count");
+        assert_eq!(lines.next(), Some("ITEM: BOX BOUNDS pp pp pp"));
+        for _ in 0..3 {
+            let b: Vec<f64> = lines.next().expect("bounds").split_whitespace().map(|v| v.parse().expect("bound")).collect();
+            assert!(b.len() == 2 && b[1] > b[0], "bounds {b:?}");
+        }
+        assert_eq!(lines.next(), Some("ITEM: ATOMS id type x y z vx vy vz"));
+        let atoms: Vec<String> = (0..n).map(|_| lines.next().expect("atom line").to_string()).collect();
+        for a in &atoms {
+            let v: Vec<f64> = a.split_whitespace().map(|v| v.parse().expect("number")).collect();
+            assert!(v.len() == 8 && v.iter().all(|x| x.is_finite()), "{a}");
+        }
+        frames.push((step, atoms));
+    }
+    frames
+}
+
+#[test]
+fn chosen_boxes_are_dumped_for_ovito_at_every_snapshot_in_process_and_remote() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let sets = ["output.dump_points=[4, 1]"];
+    let local = run_small(&tmp.path().join("local"), &sets, None);
+    let w = Worker::start(1);
+    let remote = run_small(&tmp.path().join("remote"), &sets, Some(&w.addr));
+    let index = std::fs::read_to_string(local.join("snapshots/index.csv")).expect("index");
+    let steps: Vec<u64> = index.lines().skip(1).map(|l| l.split(',').next().expect("step").parse().expect("step")).collect();
+    assert!(steps.len() >= 2, "{index}");
+    for id in [1, 4] {
+        let file = format!("boxes/point-{id}.dump");
+        let frames = dump_frames(&local.join(&file));
+        assert_eq!(frames.iter().map(|f| f.0).collect::<Vec<_>>(), steps, "{file}: one frame per snapshot, stamped with its continuum step");
+        assert!(frames.iter().all(|f| f.1.len() == 32), "{file}: 2x2x2 fcc cells = 32 atoms");
+        assert_ne!(frames[0].1, frames[frames.len() - 1].1, "{file}: the atoms moved");
+        let same = std::fs::read(local.join(&file)).expect("local dump") == std::fs::read(remote.join(&file)).expect("remote dump");
+        assert!(same, "{file}: in-process and remote dumps differ");
+    }
+    assert!(!local.join("boxes/point-0.dump").exists(), "only the chosen boxes are dumped");
+}
+
+#[test]
+fn dump_points_must_name_points_of_md_bodies() {
+    use orchestrator::scene;
+    let md_small = repo().join("tests/data/md-small.toml");
+    let err = |path: &Path, sets: &[&str]| {
+        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        scene::load(path, &sets).expect_err("must be refused").to_string()
+    };
+    let e = err(&md_small, &["output.dump_points=[2, 6]"]);
+    for part in ["md-small.toml", "--set output.dump_points=[2, 6]", "`output.dump_points[1]` = 6", "no such material point", "ids 0..=5", "0..=2 (body `left`)", "3..=5 (body `right`)"] {
+        assert!(e.contains(part), "{e:?} lacks {part:?}");
+    }
+    let e = err(&md_small, &["output.dump_points=[3, 3]"]);
+    assert!(e.contains("`output.dump_points[1]` = 3") && e.contains("listed twice"), "{e}");
+    // In the file: the line is named. A gas body has no boxes.
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let gas = tmp.path().join("gas.toml");
+    let text = mscale_tests::small_scene();
+    assert!(text.contains("[output]\n"), "test bug: the small scene has no [output] table");
+    std::fs::write(&gas, text.replacen("[output]\n", "[output]\ndump_points = [0]\n", 1)).expect("write");
+    let e = err(&gas, &[]);
+    assert!(e.contains("gas.toml, line ") && e.contains("`output.dump_points[0]` = 0") && e.contains("which has no MD box") && e.contains("the scene has no md body"), "{e}");
+    assert!(scene::load(&md_small, &["output.dump_points=[0, 5]".to_string()]).is_ok());
+}

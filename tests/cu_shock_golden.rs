@@ -12,7 +12,7 @@ fn box_stress(strain: f64) -> [f64; 6] {
     spec.strain = [strain, 0.0, 0.0];
     md.open(&[spec]).expect("open");
     let mut out = [BoxResult::default()];
-    md.step(&[BoxWork { id: 0, velocity_gradient: [[0.0; 3]; 3], steps: 0, dt_ps: 0.001, energy_to_add_ev: 0.0 }], &mut out).expect("step");
+    md.step(&[BoxWork::new(0, [[0.0; 3]; 3], 0, 0.001)], &mut out).expect("step");
     out[0].stress_gpa
 }
 

@@ -8,11 +8,17 @@
 //! parallel. Energy consistency (Ch. 7.2, eq. 7.11): the work the continuum does on a point
 //! over a step, (sigma : D) V dt with the box's volume, minus the change of the box's energy
 //! over that step, is added to the box as kinetic energy at the start of its next call.
+//!
+//! Stress sampling (Ch. 6-7): a point's stress is the box's virial stress after the last MD
+//! step of the continuum step (`last`, the seed's default) or the mean over the step's MD steps
+//! (`average`, computed by the worker after every MD step, in step order). With `average`, the
+//! continuum work of the energy balance uses that mean (the step's own time average) instead
+//! of the trapezoid of the stresses at the ends of the step.
 
 use crate::closure::{Closure, ClosureBatch, ClosureError};
 use crate::tensor::{self, Mat3};
 use md_worker::pool::MdPool;
-use md_worker::{BoxResult, BoxSpec, BoxWork};
+use md_worker::{BoxResult, BoxSpec, BoxWork, StressSampling};
 use std::sync::{Arc, Mutex};
 
 /// 1 GPa = 1e9 Pa.
@@ -77,6 +83,8 @@ pub struct MdSettings {
     pub energy_consistency: bool,
     /// Longitudinal wave speed of the material at rest (m/s), for the CFL bound and viscosity.
     pub wave_speed: f64,
+    /// Stress at the last MD step of a continuum step, or averaged over its MD steps.
+    pub stress_sampling: StressSampling,
 }
 
 pub struct MdClosure {
@@ -135,6 +143,7 @@ impl MdClosure {
                     steps,
                     dt_ps: dt_md,
                     energy_to_add_ev: if self.settings.energy_consistency && steps > 0 { pending } else { 0.0 },
+                    stress_sampling: self.settings.stress_sampling,
                 }
             })
             .collect();
@@ -151,8 +160,13 @@ impl MdClosure {
                 let d = tensor::sym(&w.velocity_gradient);
                 let old_volume: f64 = state.last.diagnostics.lengths_a.iter().product();
                 let new_volume: f64 = r.diagnostics.lengths_a.iter().product();
-                let mid: [f64; 6] = std::array::from_fn(|c| 0.5 * (state.last.stress_gpa[c] + r.stress_gpa[c]));
-                let work_ev = stress_work_ev(&mid, &d, 0.5 * (old_volume + new_volume), steps as f64 * dt_md);
+                // The stress over the step: the trapezoid of its ends, or (average sampling) the
+                // step's own mean.
+                let over_step: [f64; 6] = match w.stress_sampling {
+                    StressSampling::Average => r.stress_gpa,
+                    StressSampling::Last => std::array::from_fn(|c| 0.5 * (state.last.stress_gpa[c] + r.stress_gpa[c])),
+                };
+                let work_ev = stress_work_ev(&over_step, &d, 0.5 * (old_volume + new_volume), steps as f64 * dt_md);
                 let energy = |x: &BoxResult| x.potential_energy_ev + x.kinetic_energy_ev;
                 // What was really added: a removal larger than the box's kinetic energy falls short.
                 let added = w.energy_to_add_ev + r.diagnostics.energy_shortfall_ev;

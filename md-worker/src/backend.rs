@@ -94,6 +94,42 @@ impl BoxSpec {
     }
 }
 
+/// Which stress a step call returns (thesis Ch. 6-7: the seed's default is the stress at the
+/// last MD step; the alternative averages over the continuum step). Chosen per call.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StressSampling {
+    /// The virial stress after the last MD step of the call.
+    #[default]
+    Last,
+    /// The mean of the virial stresses after each MD step of the call (steps 1..=n, summed in
+    /// step order, then divided by n: deterministic). A call of one step gives exactly `Last`;
+    /// a call of zero steps gives the current stress, as `Last` does. Energies and temperature
+    /// are not averaged (see [`BoxResult`]).
+    Average,
+}
+
+impl StressSampling {
+    /// `last` or `average`.
+    pub fn name(self) -> &'static str {
+        match self {
+            StressSampling::Last => "last",
+            StressSampling::Average => "average",
+        }
+    }
+}
+
+impl std::str::FromStr for StressSampling {
+    type Err = MdError;
+    fn from_str(s: &str) -> Result<Self, MdError> {
+        match s {
+            "last" => Ok(StressSampling::Last),
+            "average" => Ok(StressSampling::Average),
+            other => Err(MdError::invalid("stress sampling", format!("{other:?}; expected last or average"))),
+        }
+    }
+}
+
 /// One box's work in a step call.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct BoxWork {
@@ -107,6 +143,16 @@ pub struct BoxWork {
     pub dt_ps: f64,
     /// Energy added as thermal kinetic energy before the steps (eV); negative removes.
     pub energy_to_add_ev: f64,
+    /// Which stress the call returns (absent in older serialisations: `last`).
+    #[serde(default)]
+    pub stress_sampling: StressSampling,
+}
+
+impl BoxWork {
+    /// Work without energy addition, returning the stress at the last step.
+    pub fn new(id: PointId, velocity_gradient: [[f64; 3]; 3], steps: u64, dt_ps: f64) -> Self {
+        BoxWork { id, velocity_gradient, steps, dt_ps, energy_to_add_ev: 0.0, stress_sampling: StressSampling::Last }
+    }
 }
 
 /// Diagnostics of one box after a step call.
@@ -125,18 +171,27 @@ pub struct Diagnostics {
 }
 
 /// One box's result.
+///
+/// Energies and temperature are always those at the end of the call, whatever the stress
+/// sampling: energy consistency (thesis eq. 7.11) balances the box's energy between the ends of
+/// continuum steps, and an averaged kinetic energy would not be the energy the box has.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct BoxResult {
     /// Which box.
     pub id: PointId,
-    /// Virial Cauchy stress (GPa, tension positive), order xx yy zz xy xz yz, at the last step.
+    /// Virial Cauchy stress (GPa, tension positive), order xx yy zz xy xz yz: at the last step,
+    /// or the mean over the call's steps (see `stress_sampling`).
     pub stress_gpa: [f64; 6],
-    /// Potential energy (eV).
+    /// Potential energy at the end of the call (eV).
     pub potential_energy_ev: f64,
-    /// Kinetic energy about the box's mean velocity (eV).
+    /// Kinetic energy about the box's mean velocity at the end of the call (eV).
     pub kinetic_energy_ev: f64,
-    /// Temperature (K), 3N - 3 degrees of freedom.
+    /// Temperature at the end of the call (K), 3N - 3 degrees of freedom.
     pub temperature_k: f64,
+    /// How `stress_gpa` was sampled (echoes the work's choice; the pool checks it, so a worker
+    /// that ignores the choice is caught rather than silently returning the last stress).
+    #[serde(default)]
+    pub stress_sampling: StressSampling,
     /// Diagnostics.
     pub diagnostics: Diagnostics,
 }
@@ -569,9 +624,26 @@ fn advance_box(pot: &Potential, masses: &[f64], b: &mut BoxView, w: &BoxWork) ->
     let shortfall = add_thermal_energy(masses, b, w.energy_to_add_ev);
     let def = Deformation::new(b.meta.mode, &w.velocity_gradient);
     let (mut rho, mut fp) = (Vec::new(), Vec::new());
+    let average = w.stress_sampling == StressSampling::Average;
+    // Sum of the stresses after each step, in step order (average sampling only).
+    let mut sum: Option<[f64; 6]> = None;
+    let sample = |b: &BoxView| {
+        if average {
+            let s = kernel::virial_stress(b.meta, &kernel::kinetic_tensor(b.types, b.v, masses));
+            match &mut sum {
+                None => sum = Some(s),
+                Some(a) => (0..6).for_each(|c| a[c] += s[c]),
+            }
+        }
+    };
     // Idle boxes keep no neighbour list nor build reference (memory: see kernel::with_fresh_list).
-    let wraps = kernel::with_fresh_list(pot, b, |b| kernel::run_steps(pot, masses, b, &def, w.steps, w.dt_ps, &mut rho, &mut fp));
+    let wraps = kernel::with_fresh_list(pot, b, |b| kernel::run_steps_with(pot, masses, b, &def, w.steps, w.dt_ps, &mut rho, &mut fp, sample));
     let mut r = measure(masses, b);
+    if let Some(a) = sum {
+        // The last sample is exactly `measure`'s stress, so one step gives `Last` bit for bit.
+        r.stress_gpa = a.map(|x| x / w.steps as f64);
+    }
+    r.stress_sampling = w.stress_sampling;
     r.diagnostics.energy_shortfall_ev = shortfall;
     r.diagnostics.wraps = wraps;
     r
@@ -586,6 +658,7 @@ pub fn measure(masses: &[f64], b: &BoxView) -> BoxResult {
         potential_energy_ev: b.meta.pe,
         kinetic_energy_ev: 0.5 * (kin[0] + kin[1] + kin[2]),
         temperature_k: kernel::temperature(&kin, b.x.len()),
+        stress_sampling: StressSampling::Last,
         diagnostics: Diagnostics {
             total_steps: b.meta.step,
             lengths_a: b.meta.l,

@@ -495,6 +495,24 @@ pub fn run_steps(
     rho: &mut Vec<f64>,
     fp: &mut Vec<f64>,
 ) -> u64 {
+    run_steps_with(pot, masses, b, def, steps, dt, rho, fp, |_| {})
+}
+
+/// [`run_steps`], calling `after_step` on the box after every step (once the step is complete:
+/// forces, velocities, box and positions all belong to the step's end, so a measure taken there
+/// after the last step is the one taken after the call).
+#[allow(clippy::too_many_arguments)]
+pub fn run_steps_with(
+    pot: &Potential,
+    masses: &[f64],
+    b: &mut BoxView,
+    def: &Deformation,
+    steps: u64,
+    dt: f64,
+    rho: &mut Vec<f64>,
+    fp: &mut Vec<f64>,
+    mut after_step: impl FnMut(&BoxView),
+) -> u64 {
     let dtf = 0.5 * dt * FTM2V;
     let mode = b.meta.mode;
     let g = def.g;
@@ -543,6 +561,7 @@ pub fn run_steps(
             }
         }
         b.meta.step += 1;
+        after_step(b);
     }
     wraps
 }

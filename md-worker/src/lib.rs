@@ -29,7 +29,7 @@ pub mod wire;
 
 pub use backend::{
     BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, Diagnostics, InitialAtoms, MdBackend, PointId, ReferenceBackend,
-    backend_by_name,
+    StressSampling, backend_by_name,
 };
 pub use error::MdError;
 pub use kernel::DeformMode;

@@ -258,11 +258,11 @@ fn run(
         Ok(())
     };
     let mut out = [BoxResult::default()];
-    backend.step(&[BoxWork { id: 0, velocity_gradient: g, steps: 0, dt_ps: dt, energy_to_add_ev: 0.0 }], &mut out)?;
+    backend.step(&[BoxWork::new(0, g, 0, dt)], &mut out)?;
     emit(&mut backend, &out[0], 0)?;
     while done < steps {
         let n = thermo.min(steps - done);
-        backend.step(&[BoxWork { id: 0, velocity_gradient: g, steps: n, dt_ps: dt, energy_to_add_ev: 0.0 }], &mut out)?;
+        backend.step(&[BoxWork::new(0, g, n, dt)], &mut out)?;
         done += n;
         emit(&mut backend, &out[0], done)?;
     }
@@ -320,7 +320,7 @@ fn bench(
     b.open(&specs)?;
     let natoms = kind_atoms(kind) * cells * cells * cells * boxes;
     let work: Vec<BoxWork> = (0..boxes as u64)
-        .map(|id| BoxWork { id, velocity_gradient: [[1e-3, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], steps, dt_ps: 0.001, energy_to_add_ev: 0.0 })
+        .map(|id| BoxWork::new(id, [[1e-3, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], steps, 0.001))
         .collect();
     let mut out = vec![BoxResult::default(); boxes];
     let mut times = Vec::new();

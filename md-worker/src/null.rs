@@ -4,11 +4,9 @@
 
 use crate::backend::{BoxResult, BoxSpec, BoxState, BoxWork, MdBackend, PointId};
 use crate::error::MdError;
-use std::collections::HashMap;
-
 #[derive(Default)]
 pub struct NullBackend {
-    lengths: HashMap<PointId, [f64; 3]>,
+    lengths: crate::pool::IdMap<[f64; 3]>,
 }
 
 impl MdBackend for NullBackend {
@@ -29,6 +27,7 @@ impl MdBackend for NullBackend {
             r.id = w.id;
             r.diagnostics.lengths_a = l;
             r.diagnostics.total_steps = w.steps;
+            r.stress_sampling = w.stress_sampling;
         }
         Ok(())
     }
@@ -64,7 +63,7 @@ pub fn coupling_round_trip(points: usize, workers: usize, reps: usize) -> Result
     let potential = PotentialSource::from_bytes("null.eam.alloy".into(), b"no potential is parsed by the null back end".to_vec());
     let specs: Vec<BoxSpec> = (0..points as u64).map(|id| BoxSpec::lattice(id, crate::LatticeKind::Fcc, 3.615, [5, 5, 5])).collect();
     pool.open(&potential, &specs)?;
-    let work: Vec<BoxWork> = (0..points as u64).map(|id| BoxWork { id, velocity_gradient: [[1e-3, 0.0, 0.0], [0.0; 3], [0.0; 3]], steps: 250, dt_ps: 0.001, energy_to_add_ev: 0.0 }).collect();
+    let work: Vec<BoxWork> = (0..points as u64).map(|id| BoxWork::new(id, [[1e-3, 0.0, 0.0], [0.0; 3], [0.0; 3]], 250, 0.001)).collect();
     let mut times = Vec::new();
     for step in 0..reps as u64 + 1 {
         let t = std::time::Instant::now();

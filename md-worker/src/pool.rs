@@ -115,15 +115,38 @@ pub struct PoolTimes {
     pub calls: u64,
 }
 
+/// Hasher of point ids for the per-box maps of the step path: one multiply (Fibonacci
+/// hashing). Point ids come from the coordinator itself, so SipHash's resistance to chosen
+/// keys buys nothing here, and it was a visible part of a 20,000-box step's cost.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct IdHasher(u64);
+
+impl std::hash::Hasher for IdHasher {
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    }
+    fn finish(&self) -> u64 {
+        self.0 ^ (self.0 >> 32)
+    }
+}
+
+/// A map keyed by point id with [`IdHasher`].
+pub type IdMap<V> = HashMap<PointId, V, std::hash::BuildHasherDefault<IdHasher>>;
+
 /// Boxes spread over endpoints.
 pub struct MdPool {
     endpoints: Vec<Box<dyn Endpoint>>,
-    owner: HashMap<PointId, usize>,
+    owner: IdMap<usize>,
     pub times: PoolTimes,
     /// Relative throughput of each endpoint (empty: equal); `open` spreads boxes by it.
     weights: Vec<f64>,
     /// Atoms of each box (from its spec), for the per-endpoint load.
-    atoms: HashMap<PointId, u64>,
+    atoms: IdMap<u64>,
     /// Per endpoint: seconds in step calls and atom-steps done.
     load: Vec<(f64, f64)>,
 }
@@ -176,14 +199,13 @@ fn spec_atoms(s: &BoxSpec) -> u64 {
     }
 }
 
-
 impl MdPool {
     pub fn new(endpoints: Vec<Box<dyn Endpoint>>) -> Result<Self, MdError> {
         if endpoints.is_empty() {
             return Err(MdError::invalid("pool", "no endpoints"));
         }
         let load = vec![(0.0, 0.0); endpoints.len()];
-        Ok(MdPool { endpoints, owner: HashMap::new(), times: PoolTimes::default(), weights: Vec::new(), atoms: HashMap::new(), load })
+        Ok(MdPool { endpoints, owner: IdMap::default(), times: PoolTimes::default(), weights: Vec::new(), atoms: IdMap::default(), load })
     }
 
     /// Spreads the boxes of later `open` calls in proportion to these weights (one per
@@ -206,7 +228,6 @@ impl MdPool {
         }
         out
     }
-
 
     pub fn endpoint_names(&self) -> Vec<String> {
         self.endpoints.iter().map(|e| e.name()).collect()
@@ -259,8 +280,9 @@ impl MdPool {
     pub fn step(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
         let start = Instant::now();
         let n = self.endpoints.len();
-        let mut parts: Vec<Vec<BoxWork>> = vec![Vec::new(); n];
-        let mut slot: Vec<Vec<usize>> = vec![Vec::new(); n];
+        let each = work.len() / n + 1;
+        let mut parts: Vec<Vec<BoxWork>> = (0..n).map(|_| Vec::with_capacity(each)).collect();
+        let mut slot: Vec<Vec<usize>> = (0..n).map(|_| Vec::with_capacity(each)).collect();
         for (k, w) in work.iter().enumerate() {
             let e = *self.owner.get(&w.id).ok_or(MdError::UnknownBox(w.id))?;
             parts[e].push(*w);
@@ -286,6 +308,17 @@ impl MdPool {
                     return Err(MdError::invalid("worker reply", format!("{} answered point {} for point {}", self.endpoints[e].name(), r.id, work[*k].id)));
                 }
                 wire::check_result(&r, &self.endpoints[e].name())?;
+                if r.stress_sampling != work[*k].stress_sampling {
+                    return Err(MdError::Worker {
+                        worker: self.endpoints[e].name(),
+                        msg: format!(
+                            "returned the `{}` stress of point {} when `{}` was asked (a worker that predates stress sampling?)",
+                            r.stress_sampling.name(),
+                            r.id,
+                            work[*k].stress_sampling.name()
+                        ),
+                    });
+                }
                 out[*k] = r;
             }
         }
@@ -372,6 +405,8 @@ impl Remote {
                 .map_err(|e| worker(format!("bad address: {e}")))?
                 .connect_timeout(std::time::Duration::from_secs(10))
                 .tcp_nodelay(true)
+                .initial_stream_window_size(wire::HTTP2_STREAM_WINDOW)
+                .initial_connection_window_size(wire::HTTP2_CONNECTION_WINDOW)
                 .connect()
                 .await
                 .map_err(|e| worker(format!("cannot connect: {e}")))?;
@@ -427,7 +462,7 @@ impl Endpoint for Remote {
         }
         let addr = self.addr.clone();
         let stream = self.stream.as_mut().ok_or_else(|| MdError::invalid("pool", "no step stream"))?;
-        let chunks: Vec<&[BoxWork]> = work.chunks(wire::MAX_BOXES_PER_MESSAGE).collect();
+        let chunks: Vec<&[BoxWork]> = wire::chunks(work).collect();
         let result = self.rt.block_on(async {
             for c in &chunks {
                 let batch = pb::StepBatch { session, step, work: c.iter().map(wire::work_to_pb).collect() };

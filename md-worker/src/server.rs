@@ -201,13 +201,20 @@ pub async fn serve(listener: tokio::net::TcpListener, opts: ServeOptions, shutdo
     let reflection = tonic_reflection::server::Builder::configure().register_encoded_file_descriptor_set(mscale_proto::FILE_DESCRIPTOR_SET).build_v1()?;
     let service = MdWorkerServer::new(WorkerService::new(opts)).max_decoding_message_size(wire::MAX_MESSAGE).max_encoding_message_size(wire::MAX_MESSAGE);
     health.set_serving::<MdWorkerServer<WorkerService>>().await;
+    // The builder's tcp_nodelay covers only listeners tonic binds itself: accepted sockets of
+    // a given listener are set here. Without it, Nagle's algorithm and delayed ACKs held back
+    // a reply's last segment by ~40 ms on every other step.
+    let incoming = tonic::transport::server::TcpIncoming::from_listener(listener, true, None)?;
     tonic::transport::Server::builder()
         .tcp_nodelay(true)
+        .initial_stream_window_size(wire::HTTP2_STREAM_WINDOW)
+        .initial_connection_window_size(wire::HTTP2_CONNECTION_WINDOW)
+        .max_frame_size(wire::HTTP2_MAX_FRAME)
         .http2_keepalive_interval(Some(std::time::Duration::from_secs(30)))
         .add_service(health_service)
         .add_service(reflection)
         .add_service(service)
-        .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), shutdown)
+        .serve_with_incoming_shutdown(incoming, shutdown)
         .await?;
     Ok(())
 }

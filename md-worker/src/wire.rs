@@ -2,7 +2,7 @@
 //! with every value checked at the edge: a non-finite or out-of-range value is refused naming
 //! the point and the field (InvalidArgument on the server side).
 
-use crate::backend::{BoxResult, BoxSpec, BoxWork, Diagnostics, InitialAtoms};
+use crate::backend::{BoxResult, BoxSpec, BoxWork, Diagnostics, InitialAtoms, StressSampling};
 use crate::error::MdError;
 use crate::kernel::DeformMode;
 use crate::lattice::LatticeKind;
@@ -14,6 +14,20 @@ pub const MAX_MESSAGE: usize = 64 << 20;
 pub const MAX_BOXES_PER_MESSAGE: usize = 4096;
 /// Most MD steps one box may be asked for in one call.
 pub const MAX_STEPS_PER_CALL: u64 = 10_000_000;
+/// HTTP/2 flow-control window per stream, both sides (bytes). The default 64 KiB would make a
+/// 400 KB step message wait for several window updates (round trips) on its way.
+pub const HTTP2_STREAM_WINDOW: u32 = 16 << 20;
+/// HTTP/2 flow-control window per connection, both sides (bytes).
+pub const HTTP2_CONNECTION_WINDOW: u32 = 32 << 20;
+/// Largest HTTP/2 frame a worker accepts (bytes; the default is 16 KiB): fewer frames per batch.
+pub const HTTP2_MAX_FRAME: u32 = 1 << 20;
+
+/// `work` cut into the fewest messages of at most [`MAX_BOXES_PER_MESSAGE`] boxes, of nearly
+/// equal sizes (in order).
+pub fn chunks<T>(work: &[T]) -> impl Iterator<Item = &[T]> {
+    let n = work.len().div_ceil(MAX_BOXES_PER_MESSAGE).max(1);
+    work.chunks(work.len().div_ceil(n).max(1))
+}
 
 pub fn status_text(s: &tonic::Status) -> String {
     format!("{:?}: {}", s.code(), s.message())
@@ -100,23 +114,40 @@ pub fn spec_from_pb(p: &pb::BoxSpec) -> Result<BoxSpec, MdError> {
     Ok(s)
 }
 
-pub fn work_to_pb(w: &BoxWork) -> pb::BoxWork {
-    pb::BoxWork {
-        point_id: w.id,
-        velocity_gradient: w.velocity_gradient.iter().flatten().copied().collect(),
-        steps: w.steps,
-        dt_ps: w.dt_ps,
-        energy_to_add_ev: w.energy_to_add_ev,
+fn sampling_to_pb(s: StressSampling) -> i32 {
+    match s {
+        StressSampling::Last => pb::StressSampling::Last as i32,
+        StressSampling::Average => pb::StressSampling::Average as i32,
     }
 }
 
-pub fn work_from_pb(p: &pb::BoxWork) -> Result<BoxWork, MdError> {
+fn sampling_from_pb(point: u64, v: i32) -> Result<StressSampling, MdError> {
+    match pb::StressSampling::try_from(v) {
+        Ok(pb::StressSampling::Last) => Ok(StressSampling::Last),
+        Ok(pb::StressSampling::Average) => Ok(StressSampling::Average),
+        Err(_) => Err(invalid(point, "stress_sampling", format!("{v}; expected 0 (last) or 1 (average)"))),
+    }
+}
+
+pub fn work_to_pb(w: &BoxWork) -> pb::WorkItem {
+    let l = &w.velocity_gradient;
+    pb::WorkItem {
+        point_id: w.id,
+        velocity_gradient: pb::Doubles::full([l[0][0], l[0][1], l[0][2], l[1][0], l[1][1], l[1][2], l[2][0], l[2][1], l[2][2]]),
+        steps: w.steps,
+        dt_ps: w.dt_ps,
+        energy_to_add_ev: w.energy_to_add_ev,
+        stress_sampling: sampling_to_pb(w.stress_sampling),
+    }
+}
+
+pub fn work_from_pb(p: &pb::WorkItem) -> Result<BoxWork, MdError> {
     let id = p.point_id;
-    if p.velocity_gradient.len() != 9 {
-        return Err(invalid(id, "velocity_gradient", format!("{} values; expected 9 (row major, 1/ps)", p.velocity_gradient.len())));
+    if p.velocity_gradient.len != 9 {
+        return Err(invalid(id, "velocity_gradient", format!("{} values; expected 9 (row major, 1/ps)", p.velocity_gradient.len)));
     }
     let mut l = [[0.0; 3]; 3];
-    for (k, v) in p.velocity_gradient.iter().enumerate() {
+    for (k, v) in p.velocity_gradient.values.iter().enumerate() {
         l[k / 3][k % 3] = finite(id, "velocity_gradient", *v)?;
     }
     if p.steps > MAX_STEPS_PER_CALL {
@@ -125,38 +156,47 @@ pub fn work_from_pb(p: &pb::BoxWork) -> Result<BoxWork, MdError> {
     if !(p.dt_ps.is_finite() && p.dt_ps > 0.0 && p.dt_ps <= 0.01) {
         return Err(invalid(id, "dt_ps", format!("{} ps; expected (0, 0.01]", p.dt_ps)));
     }
-    Ok(BoxWork { id, velocity_gradient: l, steps: p.steps, dt_ps: p.dt_ps, energy_to_add_ev: finite(id, "energy_to_add_ev", p.energy_to_add_ev)? })
+    Ok(BoxWork {
+        id,
+        velocity_gradient: l,
+        steps: p.steps,
+        dt_ps: p.dt_ps,
+        energy_to_add_ev: finite(id, "energy_to_add_ev", p.energy_to_add_ev)?,
+        stress_sampling: sampling_from_pb(id, p.stress_sampling)?,
+    })
 }
 
-pub fn result_to_pb(r: &BoxResult) -> pb::BoxResult {
-    pb::BoxResult {
+pub fn result_to_pb(r: &BoxResult) -> pb::ResultItem {
+    pb::ResultItem {
         point_id: r.id,
-        stress_gpa: r.stress_gpa.to_vec(),
+        stress_gpa: pb::Doubles::full(r.stress_gpa),
         potential_energy_ev: r.potential_energy_ev,
         kinetic_energy_ev: r.kinetic_energy_ev,
         temperature_k: r.temperature_k,
-        lengths: r.diagnostics.lengths_a.to_vec(),
+        lengths: pb::Doubles::full(r.diagnostics.lengths_a),
         neighbor_rebuilds: r.diagnostics.neighbor_rebuilds,
         energy_shortfall_ev: r.diagnostics.energy_shortfall_ev,
         total_steps: r.diagnostics.total_steps,
         wraps: r.diagnostics.wraps,
+        stress_sampling: sampling_to_pb(r.stress_sampling),
     }
 }
 
-pub fn result_from_pb(p: &pb::BoxResult) -> Result<BoxResult, MdError> {
+pub fn result_from_pb(p: &pb::ResultItem) -> Result<BoxResult, MdError> {
     let id = p.point_id;
-    if p.stress_gpa.len() != 6 || p.lengths.len() != 3 {
-        return Err(invalid(id, "stress_gpa", format!("{} stress and {} length values; expected 6 and 3", p.stress_gpa.len(), p.lengths.len())));
+    if p.stress_gpa.len != 6 || p.lengths.len != 3 {
+        return Err(invalid(id, "stress_gpa", format!("{} stress and {} length values; expected 6 and 3", p.stress_gpa.len, p.lengths.len)));
     }
     Ok(BoxResult {
         id,
-        stress_gpa: std::array::from_fn(|k| p.stress_gpa[k]),
+        stress_gpa: p.stress_gpa.values,
         potential_energy_ev: p.potential_energy_ev,
         kinetic_energy_ev: p.kinetic_energy_ev,
         temperature_k: p.temperature_k,
+        stress_sampling: sampling_from_pb(id, p.stress_sampling)?,
         diagnostics: Diagnostics {
             total_steps: p.total_steps,
-            lengths_a: [p.lengths[0], p.lengths[1], p.lengths[2]],
+            lengths_a: p.lengths.values,
             energy_shortfall_ev: p.energy_shortfall_ev,
             neighbor_rebuilds: p.neighbor_rebuilds,
             wraps: p.wraps,

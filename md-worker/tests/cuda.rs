@@ -32,7 +32,7 @@ fn kernels_compile_with_nvrtc_for_sm80_and_sm90_without_warnings() {
 }
 
 fn work(id: u64, g: [[f64; 3]; 3], steps: u64) -> BoxWork {
-    BoxWork { id, velocity_gradient: g, steps, dt_ps: 0.001, energy_to_add_ev: 0.0 }
+    BoxWork::new(id, g, steps, 0.001)
 }
 
 fn shim(p: Precision) -> Box<dyn MdBackend> {

@@ -32,7 +32,7 @@ fn box_stress(strain: f64) -> [f64; 6] {
     s.strain = [strain, 0.0, 0.0];
     b.open(&[s]).unwrap();
     let mut out = [BoxResult::default()];
-    b.step(&[BoxWork { id: 1, velocity_gradient: [[0.0; 3]; 3], steps: 0, dt_ps: 0.001, energy_to_add_ev: 0.0 }], &mut out).unwrap();
+    b.step(&[BoxWork::new(1, [[0.0; 3]; 3], 0, 0.001)], &mut out).unwrap();
     out[0].stress_gpa
 }
 

@@ -13,7 +13,7 @@ fn check_eval(backend: &str, case: &str) {
     let mut b = make_backend(backend, pot);
     b.open(&[spec]).unwrap();
     let mut out = [BoxResult::default()];
-    let work = BoxWork { id: 7, velocity_gradient: [[0.0; 3]; 3], steps: 0, dt_ps: 0.001, energy_to_add_ev: 0.0 };
+    let work = BoxWork::new(7, [[0.0; 3]; 3], 0, 0.001);
     b.step(&[work], &mut out).unwrap();
     let r = out[0];
     let t = &g.thermo[0];
@@ -54,7 +54,7 @@ fn check_trajectory(backend: &str, case: &str) {
     let every = (g.thermo[1][0] - g.thermo[0][0]) as u64;
     let mut out = [BoxResult::default()];
     for t in &g.thermo[1..] {
-        let work = BoxWork { id: 3, velocity_gradient: grad, steps: every, dt_ps: 0.001, energy_to_add_ev: 0.0 };
+        let work = BoxWork::new(3, grad, every, 0.001);
         b.step(&[work], &mut out).unwrap();
         let r = out[0];
         let step = t[0];

@@ -44,7 +44,7 @@ fn idle_box_memory(boxes: u64) -> (f64, f64) {
     b.open(&specs).unwrap();
     let opened = rss_bytes().unwrap();
     let work: Vec<BoxWork> = (0..boxes)
-        .map(|id| BoxWork { id, velocity_gradient: [[1e-3, 0.0, 0.0], [0.0; 3], [0.0; 3]], steps: 2, dt_ps: 0.001, energy_to_add_ev: 0.0 })
+        .map(|id| BoxWork::new(id, [[1e-3, 0.0, 0.0], [0.0; 3], [0.0; 3]], 2, 0.001))
         .collect();
     let mut out = vec![BoxResult::default(); work.len()];
     b.step(&work, &mut out).unwrap();

@@ -6,7 +6,7 @@ use common::*;
 use md_worker::{BoxResult, BoxSpec, BoxState, BoxWork, DeformMode, LatticeKind, MdBackend};
 
 fn work(id: u64, g: [[f64; 3]; 3], steps: u64, de: f64) -> BoxWork {
-    BoxWork { id, velocity_gradient: g, steps, dt_ps: 0.001, energy_to_add_ev: de }
+    BoxWork { energy_to_add_ev: de, ..BoxWork::new(id, g, steps, 0.001) }
 }
 
 fn eval0(b: &mut Box<dyn MdBackend>, id: u64) -> BoxResult {

@@ -10,7 +10,7 @@ fn stress_of(spec: BoxSpec) -> [f64; 6] {
     let id = spec.id;
     b.open(&[spec]).unwrap();
     let mut out = [BoxResult::default()];
-    b.step(&[BoxWork { id, velocity_gradient: [[0.0; 3]; 3], steps: 0, dt_ps: 0.001, energy_to_add_ev: 0.0 }], &mut out).unwrap();
+    b.step(&[BoxWork::new(id, [[0.0; 3]; 3], 0, 0.001)], &mut out).unwrap();
     out[0].stress_gpa
 }
 
@@ -78,7 +78,7 @@ fn nve_10k_steps_energy_drift_and_momentum() {
     let mut out = [BoxResult::default()];
     let mut e = Vec::new();
     for _ in 0..100 {
-        b.step(&[BoxWork { id: 1, velocity_gradient: [[0.0; 3]; 3], steps: 100, dt_ps: 0.001, energy_to_add_ev: 0.0 }], &mut out).unwrap();
+        b.step(&[BoxWork::new(1, [[0.0; 3]; 3], 100, 0.001)], &mut out).unwrap();
         e.push((out[0].potential_energy_ev + out[0].kinetic_energy_ev) / n);
     }
     // Linear trend of E(t) over the run (least squares) and its total change.

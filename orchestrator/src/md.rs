@@ -58,7 +58,7 @@ pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64) -> Result<La
         })
         .collect();
     md.open(&specs)?;
-    let work: Vec<BoxWork> = (0..2).map(|k| BoxWork { id: k, velocity_gradient: [[0.0; 3]; 3], steps: 0, dt_ps: 0.001, energy_to_add_ev: 0.0 }).collect();
+    let work: Vec<BoxWork> = (0..2).map(|k| BoxWork::new(k, [[0.0; 3]; 3], 0, 0.001)).collect();
     let mut out = vec![BoxResult::default(); 2];
     md.step(&work, &mut out)?;
     // Tension positive: stretching (+eps) raises sigma_xx.
@@ -141,7 +141,7 @@ pub fn estimate(loaded: &crate::scene::LoadedScene, md_points_per_body: &[(Strin
     let specs: Vec<BoxSpec> = (0..boxes as u64).map(|id| box_spec(id, &body, &m)).collect::<Result<_>>()?;
     md.open(&specs)?;
     let l = 1e-3 * if m.deformation == "affine" { 1.0 } else { 0.5 };
-    let work: Vec<BoxWork> = (0..boxes as u64).map(|id| BoxWork { id, velocity_gradient: [[-l, 0.0, 0.0], [0.0; 3], [0.0; 3]], steps: 20, dt_ps: m.timestep_fs * 1e-3, energy_to_add_ev: 0.0 }).collect();
+    let work: Vec<BoxWork> = (0..boxes as u64).map(|id| BoxWork::new(id, [[-l, 0.0, 0.0], [0.0; 3], [0.0; 3]], 20, m.timestep_fs * 1e-3)).collect();
     let mut out = vec![BoxResult::default(); boxes];
     md.step(&work, &mut out)?;
     let t = std::time::Instant::now();

@@ -22,6 +22,35 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     Ok(())
 }
 
+/// Adds a LAMMPS text dump frame (`md_worker::data::dump_frame`) whose `ITEM: TIMESTEP` is `step`
+/// to the dump file at `path`, atomically (the whole file is rewritten through
+/// [`write_atomic`]). Frames already there with a timestep at or after `step` are dropped first,
+/// so a run resumed from a checkpoint does not repeat the frames it writes again.
+pub fn append_dump_frame(path: &Path, step: u64, frame: &str) -> Result<()> {
+    const HEAD: &str = "ITEM: TIMESTEP\n";
+    let old = match std::fs::read_to_string(path) {
+        Ok(s) => s,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
+        Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
+    };
+    // Byte offset where the first frame at or after `step` starts (frames are in step order).
+    let mut keep = old.len();
+    let mut at = 0;
+    while let Some(k) = old[at..].find(HEAD) {
+        let start = at + k;
+        let number = old[start + HEAD.len()..].lines().next().unwrap_or("");
+        if number.trim().parse::<u64>().map_or(true, |t| t >= step) {
+            keep = start;
+            break;
+        }
+        at = start + HEAD.len();
+    }
+    let mut text = String::with_capacity(keep + frame.len());
+    text.push_str(&old[..keep]);
+    text.push_str(frame);
+    write_atomic(path, text.as_bytes())
+}
+
 /// A number for a text file: non-finite values never reach a file (they become empty cells).
 fn num(out: &mut String, v: f64) {
     if v.is_finite() {
@@ -244,4 +273,31 @@ pub fn plot_loglog(path: &Path, title: &str, xlabel: &str, ylabel: &str, series:
         })
         .collect();
     plot_profile(path, title, &format!("log10 {xlabel}"), &format!("log10 {ylabel}"), &logged)
+}
+
+#[cfg(test)]
+mod dump_tests {
+    #![allow(clippy::unwrap_used)]
+    use super::append_dump_frame;
+
+    fn frame(step: u64) -> String {
+        md_worker::data::dump_frame(step, [0.0; 3], [1.0; 3], &[1], &[1], &[[0.5; 3]], &[[0.0; 3]])
+    }
+
+    #[test]
+    fn frames_append_in_order_and_a_resumed_run_replaces_the_later_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("boxes/point-3.dump");
+        for s in [0, 10, 20] {
+            append_dump_frame(&path, s, &frame(s)).unwrap();
+        }
+        let all = frame(0) + &frame(10) + &frame(20);
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), all);
+        // Resumed from a checkpoint at step 10: frames from step 10 on are written again.
+        append_dump_frame(&path, 10, &frame(10)).unwrap();
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), frame(0) + &frame(10));
+        append_dump_frame(&path, 20, &frame(20)).unwrap();
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), all);
+        assert_eq!(std::fs::read_dir(dir.path().join("boxes")).unwrap().count(), 1, "no temporary file left");
+    }
 }

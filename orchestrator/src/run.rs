@@ -157,6 +157,23 @@ fn md_columns(md: Option<&Arc<Mutex<MdShared>>>, n: usize) -> Vec<(&'static str,
     ]
 }
 
+/// `output.dump_points`: one LAMMPS text dump frame per chosen box (atoms as the pool's
+/// snapshot has them, in-process or remote) appended to `boxes/point-<id>.dump`; the frame's
+/// timestep is the continuum step of the snapshot (as in `snapshots/index.csv`).
+fn dump_boxes(md: &Arc<Mutex<MdShared>>, ids: &[u64], step: u64, dir: &Path) -> Result<()> {
+    let states = {
+        let mut m = md.lock().map_err(|_| anyhow::anyhow!("MD state poisoned"))?;
+        m.pool.snapshot(ids).context("cannot snapshot the MD boxes to dump")?
+    };
+    for s in states {
+        let atom_ids: Vec<u64> = (1..=s.x.len() as u64).collect();
+        let types: Vec<u32> = s.types.iter().map(|t| t + 1).collect();
+        let frame = md_worker::data::dump_frame(step, s.meta.lo, s.meta.l, &atom_ids, &types, &s.x, &s.v);
+        output::append_dump_frame(&dir.join("boxes").join(format!("point-{}.dump", s.meta.id)), step, &frame)?;
+    }
+    Ok(())
+}
+
 fn write_snapshot<const D: usize>(sim: &Simulation<D>, scene: &Scene, dir: &Path, snaps: &mut Snapshots, md: Option<&Arc<Mutex<MdShared>>>) -> Result<()> {
     let step = sim.step;
     if scene.output.particles {
@@ -164,6 +181,11 @@ fn write_snapshot<const D: usize>(sim: &Simulation<D>, scene: &Scene, dir: &Path
         output::write_atomic(&dir.join("snapshots").join(&file), output::particles_csv(&sim.points, &md_columns(md, sim.points.len())).as_bytes())?;
         snaps.index.push_str(&format!("{step},{:e},{file}\n", sim.time));
         output::write_atomic(&dir.join("snapshots/index.csv"), snaps.index.as_bytes())?;
+    }
+    if !scene.output.dump_points.is_empty() {
+        if let Some(md) = md {
+            dump_boxes(md, &scene.output.dump_points, step, dir)?;
+        }
     }
     if scene.output.vtk {
         let file = format!("particles_{step:08}.vtu");

@@ -186,7 +186,8 @@ pub struct MdMaterial {
     /// MD time step (fs).
     #[serde(default = "default_md_timestep")]
     pub timestep_fs: f64,
-    /// `last` (stress at the last MD step) or `average` (over the continuum step).
+    /// `last` (stress after the last MD step of a continuum step) or `average` (the mean of the
+    /// stresses after each MD step of the continuum step).
     #[serde(default = "default_sampling")]
     pub stress_sampling: String,
     /// Add the continuum work missing from the box as kinetic energy (Ch. 7.2).
@@ -360,6 +361,11 @@ pub struct Output {
     /// `--checkpoint-every` (run, submit, serve) takes precedence.
     #[serde(default)]
     pub checkpoint_every_steps: u64,
+    /// Material points (ids as in the particle files) whose MD boxes are written at every
+    /// snapshot as LAMMPS text dump frames (`boxes/point-<id>.dump`, readable by OVITO). Points
+    /// of md bodies only.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub dump_points: Vec<u64>,
 }
 
 fn default_snapshots() -> usize {
@@ -368,7 +374,7 @@ fn default_snapshots() -> usize {
 
 impl Default for Output {
     fn default() -> Self {
-        Output { snapshots: default_snapshots(), particles: true, vtk: true, plots: true, checkpoint_every_steps: 0 }
+        Output { snapshots: default_snapshots(), particles: true, vtk: true, plots: true, checkpoint_every_steps: 0, dump_points: Vec::new() }
     }
 }
 
@@ -409,6 +415,12 @@ impl Locator<'_> {
     fn location(&self, key: &str) -> String {
         if let Some(v) = self.overrides.get(key) {
             return format!("--set {key}={v}");
+        }
+        // An element of an overridden array (`output.dump_points[1]`): the --set of the array.
+        if let Some((array, _)) = key.split_once('[') {
+            if let Some(v) = self.overrides.get(array) {
+                return format!("--set {array}={v}");
+            }
         }
         line_of(self.text, key).map(|l| format!("line {l}")).unwrap_or_default()
     }
@@ -564,6 +576,7 @@ impl Scene {
         if let Some(r) = &self.reference {
             self.validate_reference(loc, r)?;
         }
+        self.validate_dump_points(loc)?;
         Ok((dt, steps, files))
     }
 
@@ -703,8 +716,8 @@ impl Scene {
                 if !(md.timestep_fs > 0.0 && md.timestep_fs <= 5.0) {
                     return Err(loc.err(&k("material.timestep_fs"), md.timestep_fs, "the MD time step must lie in (0, 5] fs"));
                 }
-                if md.stress_sampling != "last" {
-                    return Err(loc.err(&k("material.stress_sampling"), format!("{:?}", md.stress_sampling), "allowed: \"last\" (the seed's choice; \"average\" is not implemented yet)"));
+                if !["last", "average"].contains(&md.stress_sampling.as_str()) {
+                    return Err(loc.err(&k("material.stress_sampling"), format!("{:?}", md.stress_sampling), "allowed: \"last\" (the stress after the last MD step of a continuum step, the seed's choice), \"average\" (the mean over the continuum step's MD steps)"));
                 }
                 if md.precision != "double" {
                     return Err(loc.err(&k("material.precision"), format!("{:?}", md.precision), "allowed: \"double\" (the CPU back ends compute in double; \"mixed\" belongs to the CUDA back end)"));
@@ -857,6 +870,43 @@ impl Scene {
         }
         if speeds.len() != 1 {
             return Err(loc.err("reference.right", format!("{:?}", r.right), "both bodies must have the same sound speed"));
+        }
+        Ok(())
+    }
+
+    /// `output.dump_points`: each id must name a material point of an md body, once.
+    fn validate_dump_points(&self, loc: &Locator<'_>) -> Result<(), SceneError> {
+        let ids = &self.output.dump_points;
+        if ids.is_empty() {
+            return Ok(());
+        }
+        // Point ids run body after body (in name order), as in the particle files.
+        let (counts, _) = crate::setup::work_size(self);
+        let mut ranges = Vec::new();
+        let mut first = 0u64;
+        for (name, n) in counts {
+            ranges.push((name, first..first + n as u64));
+            first += n as u64;
+        }
+        let md_ranges: Vec<String> = ranges
+            .iter()
+            .filter(|(name, r)| !r.is_empty() && matches!(self.bodies[name].material, Material::Md(_)))
+            .map(|(name, r)| format!("{}..={} (body `{name}`)", r.start, r.end - 1))
+            .collect();
+        let md_ids = if md_ranges.is_empty() { "the scene has no md body".to_string() } else { format!("md points: {}", md_ranges.join(", ")) };
+        let mut seen = BTreeSet::new();
+        for (k, &id) in ids.iter().enumerate() {
+            let key = format!("output.dump_points[{k}]");
+            let Some((name, _)) = ranges.iter().find(|(_, r)| r.contains(&id)) else {
+                return Err(loc.err(&key, id, format!("no such material point: the scene has {first} material points (ids 0..={}); {md_ids}", first.saturating_sub(1))));
+            };
+            let body = &self.bodies[name];
+            if !matches!(body.material, Material::Md(_)) {
+                return Err(loc.err(&key, id, format!("point {id} belongs to body `{name}` (law {}), which has no MD box; {md_ids}", body.material.law())));
+            }
+            if !seen.insert(id) {
+                return Err(loc.err(&key, id, "listed twice"));
+            }
         }
         Ok(())
     }

@@ -6,8 +6,13 @@
 pub mod coupling {
     pub mod v1 {
         tonic::include_proto!("mscale.coupling.v1");
+        // The messages of `Step`, with hand-written codecs of the same wire format.
+        pub use crate::fast::{Doubles, ResultItem, StepBatch, StepResults, WorkItem};
     }
 }
+
+/// Hand-written codecs of the `Step` messages (the coupling's hot path).
+pub mod fast;
 
 /// The job service of `mscale serve`.
 pub mod orchestrator {

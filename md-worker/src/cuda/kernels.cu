@@ -32,10 +32,11 @@
 
 #define MD_NT 128
 #define WD 12   /* work doubles: g[9], dt, energy to add, spare */
-#define WI 4    /* work ints: steps, energy mode (0 none, 1 scale, 2 random), spare */
+#define WI 4    /* work ints: steps, energy mode (0 none, 1 scale, 2 random), stress average (0/1), spare */
 #define BOXD 32 /* box doubles: lo 0, l 3, lo_build 6, l_build 9, skin 12, pe 13, virial 14..19 */
 #define BOXI 8  /* box ints: step 0, rebuilds 1, mode 2 */
-#define OUTD 24 /* out doubles: pe 0, virial 1..6, kin 7..12, lengths 13..15, shortfall 16 */
+#define OUTD 24 /* out doubles: pe 0, virial 1..6, kin 7..12, lengths 13..15, shortfall 16,
+                   sum over steps of -(kin + virial) / volume (eV/A^3) 17..22 (average only) */
 #define OUTI 8  /* out ints: step 0, rebuilds 1, wraps 2, overflow (needed capacity) 3, energy not added 4 */
 #define MODE_AFFINE 0
 #define MODE_SEED 1
@@ -82,6 +83,8 @@ struct Shared {
     double lo[3], l[3], lob[3], lb[3], nlo[3], nl[3], lstart[3], mid[3];
     double g[9];
     double vb[3];
+    double wl[7];   /* pe and pair virial of the last force evaluation with energies */
+    double acc[6];  /* average sampling: sum over steps of -(kin + virial) / volume */
     double dt, dtf, skin, lim, scale, shortfall, target, kin_sum;
     int n, off, mode, any, any2, overflow, no_energy, pad;
 };
@@ -484,6 +487,7 @@ template <typename R> DEVICE void md_steps_block(const Params& p, const Tables<R
     const double* wd = p.work_d + (i64)w * WD;
     const i64 steps = p.work_i[(i64)w * WI];
     const int energy_mode = (int)p.work_i[(i64)w * WI + 1];
+    const int average = (int)p.work_i[(i64)w * WI + 2];
     load_box(p, sh, b);
     FOR_THREADS(t)
     if (t == 0) {
@@ -516,7 +520,15 @@ template <typename R> DEVICE void md_steps_block(const Params& p, const Tables<R
             rebuild(p, sh);
             ++rebuilds;
         }
-        compute_forces<R>(p, tb, sh, k == steps);
+        const int energies = k == steps || average;
+        compute_forces<R>(p, tb, sh, energies);
+        if (energies) {
+            FOR_THREADS(t)
+            if (t == 0) {
+                for (int c = 0; c < 7; ++c) sh.wl[c] = sh.red[c][0];
+            }
+            END_THREADS
+        }
         FOR_THREADS(t)
         for (int i = t; i < sh.n; i += MD_NT) {
             const int gi = sh.off + i;
@@ -555,6 +567,21 @@ template <typename R> DEVICE void md_steps_block(const Params& p, const Tables<R
             }
             END_THREADS
         }
+        if (average) {
+            // The step's stress (before the GPa factor, applied on the host), summed in step
+            // order; the same arithmetic as the host's end-of-call stress, so one step gives
+            // exactly the last stress.
+            kinetic(p, sh);
+            FOR_THREADS(t)
+            if (t == 0) {
+                const double vol = sh.l[0] * sh.l[1] * sh.l[2];
+                for (int c = 0; c < 6; ++c) {
+                    const double s = -(sh.red[c][0] + sh.wl[1 + c]) / vol;
+                    sh.acc[c] = k == 1 ? s : sh.acc[c] + s;
+                }
+            }
+            END_THREADS
+        }
     }
     // Energies of the last force evaluation (sh.red after compute_forces) go to the box.
     FOR_THREADS(t)
@@ -562,7 +589,7 @@ template <typename R> DEVICE void md_steps_block(const Params& p, const Tables<R
         double* bd = p.boxd + (i64)b * BOXD;
         i64* bi = p.boxi + (i64)b * BOXI;
         if (steps > 0) {
-            for (int c = 0; c < 7; ++c) bd[13 + c] = sh.red[c][0];
+            for (int c = 0; c < 7; ++c) bd[13 + c] = sh.wl[c];
         }
         for (int d = 0; d < 3; ++d) {
             bd[d] = sh.lo[d];
@@ -584,6 +611,7 @@ template <typename R> DEVICE void md_steps_block(const Params& p, const Tables<R
         for (int c = 0; c < 7; ++c) od[c] = bd[13 + c];
         for (int d = 0; d < 3; ++d) od[13 + d] = sh.l[d];
         od[16] = sh.shortfall;
+        for (int c = 0; c < 6; ++c) od[17 + c] = (average && steps > 0) ? sh.acc[c] : 0.0;
     }
     END_THREADS
     kinetic(p, sh);

@@ -20,7 +20,7 @@
 //! then uploaded), and the random velocities of energy added to a box at exactly 0 K (drawn
 //! on the host, uploaded for that box only).
 
-use crate::backend::{self, BoxResult, BoxState, BoxWork, Diagnostics, MdBackend, PointId};
+use crate::backend::{self, BoxResult, BoxState, BoxWork, Diagnostics, MdBackend, PointId, StressSampling};
 use crate::error::MdError;
 use crate::kernel::{self, BoxMeta, DeformMode};
 use crate::lattice;
@@ -571,7 +571,8 @@ impl<E: Exec> GpuEngine<E> {
             } else {
                 1
             };
-            w.i.extend([item.steps as i64, energy_mode, 0, 0]);
+            let average = i64::from(item.stress_sampling == StressSampling::Average);
+            w.i.extend([item.steps as i64, energy_mode, average, 0]);
         }
         let (od, oi) = self.exec.launch(Kernel::Steps(self.precision), &w)?;
         for (q, (item, o)) in work.iter().zip(out.iter_mut()).enumerate() {
@@ -593,9 +594,16 @@ impl<E: Exec> GpuEngine<E> {
             let n = (self.host.off[k + 1] - self.host.off[k]) as usize;
             self.kinetic[k] = 0.5 * (kin[0] + kin[1] + kin[2]);
             self.host.boxi[k * BOXI] = i[0];
+            let stress_gpa = if item.stress_sampling == StressSampling::Average && item.steps > 0 {
+                // The device's per-step sum, in step order: for one step exactly the line below.
+                std::array::from_fn(|c| d[17 + c] / item.steps as f64 * EV_PER_A3_TO_GPA)
+            } else {
+                std::array::from_fn(|c| -(kin[c] + d[1 + c]) / vol * EV_PER_A3_TO_GPA)
+            };
             *o = BoxResult {
                 id: item.id,
-                stress_gpa: std::array::from_fn(|c| -(kin[c] + d[1 + c]) / vol * EV_PER_A3_TO_GPA),
+                stress_gpa,
+                stress_sampling: item.stress_sampling,
                 potential_energy_ev: d[0],
                 kinetic_energy_ev: self.kinetic[k],
                 temperature_k: kernel::temperature(&kin, n),
