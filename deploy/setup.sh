@@ -4,6 +4,7 @@
 #   bash deploy/setup.sh            # nothing to install for the default build; prints what is optional
 #   bash deploy/setup.sh nvrtc      # NVRTC from PyPI (cargo feature `cuda`: kernels compile in CI without a GPU)
 #   bash deploy/setup.sh lammps     # LAMMPS, to regenerate the MD golden data (tests do not need it)
+#   bash deploy/setup.sh mpi        # Open MPI and libclang (cargo feature `mpi` of md-worker: rsmpi's bindgen)
 #   bash deploy/setup.sh all
 # Prints, for nvrtc, the export line that puts libnvrtc on LD_LIBRARY_PATH.
 set -euo pipefail
@@ -32,12 +33,16 @@ PY
 want="${1:-none}"
 case "$want" in
   none)
-    echo "setup: the default build needs only cargo; optional: nvrtc, lammps, all" ;;
-  all|nvrtc|lammps) ;;
-  *) echo "setup: unknown component '$want' (expected nvrtc, lammps or all)" >&2; exit 2 ;;
+    echo "setup: the default build needs only cargo; optional: nvrtc, lammps, mpi, all" ;;
+  all|nvrtc|lammps|mpi) ;;
+  *) echo "setup: unknown component '$want' (expected nvrtc, lammps, mpi or all)" >&2; exit 2 ;;
 esac
 if [ "$want" = lammps ] || [ "$want" = all ]; then
   need_apt lammps lammps-data
+fi
+if [ "$want" = mpi ] || [ "$want" = all ]; then
+  # mpicc and the headers for the `mpi` crate's build (bindgen needs libclang), mpirun to run.
+  need_apt libopenmpi-dev openmpi-bin libclang-dev
 fi
 if [ "$want" = nvrtc ] || [ "$want" = all ]; then
   if ! nvrtc_dir >/dev/null 2>&1; then

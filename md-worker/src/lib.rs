@@ -19,6 +19,8 @@ pub mod error;
 pub mod join;
 pub mod kernel;
 pub mod lattice;
+#[cfg(feature = "mpi")]
+pub mod mpi;
 pub mod neighbor;
 pub mod null;
 pub mod pool;

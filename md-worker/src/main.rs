@@ -355,6 +355,19 @@ fn serve(listen: &str, device: &str, threads: Option<usize>, join: &md_worker::j
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
         .with_writer(std::io::stderr)
         .init();
+    // Under `mpirun -np N` (N > 1): rank 0 serves and spreads boxes over the ranks, the others
+    // run rank 0's commands; every rank computes on the cpu back end (src/mpi.rs).
+    #[cfg(feature = "mpi")]
+    let mpi = md_worker::mpi::init()?;
+    #[cfg(feature = "mpi")]
+    let (ranks, threads) = (mpi.size(), threads.or_else(|| (mpi.size() > 1).then(|| (std::thread::available_parallelism().map_or(1, |n| n.get()) / mpi.ranks_on_this_node()).max(1))));
+    #[cfg(not(feature = "mpi"))]
+    let ranks = 1;
+    let device = match device {
+        "cuda" if ranks > 1 => return Err(bad(format!("--device cuda: not under mpi ({ranks} ranks compute on the cpu back end)"))),
+        "auto" if ranks > 1 => "cpu",
+        d => d,
+    };
     let backend = match (device, md_worker::device::gpu_unavailable()) {
         ("cpu", _) => "cpu",
         ("cuda" | "auto", None) => "cuda",
@@ -370,7 +383,16 @@ fn serve(listen: &str, device: &str, threads: Option<usize>, join: &md_worker::j
         Some(t) => Some(Arc::new(rayon::ThreadPoolBuilder::new().num_threads(t).build()?)),
         None => None,
     };
-    let device = if backend == "cuda" { "cuda".into() } else { format!("cpu ({} threads)", threads.unwrap_or_else(rayon::current_num_threads)) };
+    #[cfg(feature = "mpi")]
+    if mpi.rank() > 0 {
+        return md_worker::mpi::serve_rank(&mpi, pool).map_err(Into::into);
+    }
+    let nthreads = threads.unwrap_or_else(rayon::current_num_threads);
+    let (backend, device) = match backend {
+        "cuda" => ("cuda", "cuda".to_string()),
+        _ if ranks > 1 => ("mpi", format!("cpu (mpi {ranks} ranks x {nthreads} threads)")),
+        b => (b, format!("cpu ({nthreads} threads)")),
+    };
     let kind = md_worker::join::WorkerKind { backend: backend.into(), precision: "double".into(), device: device.clone(), threads: pool.clone() };
     let opts = md_worker::server::ServeOptions { backend: backend.into(), threads: pool, device };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;

@@ -37,6 +37,9 @@ pub struct WorkerService {
     potentials: Shared<HashMap<String, Arc<Potential>>>,
     sessions: Shared<HashMap<u64, Shared<Box<dyn MdBackend>>>>,
     next_session: AtomicU64,
+    /// Potential files as received, by SHA-256: the `mpi` back end ships them to its ranks.
+    #[cfg(feature = "mpi")]
+    sources: Shared<HashMap<String, PotentialSource>>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -45,7 +48,14 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 
 impl WorkerService {
     pub fn new(opts: ServeOptions) -> Self {
-        WorkerService { opts, potentials: Default::default(), sessions: Default::default(), next_session: AtomicU64::new(1) }
+        WorkerService {
+            opts,
+            potentials: Default::default(),
+            sessions: Default::default(),
+            next_session: AtomicU64::new(1),
+            #[cfg(feature = "mpi")]
+            sources: Default::default(),
+        }
     }
 
     fn session(&self, id: u64) -> Result<Shared<Box<dyn MdBackend>>, Status> {
@@ -95,6 +105,8 @@ impl MdWorker for WorkerService {
                 if src.sha256 != pref.sha256 {
                     return Err(Status::invalid_argument(format!("potential {}: bytes hash to {}, not {}", pref.name, src.sha256, pref.sha256)));
                 }
+                #[cfg(feature = "mpi")]
+                lock(&self.sources).insert(pref.sha256.clone(), src.clone());
                 let null = self.opts.backend == "null";
                 let pot = Arc::new(blocking(move || if null { Ok(crate::Potential::LjCut(crate::LjCut { epsilon: 0.0, sigma: 1.0, cutoff: 1.0, mass: 1.0 })) } else { src.parse() }).await?);
                 lock(&self.potentials).insert(pref.sha256.clone(), pot.clone());
@@ -117,10 +129,17 @@ impl MdWorker for WorkerService {
         }
         let name = if req.backend.is_empty() { self.opts.backend.clone() } else { req.backend.clone() };
         let threads = self.opts.threads.clone();
+        #[cfg(feature = "mpi")]
+        let source = lock(&self.sources).get(&pref.sha256).cloned();
         let backend = blocking(move || {
             let mut b: Box<dyn MdBackend> = match (name.as_str(), threads) {
                 ("cpu", Some(pool)) => Box::new(crate::CpuBackend::with_pool(pot, pool)),
                 ("null", _) => Box::new(crate::null::NullBackend::default()),
+                #[cfg(feature = "mpi")]
+                ("mpi", threads) => {
+                    let src = source.ok_or_else(|| MdError::invalid("potential", "the mpi back end needs the potential's bytes"))?;
+                    Box::new(crate::mpi::MpiBackend::new(&src, pot, threads)?)
+                }
                 (n, _) => crate::backend_by_name(n, pot)?,
             };
             b.open(&specs)?;
