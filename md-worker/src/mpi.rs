@@ -346,6 +346,29 @@ fn with_hub<T>(f: impl FnOnce(&mut Hub) -> Result<T, MdError>) -> Result<T, MdEr
     f(h)
 }
 
+/// The ranks (0 included) whose part of an open or restore succeeded, and the first error.
+fn done_ranks(mine: Result<(), MdError>, replies: impl IntoIterator<Item = (usize, Result<Reply, MdError>)>) -> (HashSet<usize>, Option<MdError>) {
+    let mut ok_ranks = HashSet::new();
+    let mut first_err = None;
+    match mine {
+        Ok(()) => {
+            ok_ranks.insert(0);
+        }
+        Err(e) => first_err = Some(e),
+    }
+    for (rank, r) in replies {
+        match expect_done(rank, r) {
+            Ok(()) => {
+                ok_ranks.insert(rank);
+            }
+            Err(e) => {
+                first_err.get_or_insert(e);
+            }
+        }
+    }
+    (ok_ranks, first_err)
+}
+
 fn expect_done(rank: usize, r: Result<Reply, MdError>) -> Result<(), MdError> {
     match r? {
         Reply::Done => Ok(()),
@@ -450,24 +473,7 @@ impl MdBackend for MpiBackend {
             parts.iter_mut().enumerate().skip(1).filter(|(_, p)| !p.is_empty()).map(|(r, p)| (r, Command::Open { session, specs: std::mem::take(p) })).collect();
         let local = &mut self.local;
         let (mine_result, replies) = with_hub(|h| Ok(h.exchange(commands, || if mine.is_empty() { Ok(()) } else { local.open(&mine) })))?;
-        let mut ok_ranks: HashSet<usize> = HashSet::new();
-        let mut first_err = None;
-        match mine_result {
-            Ok(()) => {
-                ok_ranks.insert(0);
-            }
-            Err(e) => first_err = Some(e),
-        }
-        for (rank, r) in replies {
-            match expect_done(rank, r) {
-                Ok(()) => {
-                    ok_ranks.insert(rank);
-                }
-                Err(e) => {
-                    first_err.get_or_insert(e);
-                }
-            }
-        }
+        let (ok_ranks, first_err) = done_ranks(mine_result, replies);
         for (s, r) in specs.iter().zip(ranks) {
             if ok_ranks.contains(&r) {
                 self.owner.insert(s.id, (r, s.mode));
@@ -586,24 +592,7 @@ impl MdBackend for MpiBackend {
             parts.iter_mut().enumerate().skip(1).filter(|(_, p)| !p.is_empty()).map(|(r, p)| (r, Command::Restore { session, states: std::mem::take(p) })).collect();
         let local = &mut self.local;
         let (mine_result, replies) = with_hub(|h| Ok(h.exchange(commands, || if mine.is_empty() { Ok(()) } else { local.restore(mine) })))?;
-        let mut ok_ranks = HashSet::new();
-        let mut first_err = None;
-        match mine_result {
-            Ok(()) => {
-                ok_ranks.insert(0);
-            }
-            Err(e) => first_err = Some(e),
-        }
-        for (rank, r) in replies {
-            match expect_done(rank, r) {
-                Ok(()) => {
-                    ok_ranks.insert(rank);
-                }
-                Err(e) => {
-                    first_err.get_or_insert(e);
-                }
-            }
-        }
+        let (ok_ranks, first_err) = done_ranks(mine_result, replies);
         for (id, rank, mode) in assigned {
             if ok_ranks.contains(&rank) {
                 self.owner.insert(id, (rank, mode));
