@@ -5,7 +5,9 @@
 //! workers in one go. Constitutive laws implement it directly. Stresses are Cauchy, in Pa,
 //! tension positive.
 
+use crate::par::CHUNK;
 use crate::tensor::{self, Mat3, IDENTITY};
+use rayon::prelude::*;
 
 /// The points of one body, handed to its closure.
 pub struct ClosureBatch<'a> {
@@ -20,6 +22,41 @@ pub struct ClosureBatch<'a> {
     pub volume: &'a [f64],
     /// In: stress at the start of the step. Out: stress at the end (Pa, tension positive).
     pub stress: &'a mut [Mat3],
+}
+
+/// One point of a batch, as a pointwise law reads it.
+pub struct PointIn<'a> {
+    /// Global point index.
+    pub id: usize,
+    pub vel_grad: &'a Mat3,
+    pub def_grad: &'a Mat3,
+    pub mass: f64,
+    pub volume: f64,
+}
+
+impl ClosureBatch<'_> {
+    /// Updates every point's stress with `f` (a law without state shared between points), in
+    /// parallel over fixed chunks, so the result is the same for any thread count. On failure
+    /// the error of the lowest point is returned.
+    pub fn for_each_point<F>(self, f: F) -> Result<(), ClosureError>
+    where
+        F: Fn(PointIn<'_>, &mut Mat3) -> Result<(), ClosureError> + Sync,
+    {
+        let ClosureBatch { first, vel_grad, def_grad, mass, volume, stress } = self;
+        let failed = stress
+            .par_chunks_mut(CHUNK)
+            .enumerate()
+            .filter_map(|(c, chunk)| {
+                chunk.iter_mut().enumerate().try_for_each(|(i, s)| {
+                    let k = c * CHUNK + i;
+                    f(PointIn { id: first + k, vel_grad: &vel_grad[k], def_grad: &def_grad[k], mass: mass[k], volume: volume[k] }, s)
+                })
+                .err()
+                .map(|e| (c, e))
+            })
+            .min_by_key(|(c, _)| *c);
+        failed.map_or(Ok(()), |(_, e)| Err(e))
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -61,15 +98,15 @@ impl Closure for IdealGasIsothermal {
         self.sound_speed
     }
     fn advance(&mut self, b: ClosureBatch<'_>, _dt: f64) -> Result<(), ClosureError> {
-        let c2 = self.sound_speed * self.sound_speed;
-        for k in 0..b.stress.len() {
-            let rho = b.mass[k] / b.volume[k];
+        let (c2, law) = (self.sound_speed * self.sound_speed, self.name());
+        b.for_each_point(|p, s| {
+            let rho = p.mass / p.volume;
             if !(rho.is_finite() && rho > 0.0) {
-                return Err(ClosureError::Inverted { point: b.first + k, law: self.name(), jacobian: tensor::det(&b.def_grad[k]) });
+                return Err(ClosureError::Inverted { point: p.id, law, jacobian: tensor::det(p.def_grad) });
             }
-            b.stress[k] = tensor::add_scaled(&tensor::ZERO, &IDENTITY, -c2 * rho);
-        }
-        Ok(())
+            *s = tensor::add_scaled(&tensor::ZERO, &IDENTITY, -c2 * rho);
+            Ok(())
+        })
     }
 }
 
@@ -111,28 +148,28 @@ impl Closure for LinearElastic {
     }
     fn initialize(&mut self, b: ClosureBatch<'_>) -> Result<(), ClosureError> {
         // Small-strain stress of the initial strain F - I.
-        for k in 0..b.stress.len() {
-            let eps = tensor::sym(&tensor::add_scaled(&b.def_grad[k], &IDENTITY, -1.0));
-            b.stress[k] = self.stress_rate(&eps);
-        }
-        Ok(())
+        b.for_each_point(|p, s| {
+            *s = self.stress_rate(&tensor::sym(&tensor::add_scaled(p.def_grad, &IDENTITY, -1.0)));
+            Ok(())
+        })
     }
     fn advance(&mut self, b: ClosureBatch<'_>, dt: f64) -> Result<(), ClosureError> {
-        for k in 0..b.stress.len() {
-            let l = &b.vel_grad[k];
+        let law = self.name();
+        b.for_each_point(|p, out| {
+            let l = p.vel_grad;
             let d = tensor::sym(l);
             let w = tensor::add_scaled(l, &tensor::transpose(l), -1.0);
             let w = tensor::add_scaled(&tensor::ZERO, &w, 0.5);
-            let s = b.stress[k];
+            let s = *out;
             // Jaumann: sigma_dot = C:D + W sigma - sigma W.
             let rot = tensor::add_scaled(&tensor::mul(&w, &s), &tensor::mul(&s, &w), -1.0);
             let rate = tensor::add_scaled(&self.stress_rate(&d), &rot, 1.0);
-            b.stress[k] = tensor::add_scaled(&s, &rate, dt);
-            if !tensor::is_finite(&b.stress[k]) {
-                return Err(ClosureError::NonFinite { point: b.first + k, law: self.name(), jacobian: tensor::det(&b.def_grad[k]) });
+            *out = tensor::add_scaled(&s, &rate, dt);
+            if !tensor::is_finite(out) {
+                return Err(ClosureError::NonFinite { point: p.id, law, jacobian: tensor::det(p.def_grad) });
             }
-        }
-        Ok(())
+            Ok(())
+        })
     }
 }
 
@@ -155,11 +192,12 @@ impl Closure for NeoHookean {
     }
     fn advance(&mut self, b: ClosureBatch<'_>, _dt: f64) -> Result<(), ClosureError> {
         let (lambda, mu) = lame(self.youngs_modulus, self.poisson_ratio);
-        for k in 0..b.stress.len() {
-            let f = &b.def_grad[k];
+        let law = self.name();
+        b.for_each_point(|p, out| {
+            let f = p.def_grad;
             let j = tensor::det(f);
             if !(j > 0.0) {
-                return Err(ClosureError::Inverted { point: b.first + k, law: self.name(), jacobian: j });
+                return Err(ClosureError::Inverted { point: p.id, law, jacobian: j });
             }
             let bb = tensor::mul(f, &tensor::transpose(f));
             let mut s = tensor::add_scaled(&tensor::add_scaled(&bb, &IDENTITY, -1.0), &tensor::ZERO, 0.0);
@@ -171,8 +209,8 @@ impl Closure for NeoHookean {
             for (i, row) in s.iter_mut().enumerate() {
                 row[i] += lambda * j.ln() / j;
             }
-            b.stress[k] = s;
-        }
-        Ok(())
+            *out = s;
+            Ok(())
+        })
     }
 }

@@ -114,6 +114,10 @@ pub struct Simulation<const D: usize> {
     flat: Vec<f64>,
     sub_x: Vec<[f64; D]>,
     ddmp_field: Vec<f64>,
+    /// Start-of-step stress, viscous stress and volume (reused buffers of step 8).
+    old_stress: Vec<Mat3>,
+    old_q: Vec<Mat3>,
+    old_volume: Vec<f64>,
 }
 
 /// A body force field b(X, t) (m/s^2) of the initial position X and time t (s).
@@ -184,6 +188,9 @@ impl<const D: usize> Simulation<D> {
             order_1d,
             scatter: Scatter::default(),
             flat: Vec::new(),
+            old_stress: Vec::new(),
+            old_q: Vec::new(),
+            old_volume: Vec::new(),
             sub_x: Vec::new(),
             ddmp_field: Vec::new(),
         };
@@ -482,16 +489,20 @@ impl<const D: usize> Simulation<D> {
     fn deform_and_stress(&mut self, step: u64, c: f64) -> Result<(), SolverError> {
         let dt = self.dt;
         let pts = &mut self.points;
-        let old_stress = pts.stress.clone();
-        let old_q = pts.visc_stress.clone();
-        let old_volume = pts.volume.clone();
-        let (vel_grad, volume0) = (&pts.vel_grad, &pts.volume0);
+        let n = pts.len();
+        self.old_stress.resize(n, tensor::ZERO);
+        self.old_q.resize(n, tensor::ZERO);
+        self.old_volume.resize(n, 0.0);
+        let (vel_grad, volume0, stress, visc) = (&pts.vel_grad, &pts.volume0, &pts.stress, &pts.visc_stress);
         let bad = pts
             .def_grad
             .par_iter_mut()
             .zip(pts.volume.par_iter_mut())
+            .zip(self.old_stress.par_iter_mut().zip(self.old_q.par_iter_mut()).zip(self.old_volume.par_iter_mut()))
             .enumerate()
-            .filter_map(|(p, (f, vol))| {
+            .with_min_len(CHUNK)
+            .filter_map(|(p, ((f, vol), ((old_s, old_q), old_vol)))| {
+                (*old_s, *old_q, *old_vol) = (stress[p], visc[p], *vol);
                 let inc = tensor::add_scaled(&tensor::IDENTITY, &vel_grad[p], dt);
                 *f = tensor::mul(&inc, f);
                 let j = tensor::det(f);
@@ -518,13 +529,15 @@ impl<const D: usize> Simulation<D> {
             self.closures[b].advance(batch, dt).map_err(|source| SolverError::Closure { step, source })?;
             self.closure_evaluations += range.len() as u64;
         }
+        let (old_stress, old_q, old_volume) = (&self.old_stress, &self.old_q, &self.old_volume);
         let h = self.grid.min_spacing();
         let viscosity = self.viscosity;
+        // Taken out so the rest of the points can be read while these are written.
+        let (mut visc_stress, mut visc_pressure, mut energy) =
+            (std::mem::take(&mut pts.visc_stress), std::mem::take(&mut pts.visc_pressure), std::mem::take(&mut pts.internal_energy));
         let pts_ro: &Particles<D> = pts;
-        let (q_new, work): (Vec<Mat3>, Vec<f64>) = (0..pts_ro.len())
-            .into_par_iter()
-            .with_min_len(CHUNK)
-            .map(|p| {
+        visc_stress.par_iter_mut().zip(visc_pressure.par_iter_mut()).zip(energy.par_iter_mut()).enumerate().with_min_len(CHUNK).for_each(
+            |(p, ((q_out, qp), e))| {
                 let l = &pts_ro.vel_grad[p];
                 let d = tensor::sym(l);
                 let rho = pts_ro.density(p);
@@ -540,14 +553,12 @@ impl<const D: usize> Simulation<D> {
                 mid = tensor::add_scaled(&mid, &old_q[p], 1.0);
                 mid = tensor::add_scaled(&mid, &q, 1.0);
                 let vol_mid = 0.5 * (old_volume[p] + pts_ro.volume[p]);
-                (q, dt * vol_mid * 0.5 * tensor::ddot(&mid, &d))
-            })
-            .unzip();
-        pts.visc_stress = q_new;
-        for p in 0..pts.len() {
-            pts.visc_pressure[p] = -tensor::trace(&pts.visc_stress[p]) / 3.0;
-            pts.internal_energy[p] += work[p];
-        }
+                *q_out = q;
+                *qp = -tensor::trace(&q) / 3.0;
+                *e += dt * vol_mid * 0.5 * tensor::ddot(&mid, &d);
+            },
+        );
+        (pts.visc_stress, pts.visc_pressure, pts.internal_energy) = (visc_stress, visc_pressure, energy);
         Ok(())
     }
 
