@@ -25,6 +25,7 @@ pub mod neighbor;
 pub mod null;
 pub mod pool;
 pub mod potential;
+pub mod recovery;
 pub mod server;
 pub mod units;
 pub mod wire;

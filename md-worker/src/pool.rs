@@ -5,16 +5,24 @@
 //! endpoints at once (one thread per endpoint), and the results are put back in the order of
 //! the request. Since every box is computed independently and deterministically, the result
 //! does not depend on how many endpoints there are or which kind they are.
+//!
+//! An endpoint that is lost mid-run (its worker killed, frozen past the call's deadline, or
+//! declared lost by the orchestrator) is replaced without touching the others: the pool logs
+//! every input it sends since the last checkpoint ([`crate::recovery`]), restores only the lost
+//! endpoint's boxes from that checkpoint onto surviving endpoints of the same back end and
+//! precision, replays their logged inputs in order, redoes the interrupted call for them and
+//! goes on; the results are bitwise those of an uninterrupted run.
 
 use crate::backend::{BoxResult, BoxSpec, BoxState, BoxWork, MdBackend, PointId};
 use crate::error::MdError;
 use crate::potential::Potential;
+use crate::recovery::{AbortHandle, Baseline, CheckpointBoxes, InputLog, Recovery, StepDeadline};
 use crate::wire;
 use mscale_proto::coupling::v1 as pb;
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// A potential file as shipped to workers: its name, bytes and SHA-256.
 #[derive(Debug, Clone)]
@@ -54,6 +62,18 @@ pub trait Endpoint: Send {
     fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError>;
     /// Back end and precision that hold the boxes (`cpu/double`).
     fn kind(&self) -> String;
+    /// Bound on the wall time of the following calls (remote endpoints; others ignore it).
+    fn set_deadline(&mut self, _deadline: Duration) {}
+    /// Aborts this endpoint's calls (remote endpoints).
+    fn abort_handle(&self) -> Option<AbortHandle> {
+        None
+    }
+    /// Whether the endpoint is gone with its boxes (transport failure, deadline passed,
+    /// aborted, or its session unknown): its boxes must be rebuilt elsewhere. An error of an
+    /// endpoint that still answers (a refused input) is not a loss.
+    fn lost(&self) -> bool {
+        false
+    }
 }
 
 /// An in-process back end, created on `open` from the potential.
@@ -149,7 +169,23 @@ pub struct MdPool {
     atoms: IdMap<u64>,
     /// Per endpoint: seconds in step calls and atom-steps done.
     load: Vec<(f64, f64)>,
+    /// Per endpoint: false once lost (it holds no boxes and gets no calls).
+    alive: Vec<bool>,
+    /// Spec of every box, to open it again on another endpoint.
+    specs: IdMap<BoxSpec>,
+    potential: Option<PotentialSource>,
+    /// Every input sent since the last checkpoint.
+    log: InputLog,
+    deadline: StepDeadline,
+    /// Lost endpoints replaced so far.
+    recoveries: Vec<Recovery>,
+    on_loss: Option<LossHook>,
+    /// The continuum step of the last step call (for a loss found by a snapshot).
+    last_step: u64,
 }
+
+/// Told of every lost endpoint once its boxes live on the survivors.
+pub type LossHook = Box<dyn FnMut(&Recovery) + Send>;
 
 /// What one endpoint holds and has done.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -205,7 +241,68 @@ impl MdPool {
             return Err(MdError::invalid("pool", "no endpoints"));
         }
         let load = vec![(0.0, 0.0); endpoints.len()];
-        Ok(MdPool { endpoints, owner: IdMap::default(), times: PoolTimes::default(), weights: Vec::new(), atoms: IdMap::default(), load })
+        let alive = vec![true; endpoints.len()];
+        Ok(MdPool {
+            endpoints,
+            owner: IdMap::default(),
+            times: PoolTimes::default(),
+            weights: Vec::new(),
+            atoms: IdMap::default(),
+            load,
+            alive,
+            specs: IdMap::default(),
+            potential: None,
+            log: InputLog::default(),
+            deadline: StepDeadline::default(),
+            recoveries: Vec::new(),
+            on_loss: None,
+            last_step: 0,
+        })
+    }
+
+    /// Deadline of remote calls (default [`StepDeadline::Auto`]).
+    pub fn set_deadline(&mut self, deadline: StepDeadline) {
+        self.deadline = deadline;
+    }
+
+    /// Bound of the input log (default [`crate::recovery::DEFAULT_LOG_LIMIT_BYTES`]).
+    pub fn set_log_limit(&mut self, bytes: usize) {
+        self.log.set_limit(bytes);
+    }
+
+    pub fn set_loss_hook(&mut self, hook: LossHook) {
+        self.on_loss = Some(hook);
+    }
+
+    /// The boxes' states are those of the checkpoint written at the end of continuum step
+    /// `step` (read back by `boxes` when an endpoint is lost): the input log starts afresh.
+    pub fn mark_checkpoint(&mut self, step: u64, boxes: CheckpointBoxes) {
+        self.log.restart(Baseline::Checkpoint { step, boxes });
+    }
+
+    /// Lost endpoints replaced so far.
+    pub fn recoveries(&self) -> &[Recovery] {
+        &self.recoveries
+    }
+
+    /// Memory of the input log (bytes).
+    pub fn log_bytes(&self) -> usize {
+        self.log.bytes()
+    }
+
+    /// Abort handles of the endpoints that have one, by endpoint name (the worker's address).
+    pub fn abort_handles(&self) -> Vec<(String, AbortHandle)> {
+        self.endpoints.iter().filter_map(|e| e.abort_handle().map(|h| (e.name(), h))).collect()
+    }
+
+    /// Deadline of a call of `atom_steps` on endpoint `e`.
+    fn deadline_for(&self, e: usize, atom_steps: f64) -> Duration {
+        let (secs, done) = self.load[e];
+        self.deadline.for_work(atom_steps, (secs > 0.0 && done > 0.0).then(|| done / secs))
+    }
+
+    fn work_atom_steps(&self, work: &[BoxWork]) -> f64 {
+        work.iter().map(|w| w.steps as f64 * self.atoms.get(&w.id).copied().unwrap_or(0) as f64).sum()
     }
 
     /// Spreads the boxes of later `open` calls in proportion to these weights (one per
@@ -241,6 +338,9 @@ impl MdPool {
     /// Opens boxes, spread over the endpoints in contiguous, nearly equal blocks.
     pub fn open(&mut self, potential: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
         let n = self.endpoints.len();
+        if let Some(e) = self.alive.iter().position(|a| !a) {
+            return Err(MdError::Worker { worker: self.endpoints[e].name(), msg: "was lost before every box was opened; the run must start again".into() });
+        }
         let dest: Vec<usize> = if self.weights.is_empty() {
             (0..specs.len()).map(|k| k * n / specs.len().max(1)).collect()
         } else {
@@ -265,6 +365,10 @@ impl MdPool {
             }
             parts[dest[k]].push(s.clone());
         }
+        for (e, part) in parts.iter().enumerate() {
+            let d = self.deadline_for(e, part.iter().map(|s| spec_atoms(s) as f64 * (s.relax_steps + 1) as f64).sum());
+            self.endpoints[e].set_deadline(d);
+        }
         let results = self.on_every_endpoint(parts, |ep, part| if part.is_empty() { Ok(()) } else { ep.open(potential, &part) });
         for (e, r) in results.into_iter().enumerate() {
             r.map_err(|err| lost(&*self.endpoints[e], "open", err))?;
@@ -272,13 +376,18 @@ impl MdPool {
         for (k, s) in specs.iter().enumerate() {
             self.owner.insert(s.id, dest[k]);
             self.atoms.insert(s.id, spec_atoms(s));
+            self.specs.insert(s.id, s.clone());
         }
+        self.potential = Some(potential.clone());
         Ok(())
     }
 
-    /// Advances boxes; `out[k]` is the result of `work[k]`.
+    /// Advances boxes; `out[k]` is the result of `work[k]`. An endpoint lost during the call is
+    /// replaced: its boxes are rebuilt on the survivors (restored from the last checkpoint, the
+    /// logged inputs replayed, this call redone), so the result is that of an uninterrupted run.
     pub fn step(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
         let start = Instant::now();
+        self.last_step = step;
         let n = self.endpoints.len();
         let each = work.len() / n + 1;
         let mut parts: Vec<Vec<BoxWork>> = (0..n).map(|_| Vec::with_capacity(each)).collect();
@@ -288,6 +397,10 @@ impl MdPool {
             parts[e].push(*w);
             slot[e].push(k);
         }
+        for (e, part) in parts.iter().enumerate() {
+            let d = self.deadline_for(e, self.work_atom_steps(part));
+            self.endpoints[e].set_deadline(d);
+        }
         let results = self.on_every_endpoint(parts, |ep, part| {
             let t = Instant::now();
             let r = if part.is_empty() { Ok(Vec::new()) } else { ep.step(step, &part) };
@@ -295,45 +408,193 @@ impl MdPool {
         });
         let mut out = vec![BoxResult::default(); work.len()];
         let mut slowest: f64 = 0.0;
+        let mut failed = Vec::new();
         for (e, r) in results.into_iter().enumerate() {
-            let (res, secs) = r.map_err(|err| lost(&*self.endpoints[e], &format!("continuum step {step}"), err))?;
+            let (res, secs) = match r {
+                Ok(r) => r,
+                Err(err) if self.endpoints[e].lost() => {
+                    failed.push((e, err.to_string()));
+                    continue;
+                }
+                Err(err) => return Err(lost(&*self.endpoints[e], &format!("continuum step {step}"), err)),
+            };
             slowest = slowest.max(secs);
             self.load[e].0 += secs;
             self.load[e].1 += slot[e].iter().map(|&k| work[k].steps as f64 * self.atoms.get(&work[k].id).copied().unwrap_or(0) as f64).sum::<f64>();
-            if res.len() != slot[e].len() {
-                return Err(MdError::invalid("worker reply", format!("{} returned {} results for {} boxes", self.endpoints[e].name(), res.len(), slot[e].len())));
-            }
-            for (k, r) in slot[e].iter().zip(res) {
-                if r.id != work[*k].id {
-                    return Err(MdError::invalid("worker reply", format!("{} answered point {} for point {}", self.endpoints[e].name(), r.id, work[*k].id)));
-                }
-                wire::check_result(&r, &self.endpoints[e].name())?;
-                if r.stress_sampling != work[*k].stress_sampling {
-                    return Err(MdError::Worker {
-                        worker: self.endpoints[e].name(),
-                        msg: format!(
-                            "returned the `{}` stress of point {} when `{}` was asked (a worker that predates stress sampling?)",
-                            r.stress_sampling.name(),
-                            r.id,
-                            work[*k].stress_sampling.name()
-                        ),
-                    });
-                }
-                out[*k] = r;
+            let name = self.endpoints[e].name();
+            for (k, r) in check_results(&name, &slot[e], work, res)? {
+                out[k] = r;
             }
         }
+        if !failed.is_empty() {
+            self.recover(step, failed, work, &mut out)?;
+        }
+        self.log.record(step, work);
         self.times.step_wall += start.elapsed().as_secs_f64();
         self.times.md_compute += slowest;
         self.times.calls += 1;
         Ok(out)
     }
 
+    /// Rebuilds the boxes of the `lost` endpoints on the survivors of the same kind: each box is
+    /// opened from its spec, restored from the log's baseline (the last checkpoint), sent every
+    /// logged input in order, then its item of `work` (the interrupted call), whose result goes
+    /// into `out`. Survivors' own boxes are not touched. A survivor lost on the way loses its
+    /// boxes too, and they are rebuilt in the next round.
+    fn recover(&mut self, step: u64, mut gone: Vec<(usize, String)>, work: &[BoxWork], out: &mut [BoxResult]) -> Result<(), MdError> {
+        let position: IdMap<usize> = work.iter().enumerate().map(|(k, w)| (w.id, k)).collect();
+        while !gone.is_empty() {
+            let names = gone.iter().map(|(e, _)| self.endpoints[*e].name()).collect::<Vec<_>>().join(", ");
+            let kind = self.endpoints[gone[0].0].kind();
+            let why = gone.iter().map(|(_, w)| w.as_str()).collect::<Vec<_>>().join("; ");
+            for (e, _) in &gone {
+                self.alive[*e] = false;
+            }
+            let mut boxes: Vec<Vec<PointId>> = vec![Vec::new(); self.endpoints.len()];
+            for (id, &e) in &self.owner {
+                if !self.alive[e] {
+                    boxes[e].push(*id);
+                }
+            }
+            let moved: Vec<PointId> = {
+                let mut m: Vec<PointId> = boxes.iter().flatten().copied().collect();
+                m.sort_unstable();
+                m
+            };
+            let survivors: Vec<usize> = (0..self.endpoints.len()).filter(|&e| self.alive[e] && (self.endpoints[e].kind() == kind || self.endpoints[e].kind().is_empty())).collect();
+            if survivors.is_empty() {
+                return Err(MdError::Worker {
+                    worker: names,
+                    msg: format!("was lost during continuum step {step} ({why}); no surviving worker of back end {kind} holds this run to restore its {} boxes onto", moved.len()),
+                });
+            }
+            if let Some(broken) = &self.log.broken {
+                return Err(MdError::Worker { worker: names, msg: format!("was lost during continuum step {step} ({why}); its boxes cannot be replayed: {broken}") });
+            }
+            let potential = self.potential.clone().ok_or_else(|| MdError::invalid("pool", "recovery before open"))?;
+            let states = match &self.log.baseline {
+                Baseline::Opened => None,
+                Baseline::Checkpoint { boxes, step: at } => Some(boxes(&moved).map_err(|e| MdError::Worker {
+                    worker: names.clone(),
+                    msg: format!("was lost during continuum step {step} ({why}); cannot read its boxes from the checkpoint of step {at}: {e}"),
+                })?),
+            };
+            // The moved boxes spread over the survivors by weight, in contiguous blocks.
+            let weights: Vec<f64> = survivors.iter().map(|&e| self.weights.get(e).copied().unwrap_or(1.0)).collect();
+            let sizes = proportional_blocks(moved.len(), &weights);
+            let mut dest: IdMap<usize> = IdMap::default();
+            let mut plans: Vec<Option<ReplayPlan>> = (0..self.endpoints.len()).map(|_| None).collect();
+            let mut next = 0;
+            for (&e, &size) in survivors.iter().zip(&sizes) {
+                let ids = &moved[next..next + size];
+                next += size;
+                if ids.is_empty() {
+                    continue;
+                }
+                ids.iter().for_each(|id| _ = dest.insert(*id, e));
+                let mine = |w: &&BoxWork| ids.binary_search(&w.id).is_ok();
+                let calls: Vec<(u64, Vec<BoxWork>, Duration)> = self
+                    .log
+                    .calls
+                    .iter()
+                    .map(|(s, ws)| {
+                        let part: Vec<BoxWork> = ws.iter().filter(mine).copied().collect();
+                        let d = self.deadline_for(e, self.work_atom_steps(&part));
+                        (*s, part, d)
+                    })
+                    .filter(|c| !c.1.is_empty())
+                    .collect();
+                let current: Vec<BoxWork> = work.iter().filter(mine).copied().collect();
+                let open_atoms = ids.iter().map(|id| self.specs.get(id).map_or(0.0, |s| spec_atoms(s) as f64 * (s.relax_steps + 1) as f64)).sum();
+                plans[e] = Some(ReplayPlan {
+                    specs: ids.iter().map(|id| self.specs.get(id).cloned().ok_or(MdError::UnknownBox(*id))).collect::<Result<_, _>>()?,
+                    states: states.as_ref().map(|all| all.iter().filter(|s| ids.binary_search(&s.meta.id).is_ok()).cloned().collect()),
+                    calls,
+                    current_deadline: self.deadline_for(e, self.work_atom_steps(&current)),
+                    current,
+                    open_deadline: self.deadline_for(e, open_atoms),
+                    kind: kind.clone(),
+                });
+            }
+            // The survivors take their boxes now, so a survivor lost below loses them too.
+            for (id, e) in &dest {
+                self.owner.insert(*id, *e);
+            }
+            let results = self.on_every_endpoint(plans, |ep, plan| match plan {
+                None => Ok(Vec::new()),
+                Some(plan) => replay(ep, &potential, plan, step),
+            });
+            let mut again = Vec::new();
+            for (e, r) in results.into_iter().enumerate() {
+                match r {
+                    Ok(res) => {
+                        let slots: Vec<usize> = res.iter().map(|r| position.get(&r.id).copied().ok_or(MdError::UnknownBox(r.id))).collect::<Result<_, _>>()?;
+                        for (k, r) in check_results(&self.endpoints[e].name(), &slots, work, res)? {
+                            out[k] = r;
+                        }
+                    }
+                    Err(err) if self.endpoints[e].lost() => again.push((e, err.to_string())),
+                    Err(err) => return Err(lost(&*self.endpoints[e], &format!("the replay of lost boxes at continuum step {step}"), err)),
+                }
+            }
+            let onto_of = |ids: &[PointId]| {
+                let mut v: Vec<String> = ids.iter().filter_map(|id| dest.get(id)).map(|&e| self.endpoints[e].name()).collect();
+                v.dedup();
+                v
+            };
+            for (e, w) in &gone {
+                let mut ids = boxes[*e].clone();
+                ids.sort_unstable();
+                let (mut calls, mut box_steps, mut md_steps) = (0, 0, 0);
+                for (_, ws) in &self.log.calls {
+                    let mine: Vec<&BoxWork> = ws.iter().filter(|w| ids.binary_search(&w.id).is_ok()).collect();
+                    calls += usize::from(!mine.is_empty());
+                    box_steps += mine.len() as u64;
+                    md_steps += mine.iter().map(|w| w.steps).sum::<u64>();
+                }
+                let r = Recovery {
+                    worker: self.endpoints[*e].name(),
+                    step,
+                    why: w.clone(),
+                    onto: onto_of(&ids),
+                    boxes: ids,
+                    baseline: self.log.baseline.describe(),
+                    replayed_calls: calls,
+                    replayed_box_steps: box_steps,
+                    replayed_md_steps: md_steps,
+                };
+                if let Some(hook) = self.on_loss.as_mut() {
+                    hook(&r);
+                }
+                self.recoveries.push(r);
+            }
+            gone = again;
+        }
+        Ok(())
+    }
+
     /// States of the named boxes, in the order of `ids`.
+    /// An endpoint found lost here is replaced first (its boxes rebuilt on the survivors).
     pub fn snapshot(&mut self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError> {
         let mut out = Vec::with_capacity(ids.len());
-        for id in ids {
-            let e = *self.owner.get(id).ok_or(MdError::UnknownBox(*id))?;
-            out.extend(self.endpoints[e].snapshot(&[*id])?);
+        let mut k = 0;
+        while k < ids.len() {
+            // Consecutive ids on one endpoint go in one call.
+            let e = *self.owner.get(&ids[k]).ok_or(MdError::UnknownBox(ids[k]))?;
+            let mut end = k + 1;
+            while end < ids.len() && self.owner.get(&ids[end]) == Some(&e) {
+                end += 1;
+            }
+            let d = self.deadline_for(e, 0.0);
+            self.endpoints[e].set_deadline(d);
+            match self.endpoints[e].snapshot(&ids[k..end]) {
+                Ok(states) => {
+                    out.extend(states);
+                    k = end;
+                }
+                Err(err) if self.endpoints[e].lost() => self.recover(self.last_step, vec![(e, err.to_string())], &[], &mut [])?,
+                Err(err) => return Err(lost(&*self.endpoints[e], "snapshot", err)),
+            }
         }
         Ok(out)
     }
@@ -347,10 +608,16 @@ impl MdPool {
             let e = *self.owner.get(&s.meta.id).ok_or(MdError::UnknownBox(s.meta.id))?;
             parts[e].push(s);
         }
+        for e in 0..self.endpoints.len() {
+            let d = self.deadline_for(e, 0.0);
+            self.endpoints[e].set_deadline(d);
+        }
         let results = self.on_every_endpoint(parts, |ep, part| if part.is_empty() { Ok(()) } else { ep.restore(part) });
         for (e, r) in results.into_iter().enumerate() {
             r.map_err(|err| lost(&*self.endpoints[e], "restore", err))?;
         }
+        // Until the caller names the checkpoint these states came from, a loss cannot be replayed.
+        self.log.invalidate("the boxes were restored from states that name no checkpoint".into());
         Ok(())
     }
 
@@ -376,11 +643,77 @@ impl MdPool {
     }
 }
 
+/// What one survivor does to take over lost boxes.
+struct ReplayPlan {
+    specs: Vec<BoxSpec>,
+    /// Their checkpoint states (`None`: the baseline is the boxes as opened).
+    states: Option<Vec<BoxState>>,
+    /// The logged calls, restricted to these boxes, each with its deadline.
+    calls: Vec<(u64, Vec<BoxWork>, Duration)>,
+    /// The interrupted call's work of these boxes.
+    current: Vec<BoxWork>,
+    current_deadline: Duration,
+    open_deadline: Duration,
+    /// The back end and precision the boxes lived on.
+    kind: String,
+}
+
+/// Opens, restores and replays lost boxes on `ep`; returns the results of the interrupted call.
+fn replay(ep: &mut dyn Endpoint, potential: &PotentialSource, plan: ReplayPlan, step: u64) -> Result<Vec<BoxResult>, MdError> {
+    ep.set_deadline(plan.open_deadline);
+    ep.open(potential, &plan.specs)?;
+    if ep.kind() != plan.kind {
+        return Err(MdError::Worker { worker: ep.name(), msg: format!("holds {} boxes, not {} like the lost worker: it cannot take over at continuum step {step}", ep.kind(), plan.kind) });
+    }
+    if let Some(states) = plan.states {
+        ep.restore(states)?;
+    }
+    for (s, work, deadline) in &plan.calls {
+        ep.set_deadline(*deadline);
+        ep.step(*s, work)?;
+    }
+    if plan.current.is_empty() {
+        return Ok(Vec::new());
+    }
+    ep.set_deadline(plan.current_deadline);
+    ep.step(step, &plan.current)
+}
+
+/// Checks an endpoint's results of the items `slots` of `work` (count, ids, finite values,
+/// stress sampling); returns them with their slots.
+fn check_results(name: &str, slots: &[usize], work: &[BoxWork], res: Vec<BoxResult>) -> Result<Vec<(usize, BoxResult)>, MdError> {
+    if res.len() != slots.len() {
+        return Err(MdError::invalid("worker reply", format!("{name} returned {} results for {} boxes", res.len(), slots.len())));
+    }
+    let mut out = Vec::with_capacity(res.len());
+    for (&k, r) in slots.iter().zip(res) {
+        if r.id != work[k].id {
+            return Err(MdError::invalid("worker reply", format!("{name} answered point {} for point {}", r.id, work[k].id)));
+        }
+        wire::check_result(&r, name)?;
+        if r.stress_sampling != work[k].stress_sampling {
+            return Err(MdError::Worker {
+                worker: name.to_string(),
+                msg: format!(
+                    "returned the `{}` stress of point {} when `{}` was asked (a worker that predates stress sampling?)",
+                    r.stress_sampling.name(),
+                    r.id,
+                    work[k].stress_sampling.name()
+                ),
+            });
+        }
+        out.push((k, r));
+    }
+    Ok(out)
+}
+
 fn lost(ep: &dyn Endpoint, when: &str, err: MdError) -> MdError {
     MdError::Worker { worker: ep.name(), msg: format!("failed during {when}: {err}") }
 }
 
-/// A remote worker over gRPC. Calls block on a shared tokio runtime.
+/// A remote worker over gRPC. Calls block on a shared tokio runtime, each bounded by a
+/// deadline and by an [`AbortHandle`]; a call that fails at the transport, passes its
+/// deadline, is aborted, or finds its session gone marks the endpoint lost.
 pub struct Remote {
     addr: String,
     rt: Arc<tokio::runtime::Runtime>,
@@ -388,11 +721,46 @@ pub struct Remote {
     session: Option<u64>,
     kind: String,
     stream: Option<StepStream>,
+    abort: AbortHandle,
+    deadline: Duration,
+    lost: bool,
 }
 
 struct StepStream {
     tx: tokio::sync::mpsc::Sender<pb::StepBatch>,
     rx: tonic::Streaming<pb::StepResults>,
+}
+
+/// How a remote call failed.
+enum CallError {
+    /// The worker is gone with its boxes (or cannot be waited for).
+    Lost(String),
+    /// The worker answered with an error (a refused input).
+    Refused(String),
+}
+
+fn status_error(s: &tonic::Status) -> CallError {
+    use tonic::Code;
+    let text = wire::status_text(s);
+    match s.code() {
+        // Transport failures, and a session the worker no longer has (it restarted).
+        Code::Unavailable | Code::Unknown | Code::Cancelled | Code::DeadlineExceeded | Code::Aborted | Code::NotFound => CallError::Lost(text),
+        _ => CallError::Refused(text),
+    }
+}
+
+/// Runs `call` unless the endpoint is aborted or `deadline` passes first.
+fn guarded<T>(rt: &tokio::runtime::Runtime, abort: &AbortHandle, deadline: Duration, what: &str, call: impl std::future::Future<Output = Result<T, CallError>>) -> Result<T, CallError> {
+    if let Some(why) = abort.reason() {
+        return Err(CallError::Lost(format!("declared lost before {what} ({why})")));
+    }
+    rt.block_on(async {
+        tokio::select! {
+            r = call => r,
+            why = abort.aborted() => Err(CallError::Lost(format!("declared lost during {what} ({why})"))),
+            _ = tokio::time::sleep(deadline) => Err(CallError::Lost(format!("no reply to {what} within its deadline of {:.1} s (--step-deadline)", deadline.as_secs_f64()))),
+        }
+    })
 }
 
 impl Remote {
@@ -412,20 +780,53 @@ impl Remote {
                 .map_err(|e| worker(format!("cannot connect: {e}")))?;
             Ok::<_, MdError>(pb::md_worker_client::MdWorkerClient::new(ch).max_decoding_message_size(wire::MAX_MESSAGE).max_encoding_message_size(wire::MAX_MESSAGE))
         })?;
-        let mut remote = Remote { addr: addr.to_string(), rt, client, session: None, kind: String::new(), stream: None };
-        let info = remote.rt.block_on(remote.client.info(pb::InfoRequest {})).map_err(|s| worker(wire::status_text(&s)))?.into_inner();
+        let deadline = StepDeadline::AUTO_MIN;
+        let remote = Remote { addr: addr.to_string(), rt, client, session: None, kind: String::new(), stream: None, abort: AbortHandle::default(), deadline, lost: false };
+        let mut c = remote.client.clone();
+        let info = guarded(&remote.rt, &remote.abort, deadline, "info", async move { c.info(pb::InfoRequest {}).await.map_err(|s| status_error(&s)) })
+            .map_err(|e| worker(match e {
+                CallError::Lost(m) | CallError::Refused(m) => m,
+            }))?
+            .into_inner();
         if info.protocol_version != mscale_proto::COUPLING_PROTOCOL_VERSION {
             return Err(worker(format!("speaks coupling protocol {}, this build speaks {}", info.protocol_version, mscale_proto::COUPLING_PROTOCOL_VERSION)));
         }
         Ok(remote)
     }
 
-    fn err(&self, s: tonic::Status) -> MdError {
-        MdError::Worker { worker: self.addr.clone(), msg: wire::status_text(&s) }
+    /// The error of a failed call; a loss marks the endpoint lost for good.
+    fn failed(&mut self, e: CallError) -> MdError {
+        let msg = match e {
+            CallError::Lost(m) => {
+                self.lost = true;
+                self.stream = None;
+                m
+            }
+            CallError::Refused(m) => m,
+        };
+        MdError::Worker { worker: self.addr.clone(), msg }
     }
 
     fn session(&self) -> Result<u64, MdError> {
+        if self.lost {
+            return Err(MdError::Worker { worker: self.addr.clone(), msg: "is lost".into() });
+        }
         self.session.ok_or_else(|| MdError::invalid("pool", "step before open"))
+    }
+
+    /// A unary call, guarded.
+    fn call<T, F>(&mut self, what: &str, f: impl FnOnce(pb::md_worker_client::MdWorkerClient<tonic::transport::Channel>) -> F) -> Result<T, MdError>
+    where
+        F: std::future::Future<Output = Result<tonic::Response<T>, tonic::Status>>,
+    {
+        if self.lost {
+            return Err(MdError::Worker { worker: self.addr.clone(), msg: "is lost".into() });
+        }
+        let fut = f(self.client.clone());
+        match guarded(&self.rt, &self.abort, self.deadline, what, async move { fut.await.map(tonic::Response::into_inner).map_err(|s| status_error(&s)) }) {
+            Ok(r) => Ok(r),
+            Err(e) => Err(self.failed(e)),
+        }
     }
 }
 
@@ -436,7 +837,8 @@ impl Endpoint for Remote {
 
     fn open(&mut self, potential: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
         let pref = pb::PotentialRef { name: potential.name.clone(), sha256: potential.sha256.clone() };
-        let present = self.rt.block_on(self.client.has_potential(pref.clone())).map_err(|s| self.err(s))?.into_inner().present;
+        let p = pref.clone();
+        let present = self.call("has-potential", |mut c| async move { c.has_potential(p).await })?.present;
         let req = pb::OpenRequest {
             protocol_version: mscale_proto::COUPLING_PROTOCOL_VERSION,
             potential: Some(pref),
@@ -445,7 +847,7 @@ impl Endpoint for Remote {
             backend: String::new(),
             session: self.session.unwrap_or(0),
         };
-        let resp = self.rt.block_on(self.client.open(req)).map_err(|s| self.err(s))?.into_inner();
+        let resp = self.call("open", |mut c| async move { c.open(req).await })?;
         self.session = Some(resp.session);
         self.kind = format!("{}/{}", resp.backend, resp.precision);
         Ok(())
@@ -456,53 +858,69 @@ impl Endpoint for Remote {
         if self.stream.is_none() {
             let (tx, rx) = tokio::sync::mpsc::channel(16);
             let out = tokio_stream::wrappers::ReceiverStream::new(rx);
-            let mut client = self.client.clone();
-            let resp = self.rt.block_on(client.step(out)).map_err(|s| self.err(s))?;
-            self.stream = Some(StepStream { tx, rx: resp.into_inner() });
+            let resp = self.call("the opening of the step stream", |mut c| async move { c.step(out).await })?;
+            self.stream = Some(StepStream { tx, rx: resp });
         }
         let addr = self.addr.clone();
-        let stream = self.stream.as_mut().ok_or_else(|| MdError::invalid("pool", "no step stream"))?;
+        let mut stream = self.stream.take().ok_or_else(|| MdError::invalid("pool", "no step stream"))?;
         let chunks: Vec<&[BoxWork]> = wire::chunks(work).collect();
-        let result = self.rt.block_on(async {
+        let what = format!("continuum step {step}");
+        let result = guarded(&self.rt, &self.abort, self.deadline, &what, async {
             for c in &chunks {
                 let batch = pb::StepBatch { session, step, work: c.iter().map(wire::work_to_pb).collect() };
-                stream.tx.send(batch).await.map_err(|_| format!("the step stream to {addr} closed"))?;
+                stream.tx.send(batch).await.map_err(|_| CallError::Lost(format!("the step stream to {addr} closed")))?;
             }
             let mut out = Vec::with_capacity(work.len());
             for _ in &chunks {
                 match stream.rx.message().await {
                     Ok(Some(r)) => {
                         for res in r.results {
-                            out.push(wire::result_from_pb(&res).map_err(|e| e.to_string())?);
+                            out.push(wire::result_from_pb(&res).map_err(|e| CallError::Refused(e.to_string()))?);
                         }
                     }
-                    Ok(None) => return Err(format!("{addr} closed the step stream")),
-                    Err(s) => return Err(wire::status_text(&s)),
+                    Ok(None) => return Err(CallError::Lost(format!("{addr} closed the step stream"))),
+                    Err(s) => return Err(status_error(&s)),
                 }
             }
             Ok(out)
         });
-        result.map_err(|msg| {
-            self.stream = None;
-            MdError::Worker { worker: self.addr.clone(), msg }
-        })
+        match result {
+            Ok(out) => {
+                self.stream = Some(stream);
+                Ok(out)
+            }
+            // A stream with an error (or replies still in flight) is not used again.
+            Err(e) => Err(self.failed(e)),
+        }
     }
 
     fn snapshot(&mut self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError> {
         let req = pb::SnapshotRequest { session: self.session()?, point_ids: ids.to_vec() };
-        let resp = self.rt.block_on(self.client.snapshot(req)).map_err(|s| self.err(s))?.into_inner();
+        let resp = self.call("snapshot", |mut c| async move { c.snapshot(req).await })?;
         resp.states.iter().map(|b| serde_json::from_slice(b).map_err(|e| MdError::invalid("box state", e.to_string()))).collect()
     }
 
     fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
         let states = states.iter().map(|s| serde_json::to_vec(s).map_err(|e| MdError::invalid("box state", e.to_string()))).collect::<Result<_, _>>()?;
         let req = pb::RestoreRequest { session: self.session()?, states };
-        self.rt.block_on(self.client.restore(req)).map_err(|s| self.err(s))?;
+        self.call("restore", |mut c| async move { c.restore(req).await })?;
         Ok(())
     }
 
     fn kind(&self) -> String {
         self.kind.clone()
+    }
+
+    fn set_deadline(&mut self, deadline: Duration) {
+        self.deadline = deadline;
+    }
+
+    fn abort_handle(&self) -> Option<AbortHandle> {
+        Some(self.abort.clone())
+    }
+
+    fn lost(&self) -> bool {
+        self.lost
     }
 }
 
@@ -512,6 +930,10 @@ impl Drop for Remote {
     fn drop(&mut self) {
         let Some(session) = self.session else { return };
         self.stream = None;
+        // A lost worker is gone or frozen: nothing to close, nothing to wait for.
+        if self.lost {
+            return;
+        }
         // Not from inside an async context (block_on would panic there); the session then
         // stays until the worker exits.
         if tokio::runtime::Handle::try_current().is_ok() {
@@ -524,7 +946,142 @@ impl Drop for Remote {
 
 #[cfg(test)]
 mod tests {
-    use super::proportional_blocks;
+    use super::*;
+    use std::sync::atomic::{AtomicU64, Ordering};
+
+    /// An in-process endpoint that is lost at its step call `fail_at` (1-based), and for good.
+    struct Flaky {
+        inner: InProcess,
+        calls: u64,
+        fail_at: u64,
+        gone: bool,
+        /// Steps sent to it (box-calls), to see that survivors' boxes are not replayed.
+        box_calls: Arc<AtomicU64>,
+    }
+
+    impl Endpoint for Flaky {
+        fn name(&self) -> String {
+            format!("flaky-{}", self.fail_at)
+        }
+        fn open(&mut self, p: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
+            self.inner.open(p, specs)
+        }
+        fn step(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
+            self.calls += 1;
+            if self.gone || self.calls == self.fail_at {
+                self.gone = true;
+                return Err(MdError::Worker { worker: self.name(), msg: "connection reset".into() });
+            }
+            self.box_calls.fetch_add(work.len() as u64, Ordering::SeqCst);
+            self.inner.step(step, work)
+        }
+        fn snapshot(&mut self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError> {
+            self.inner.snapshot(ids)
+        }
+        fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
+            self.inner.restore(states)
+        }
+        fn kind(&self) -> String {
+            self.inner.kind()
+        }
+        fn lost(&self) -> bool {
+            self.gone
+        }
+    }
+
+    fn flaky(fail_at: u64) -> (Box<dyn Endpoint>, Arc<AtomicU64>) {
+        let c = Arc::new(AtomicU64::new(0));
+        (Box::new(Flaky { inner: InProcess::new("reference", None), calls: 0, fail_at, gone: false, box_calls: c.clone() }), c)
+    }
+
+    const STEPS: u64 = 6;
+
+    /// Runs 6 boxes for 6 calls (a checkpoint after call `checkpoint`, if any) on endpoints
+    /// lost at their call `fail_at` (0: never); returns every result and the final states.
+    fn run(fail_at: &[u64], checkpoint: Option<u64>) -> (Result<(Vec<String>, String), MdError>, MdPool, Vec<Arc<AtomicU64>>) {
+        let (eps, counters): (Vec<_>, Vec<_>) = fail_at.iter().map(|&f| flaky(if f == 0 { u64::MAX } else { f })).unzip();
+        let mut pool = MdPool::new(eps).unwrap();
+        let pot = PotentialSource::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/potentials/Cu_u3.eam"))).unwrap();
+        let specs: Vec<BoxSpec> = (0..6)
+            .map(|id| {
+                let mut s = BoxSpec::lattice(id, crate::LatticeKind::Fcc, 3.615, [2, 2, 2]);
+                s.temperature_k = 50.0 + id as f64;
+                s.seed = 7;
+                s
+            })
+            .collect();
+        pool.open(&pot, &specs).unwrap();
+        let mut out = Vec::new();
+        let r = (|| {
+            for step in 1..=STEPS {
+                let work: Vec<BoxWork> = (0..6)
+                    .map(|id| {
+                        let mut w = BoxWork::new(id, [[1e-3 * step as f64, 0.0, 0.0], [0.0, -5e-4, 0.0], [0.0; 3]], 3, 0.001);
+                        w.energy_to_add_ev = 1e-3 * id as f64;
+                        w.stress_sampling = if id % 2 == 0 { crate::StressSampling::Average } else { crate::StressSampling::Last };
+                        w
+                    })
+                    .collect();
+                out.push(format!("{:?}", pool.step(step, &work)?));
+                if checkpoint == Some(step) {
+                    let saved = pool.snapshot(&pool.box_ids())?;
+                    pool.mark_checkpoint(step, Arc::new(move |ids: &[PointId]| Ok(saved.iter().filter(|s| ids.contains(&s.meta.id)).cloned().collect())));
+                }
+            }
+            let states = pool.snapshot(&pool.box_ids())?;
+            Ok((out, serde_json::to_string(&states).unwrap()))
+        })();
+        (r, pool, counters)
+    }
+
+    #[test]
+    fn a_lost_endpoint_is_replayed_onto_the_survivors_bit_for_bit() {
+        let (straight, _, _) = run(&[0, 0, 0], None);
+        let straight = straight.unwrap();
+        // Lost at its 5th call, after a checkpoint at call 3: only its boxes (2 and 3) are
+        // restored and replay call 4, then redo call 5.
+        let (r, pool, counters) = run(&[0, 5, 0], Some(3));
+        assert_eq!(r.unwrap(), straight);
+        let rec = pool.recoveries();
+        assert_eq!(rec.len(), 1, "{rec:?}");
+        assert_eq!((rec[0].worker.as_str(), rec[0].step, rec[0].boxes.clone()), ("flaky-5", 5, vec![2, 3]), "{rec:?}");
+        assert_eq!((rec[0].replayed_calls, rec[0].replayed_box_steps, rec[0].replayed_md_steps), (1, 2, 6), "{rec:?}");
+        assert_eq!(rec[0].baseline, "the checkpoint of step 3");
+        // Survivors: their own 2 boxes x 6 calls, and each took one lost box: 1 replayed + 2 calls (5, 6).
+        assert_eq!(counters[0].load(Ordering::SeqCst), 2 * STEPS + 3);
+        assert_eq!(counters[2].load(Ordering::SeqCst), 2 * STEPS + 3);
+        assert_eq!(pool.endpoint_load().iter().map(|l| l.boxes).collect::<Vec<_>>(), vec![3, 0, 3]);
+
+        // No checkpoint yet: the boxes are opened again and every call replayed.
+        let (r, pool, _) = run(&[2, 0, 0], None);
+        assert_eq!(r.unwrap(), straight);
+        let rec = &pool.recoveries()[0];
+        assert_eq!((rec.boxes.clone(), rec.replayed_calls, rec.replayed_box_steps), (vec![0, 1], 1, 2), "{rec:?}");
+        assert!(rec.baseline.contains("as opened"), "{rec:?}");
+
+        // Two losses, one of them a survivor of the first.
+        let (r, pool, _) = run(&[4, 0, 6], Some(2));
+        assert_eq!(r.unwrap(), straight);
+        assert_eq!(pool.recoveries().len(), 2);
+        assert_eq!(pool.endpoint_load().iter().map(|l| l.boxes).collect::<Vec<_>>(), vec![0, 6, 0]);
+    }
+
+    #[test]
+    fn without_survivors_or_with_an_overflowed_log_the_loss_is_an_error() {
+        let (r, _, _) = run(&[3], Some(1));
+        let e = r.unwrap_err().to_string();
+        assert!(e.contains("flaky-3") && e.contains("lost during continuum step 3") && e.contains("no surviving worker of back end reference/double"), "{e}");
+
+        let (eps, _): (Vec<_>, Vec<_>) = [u64::MAX, 2].iter().map(|&f| flaky(f)).unzip();
+        let mut pool = MdPool::new(eps).unwrap();
+        pool.set_log_limit(10);
+        let pot = PotentialSource::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/potentials/Cu_u3.eam"))).unwrap();
+        pool.open(&pot, &[BoxSpec::lattice(0, crate::LatticeKind::Fcc, 3.615, [2, 2, 2]), BoxSpec::lattice(1, crate::LatticeKind::Fcc, 3.615, [2, 2, 2])]).unwrap();
+        let work = [BoxWork::new(0, [[0.0; 3]; 3], 1, 0.001), BoxWork::new(1, [[0.0; 3]; 3], 1, 0.001)];
+        pool.step(1, &work).unwrap();
+        let e = pool.step(2, &work).unwrap_err().to_string();
+        assert!(e.contains("cannot be replayed") && e.contains("outgrew its bound"), "{e}");
+    }
 
     #[test]
     fn blocks_follow_the_weights_and_cover_every_box() {
