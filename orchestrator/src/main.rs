@@ -176,6 +176,13 @@ enum ReportCommand {
         /// Running MD workers to use instead of in-process MD: HOST:PORT,...
         #[arg(long, value_delimiter = ',', value_name = "HOST:PORT,...")]
         workers: Vec<String>,
+        /// Direct-MD reference profile (`md-worker direct --slab` CSV) to score each run's
+        /// sigma_xx against by the seed's eq. 7.12 (1D scenes).
+        #[arg(long, value_name = "CSV", requires = "reference_times")]
+        reference: Option<PathBuf>,
+        /// Times (ps) to score at with --reference: 5,10.
+        #[arg(long, value_delimiter = ',', value_name = "T1,T2,...", requires = "reference")]
+        reference_times: Vec<f64>,
     },
 }
 
@@ -234,14 +241,25 @@ fn dispatch(cli: Cli) -> i32 {
                 exit::BAD_INPUT
             }
         },
-        Command::Report(ReportCommand::ErrorVsTime { scene, sweep, set, out, workers }) => {
+        Command::Report(ReportCommand::ErrorVsTime { scene, sweep, set, out, workers, reference, reference_times }) => {
             let out = out.unwrap_or_else(|| orchestrator::report::default_out(&scene));
-            match orchestrator::report::error_vs_time(&scene, &set, &sweep, &out, &workers) {
+            let reference = match reference.map(|r| orchestrator::report::ReferenceSpec::load(&r, &reference_times)).transpose() {
+                Ok(r) => r,
+                Err(e) => {
+                    eprintln!("mscale: {e:#}");
+                    return exit::BAD_INPUT;
+                }
+            };
+            match orchestrator::report::error_vs_time(&scene, &set, &sweep, &out, &workers, reference.as_ref()) {
                 Ok(rows) => {
                     println!("{} runs; report in {}/report.csv and report.png", rows.len(), out.display());
                     exit::OK
                 }
                 Err(orchestrator::report::ReportError::Scene(e)) => {
+                    eprintln!("mscale: {e}");
+                    exit::BAD_INPUT
+                }
+                Err(e @ orchestrator::report::ReportError::Reference(_)) => {
                     eprintln!("mscale: {e}");
                     exit::BAD_INPUT
                 }

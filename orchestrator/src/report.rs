@@ -1,5 +1,12 @@
 //! `mscale report error-vs-time`: run every combination of parameter sweeps of one scene and
 //! tabulate error against cost, the question users ask before trusting a setting.
+//!
+//! Without a reference the error is the scene's own (`[reference]`, an exact solution). With
+//! `--reference CSV --reference-times 5,10` every run is scored against a direct-MD profile
+//! (`md-worker direct --slab`) by the seed's eq. 7.12,
+//! eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2), sigma_xx over the material points in the
+//! reference coordinate (the bodies' initial strain undone, see [`ReferenceMap`]); the runs
+//! then write snapshots exactly at those times (the times must be whole continuum steps).
 
 use crate::output;
 use crate::run::{self, Outcome, RunOptions};
@@ -54,30 +61,58 @@ const REPORT_OUTPUT: [&str; 4] = ["output.snapshots=1", "output.vtk=false", "out
 pub struct Row {
     pub values: Vec<String>,
     pub summary: Value,
+    /// MD atom-steps of the run (0 without md bodies).
+    pub atom_steps: f64,
+    /// eq. 7.12 error and points scored at each `--reference-times` time (empty without
+    /// `--reference`).
+    pub scores: Vec<(f64, usize)>,
 }
 
 /// Validates every combination first (a bad value is refused before anything runs), then runs
-/// them one after another and writes `report.csv` and `report.png` in `out`.
-pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: &Path, workers: &[String]) -> Result<Vec<Row>, ReportError> {
+/// them one after another and writes `report.csv` and `report.png` in `out`. With a
+/// `reference`, each run writes snapshots at the reference times and is scored against it.
+pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: &Path, workers: &[String], reference: Option<&ReferenceSpec>) -> Result<Vec<Row>, ReportError> {
     let combos = combinations(sweeps);
     let mut loaded = Vec::new();
     for combo in &combos {
         let all: Vec<String> = sets.iter().cloned().chain(REPORT_OUTPUT.iter().map(|s| s.to_string())).chain(combo.iter().cloned()).collect();
-        loaded.push(scene::load(scene_path, &all).map_err(ReportError::Scene)?);
+        let mut l = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
+        let mut map = None;
+        if let Some(r) = reference {
+            let bad = |e: anyhow::Error| ReportError::Reference(format!("{e:#} (run {})", combo.join(" ")));
+            map = Some(ReferenceMap::of(&l.scene).map_err(bad)?);
+            let snapshots = r.snapshots(&l).map_err(bad)?;
+            let mut all = all;
+            all.push(format!("output.snapshots={snapshots}"));
+            l = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
+        }
+        let atom_steps = md_atom_steps(&l).map_err(|e| ReportError::Reference(format!("{e:#}")))?;
+        loaded.push((l, map, atom_steps));
     }
     let mut rows = Vec::new();
-    for (k, (combo, l)) in combos.iter().zip(&loaded).enumerate() {
+    for (k, (combo, (l, map, atom_steps))) in combos.iter().zip(&loaded).enumerate() {
         tracing::info!("report run {}/{}: {}", k + 1, combos.len(), combo.join(" "));
-        let mut opts = RunOptions::new(out.join("runs").join(format!("{k:03}")), std::env::args().collect());
+        let dir = out.join("runs").join(format!("{k:03}"));
+        let mut opts = RunOptions::new(dir.clone(), std::env::args().collect());
         opts.progress_bar = false;
         opts.workers = workers.to_vec();
         let summary = match run::run(l, &opts).map_err(ReportError::Io)? {
             Outcome::Completed(s) | Outcome::Failed(s, _) => s,
             Outcome::Cancelled { step, .. } => return Err(ReportError::Io(anyhow::anyhow!("report run {k} was cancelled at step {step}"))),
         };
+        let scores = match (reference, map) {
+            (Some(r), Some(m)) if summary["status"] == "completed" => {
+                let s = r.score(m, &dir).map_err(ReportError::Io)?;
+                for (t, (e, n)) in r.times.iter().zip(&s) {
+                    tracing::info!("report run {}: eq. 7.12 error of sigma_xx at {} ps = {:.2} % over {n} points", k + 1, t * 1e12, 100.0 * e);
+                }
+                s
+            }
+            _ => Vec::new(),
+        };
         let values = combo.iter().map(|c| c.split_once('=').map(|(_, v)| v.to_string()).unwrap_or_default()).collect();
-        rows.push(Row { values, summary });
-        write_outputs(sweeps, &rows, out).map_err(ReportError::Io)?;
+        rows.push(Row { values, summary, atom_steps: *atom_steps, scores });
+        write_outputs(sweeps, &rows, out, reference).map_err(ReportError::Io)?;
     }
     Ok(rows)
 }
@@ -86,6 +121,9 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
 pub enum ReportError {
     #[error("{0}")]
     Scene(SceneError),
+    /// `--reference` does not fit the scene or a run (refused before anything runs).
+    #[error("{0}")]
+    Reference(String),
     #[error("{0:#}")]
     Io(anyhow::Error),
 }
@@ -102,21 +140,34 @@ fn field(s: &Value, path: &[&str]) -> String {
     }
 }
 
-fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path) -> Result<()> {
+/// Column name of the eq. 7.12 error at time `t` (s): `sxx_error_5ps`.
+fn error_column(t: f64) -> String {
+    format!("sxx_error_{}ps", (t * 1e15).round() / 1e3)
+}
+
+fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, reference: Option<&ReferenceSpec>) -> Result<()> {
     let mut csv = String::new();
     for s in sweeps {
         let _ = write!(csv, "{},", s.key);
     }
-    csv.push_str("method,status,pressure_l1,pressure_l2,pressure_spike,wall_seconds,compute_seconds,steps,closure_evaluations,energy_drift,run_dir\n");
+    csv.push_str("method,status,pressure_l1,pressure_l2,pressure_spike,wall_seconds,compute_seconds,steps,closure_evaluations,energy_drift,md_atom_steps,");
+    let times = reference.map(|r| r.times.as_slice()).unwrap_or_default();
+    for &t in times {
+        let _ = write!(csv, "{},", error_column(t));
+    }
+    if !times.is_empty() {
+        csv.push_str("scored_points,");
+    }
+    csv.push_str("run_dir\n");
     for (k, r) in rows.iter().enumerate() {
         for v in &r.values {
             let _ = write!(csv, "{},", v.replace(',', ";"));
         }
         let s = &r.summary;
         let compute = s["time_breakdown_s"]["setup"].as_f64().unwrap_or(0.0) + s["time_breakdown_s"]["continuum"].as_f64().unwrap_or(0.0);
-        let _ = writeln!(
+        let _ = write!(
             csv,
-            "{},{},{},{},{},{},{compute:e},{},{},{},runs/{k:03}",
+            "{},{},{},{},{},{},{compute:e},{},{},{},{:e},",
             field(s, &["method"]),
             field(s, &["status"]),
             field(s, &["errors", "pressure_l1"]),
@@ -126,18 +177,36 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path) -> Result<()> {
             field(s, &["steps"]),
             field(s, &["closure_evaluations"]),
             field(s, &["conservation", "energy_drift"]),
+            r.atom_steps,
         );
+        for k in 0..times.len() {
+            match r.scores.get(k) {
+                Some((e, _)) => {
+                    let _ = write!(csv, "{e:e},");
+                }
+                None => csv.push(','),
+            }
+        }
+        if !times.is_empty() {
+            let _ = write!(csv, "{},", r.scores.first().map(|s| s.1.to_string()).unwrap_or_default());
+        }
+        let _ = writeln!(csv, "runs/{k:03}");
     }
     output::write_atomic(&out.join("report.csv"), csv.as_bytes())?;
-    plot(rows, &out.join("report.png"))
+    plot(rows, &out.join("report.png"), reference)
 }
 
-/// Error (pressure L1 over the jump) against wall time on log-log axes, one series per method.
-fn plot(rows: &[Row], path: &Path) -> Result<()> {
+/// Error against wall time on log-log axes, one series per method: pressure L1 over the jump,
+/// or with a reference the eq. 7.12 error at the last reference time.
+fn plot(rows: &[Row], path: &Path, reference: Option<&ReferenceSpec>) -> Result<()> {
     let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     for r in rows {
         let s = &r.summary;
-        let (Some(t), Some(e)) = (s["wall_seconds"].as_f64(), s["errors"]["pressure_l1"].as_f64()) else { continue };
+        let e = match reference {
+            Some(_) => r.scores.last().map(|s| s.0),
+            None => s["errors"]["pressure_l1"].as_f64(),
+        };
+        let (Some(t), Some(e)) = (s["wall_seconds"].as_f64(), e) else { continue };
         if s["status"] != "completed" || !(t > 0.0 && e > 0.0) {
             continue;
         }
@@ -151,7 +220,13 @@ fn plot(rows: &[Row], path: &Path) -> Result<()> {
         pts.sort_by(|a, b| a.0.total_cmp(&b.0));
     }
     let refs: Vec<output::Series<'_>> = series.iter().map(|(m, p)| output::Series { label: m, points: p.clone(), line: true }).collect();
-    output::plot_loglog(path, "pressure error against wall time", "wall time (s)", "pressure L1 error / jump", &refs)
+    match reference {
+        Some(r) => {
+            let t = r.times.last().copied().unwrap_or_default() * 1e12;
+            output::plot_loglog(path, &format!("sigma_xx error against direct MD at {t} ps"), "wall time (s)", "eq. 7.12 error of sigma_xx", &refs)
+        }
+        None => output::plot_loglog(path, "pressure error against wall time", "wall time (s)", "pressure L1 error / jump", &refs),
+    }
 }
 
 /// Parses `--sweep` values and runs the report (for the CLI).
@@ -164,4 +239,399 @@ pub fn default_out(scene_path: &Path) -> PathBuf {
 pub fn read_csv(path: &Path) -> Result<Vec<Vec<String>>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     Ok(text.lines().map(|l| l.split(',').map(str::to_string).collect()).collect())
+}
+
+/// A direct-MD reference for `--reference`: sigma_xx in slabs of the reference (unstrained)
+/// coordinate at a series of times, as `md-worker direct --slab` writes it
+/// (`time_ps,slab_center_nm,sxx_gpa,...`, tension positive).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DirectProfile {
+    /// (time (s), slabs sorted by X: (X (m), sigma_xx (Pa))).
+    pub frames: Vec<(f64, Vec<(f64, f64)>)>,
+}
+
+/// Material points closer than this to either end of the reference bar are not scored: the
+/// direct MD freezes 10 A end layers as walls, the continuum has reflective walls there.
+pub const REFERENCE_WALL_M: f64 = 1e-9;
+
+/// Two times closer than this (s, 1e-3 ps) are the same snapshot (the direct CSV's times
+/// carry round-off from summing 1 fs steps).
+const TIME_TOLERANCE_S: f64 = 1e-15;
+
+impl DirectProfile {
+    pub fn read(path: &Path) -> Result<DirectProfile> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read the direct-MD reference {}", path.display()))?;
+        Self::parse(&text).with_context(|| format!("direct-MD reference {}", path.display()))
+    }
+
+    pub fn parse(text: &str) -> Result<DirectProfile> {
+        let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
+        let (_, header) = lines.next().ok_or_else(|| anyhow::anyhow!("is empty; expected a header time_ps,slab_center_nm,sxx_gpa,... (`md-worker direct --slab` output)"))?;
+        let cols: Vec<&str> = header.split(',').map(str::trim).collect();
+        let col = |name: &str| cols.iter().position(|c| *c == name).ok_or_else(|| anyhow::anyhow!("line 1: no column `{name}` (found {}); expected `md-worker direct --slab` output", cols.join(",")));
+        let (ct, cx, cs) = (col("time_ps")?, col("slab_center_nm")?, col("sxx_gpa")?);
+        let mut frames: Vec<(f64, Vec<(f64, f64)>)> = Vec::new();
+        for (k, line) in lines {
+            let f: Vec<&str> = line.split(',').map(str::trim).collect();
+            let num = |c: usize, name: &str| -> Result<f64> {
+                let v = f.get(c).ok_or_else(|| anyhow::anyhow!("line {}: missing column `{name}`", k + 1))?;
+                v.parse::<f64>().ok().filter(|x| x.is_finite()).ok_or_else(|| anyhow::anyhow!("line {}: `{name}` = {v:?} is not a finite number", k + 1))
+            };
+            let (t, x, s) = (num(ct, "time_ps")? * 1e-12, num(cx, "slab_center_nm")? * 1e-9, num(cs, "sxx_gpa")? * 1e9);
+            match frames.iter_mut().find(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S) {
+                Some((_, rows)) => rows.push((x, s)),
+                None => frames.push((t, vec![(x, s)])),
+            }
+        }
+        if frames.is_empty() {
+            anyhow::bail!("has a header but no rows");
+        }
+        for (t, rows) in &mut frames {
+            rows.sort_by(|a, b| a.0.total_cmp(&b.0));
+            if rows.len() < 2 || rows.windows(2).any(|w| !(w[1].0 > w[0].0)) {
+                anyhow::bail!("t = {} ps: needs at least two slabs with distinct centres, found {}", *t * 1e12, rows.len());
+            }
+        }
+        Ok(DirectProfile { frames })
+    }
+
+    /// The slabs at time `t` (s), if the reference has that time.
+    pub fn at(&self, t: f64) -> Option<&[(f64, f64)]> {
+        self.frames.iter().filter(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S).min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs())).map(|(_, r)| r.as_slice())
+    }
+
+    fn times_ps(&self) -> String {
+        self.frames.iter().map(|(t, _)| format!("{}", (t * 1e15).round() / 1e3)).collect::<Vec<_>>().join(", ")
+    }
+}
+
+/// sigma_xx of slabs (X, s) sorted by X, linear in X between slab centres, constant beyond.
+pub fn interpolate(rows: &[(f64, f64)], x: f64) -> f64 {
+    let i = rows.partition_point(|r| r.0 < x);
+    if i == 0 {
+        return rows[0].1;
+    }
+    if i == rows.len() {
+        return rows[rows.len() - 1].1;
+    }
+    let ((x0, y0), (x1, y1)) = (rows[i - 1], rows[i]);
+    y0 + (y1 - y0) * (x - x0) / (x1 - x0)
+}
+
+/// The seed's eq. 7.12: eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the material points
+/// `(X, s_MS)` (reference coordinate (m), sigma_xx (Pa)), with s_MD the reference slabs
+/// interpolated at X. Points within `wall` of the reference bar's ends (the outer slab faces)
+/// are left out. Returns (eps, points scored).
+pub fn eq_7_12(reference: &[(f64, f64)], points: &[(f64, f64)], wall: f64) -> Result<(f64, usize)> {
+    let n = reference.len();
+    let lo = reference[0].0 - 0.5 * (reference[1].0 - reference[0].0);
+    let hi = reference[n - 1].0 + 0.5 * (reference[n - 1].0 - reference[n - 2].0);
+    let (mut num, mut den, mut count) = (0.0, 0.0, 0);
+    for &(x, s) in points {
+        if x < lo + wall || x > hi - wall {
+            continue;
+        }
+        let r = interpolate(reference, x);
+        num += (r - s) * (r - s);
+        den += r * r;
+        count += 1;
+    }
+    if count == 0 {
+        anyhow::bail!("no material point lies inside the reference bar ({:.4} to {:.4} nm, less {} nm at each end)", lo * 1e9, hi * 1e9, wall * 1e9);
+    }
+    if den == 0.0 {
+        anyhow::bail!("the reference sigma_xx is zero at every scored point: eq. 7.12 is undefined");
+    }
+    Ok(((num / den).sqrt(), count))
+}
+
+/// Maps a 1D scene's initial positions x0 (the strained configuration the bodies are given in)
+/// to the reference coordinate X of an unstrained bar: bodies in order along x, each stretched
+/// back by 1 / (1 + initial_strain_x), gaps between bodies kept. X starts at the first body's
+/// min.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReferenceMap {
+    /// (x0 min, x0 max, X at x0 min, 1 + strain) per body, sorted by x0.
+    bodies: Vec<(f64, f64, f64, f64)>,
+}
+
+impl ReferenceMap {
+    pub fn of(scene: &scene::Scene) -> Result<ReferenceMap> {
+        if scene.domain.dimension != 1 {
+            anyhow::bail!("--reference scores sigma_xx along a 1D bar; scene `{}` has dimension {}", scene.name, scene.domain.dimension);
+        }
+        let mut b: Vec<(f64, f64, f64)> = scene.bodies.values().map(|b| (b.min[0], b.max[0], 1.0 + b.initial_strain.first().copied().unwrap_or(0.0))).collect();
+        b.sort_by(|p, q| p.0.total_cmp(&q.0));
+        let mut bodies = Vec::new();
+        let mut prev: Option<(f64, f64)> = None; // (x0 max, X max) of the body before
+        for (lo, hi, stretch) in b {
+            let start = match prev {
+                None => lo,
+                Some((pmax, _)) if lo < pmax - 1e-9 * (hi - lo) => anyhow::bail!("bodies of scene `{}` overlap along x at {lo:e} m: cannot map them to one reference bar", scene.name),
+                Some((pmax, pxmax)) => pxmax + (lo - pmax).max(0.0),
+            };
+            bodies.push((lo, hi, start, stretch));
+            prev = Some((hi, start + (hi - lo) / stretch));
+        }
+        Ok(ReferenceMap { bodies })
+    }
+
+    /// X of a point that starts at x0 (the body whose [min, max) holds it; the last body takes
+    /// its max too).
+    pub fn x_ref(&self, x0: f64) -> f64 {
+        let k = self.bodies.iter().rposition(|b| x0 >= b.0).unwrap_or(0);
+        let (lo, _, start, stretch) = self.bodies[k];
+        start + (x0 - lo) / stretch
+    }
+}
+
+/// `--reference FILE --reference-times T1,T2,...`: score every run's sigma_xx by eq. 7.12 at
+/// these times (s).
+#[derive(Debug, Clone)]
+pub struct ReferenceSpec {
+    pub path: PathBuf,
+    pub profile: DirectProfile,
+    pub times: Vec<f64>,
+}
+
+impl ReferenceSpec {
+    /// Reads the reference and checks that it has every requested time.
+    pub fn load(path: &Path, times_ps: &[f64]) -> Result<ReferenceSpec> {
+        if times_ps.is_empty() {
+            anyhow::bail!("--reference needs --reference-times T1,T2,... (ps)");
+        }
+        let profile = DirectProfile::read(path)?;
+        let mut times = Vec::new();
+        for &t in times_ps {
+            if !(t.is_finite() && t > 0.0) {
+                anyhow::bail!("--reference-times: {t} ps is not a positive time");
+            }
+            if profile.at(t * 1e-12).is_none() {
+                anyhow::bail!("--reference-times: the direct-MD reference {} has no rows at t = {t} ps (it has {} ps)", path.display(), profile.times_ps());
+            }
+            times.push(t * 1e-12);
+        }
+        Ok(ReferenceSpec { path: path.to_path_buf(), profile, times })
+    }
+
+    /// Snapshot count that puts a snapshot at every reference time: every = gcd of their step
+    /// numbers and the run's step count. Refuses times that are not whole steps or lie after
+    /// the end.
+    pub fn snapshots(&self, loaded: &scene::LoadedScene) -> Result<usize> {
+        let mut every = loaded.steps;
+        for &t in &self.times {
+            let n = (t / loaded.dt).round();
+            if (n * loaded.dt - t).abs() > 1e-6 * loaded.dt {
+                anyhow::bail!("--reference-times: {} ps is not a whole number of continuum steps of {} ps in scene `{}`; choose scheme.timestep dividing it", t * 1e12, loaded.dt * 1e12, loaded.scene.name);
+            }
+            if n as u64 > loaded.steps {
+                anyhow::bail!("--reference-times: {} ps lies after the end time {} ps of scene `{}`", t * 1e12, loaded.steps as f64 * loaded.dt * 1e12, loaded.scene.name);
+            }
+            every = gcd(every, n as u64);
+        }
+        Ok((loaded.steps / every.max(1)) as usize)
+    }
+
+    /// eq. 7.12 error of sigma_xx of the run in `run_dir` at each reference time:
+    /// (error, points scored) per time.
+    pub fn score(&self, map: &ReferenceMap, run_dir: &Path) -> Result<Vec<(f64, usize)>> {
+        let index_path = run_dir.join("snapshots/index.csv");
+        let index = std::fs::read_to_string(&index_path).with_context(|| format!("cannot read {}", index_path.display()))?;
+        let snaps: Vec<(f64, String)> = index
+            .lines()
+            .skip(1)
+            .filter_map(|l| {
+                let f: Vec<&str> = l.split(',').collect();
+                Some((f.get(1)?.parse().ok()?, f.get(2)?.to_string()))
+            })
+            .collect();
+        let mut out = Vec::new();
+        for &t in &self.times {
+            let Some((_, file)) = snaps.iter().find(|(ts, _)| (ts - t).abs() <= TIME_TOLERANCE_S) else {
+                anyhow::bail!("{} has no snapshot at t = {} ps", index_path.display(), t * 1e12);
+            };
+            let path = run_dir.join("snapshots").join(file);
+            let points = read_x0_sxx(&path)?;
+            let pts: Vec<(f64, f64)> = points.iter().map(|&(x0, s)| (map.x_ref(x0), s)).collect();
+            let reference = self.profile.at(t).expect("times checked in load");
+            out.push(eq_7_12(reference, &pts, REFERENCE_WALL_M).with_context(|| format!("eq. 7.12 of {} against {}", path.display(), self.path.display()))?);
+        }
+        Ok(out)
+    }
+}
+
+fn gcd(a: u64, b: u64) -> u64 {
+    if b == 0 { a } else { gcd(b, a % b) }
+}
+
+/// (x0, sxx) of every material point in a particle CSV.
+fn read_x0_sxx(path: &Path) -> Result<Vec<(f64, f64)>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut lines = text.lines();
+    let cols: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let col = |n: &str| cols.iter().position(|c| *c == n).ok_or_else(|| anyhow::anyhow!("{}: no column `{n}`", path.display()));
+    let (cx, cs) = (col("x0")?, col("sxx")?);
+    lines
+        .enumerate()
+        .map(|(k, l)| {
+            let f: Vec<&str> = l.split(',').collect();
+            let get = |c: usize| f.get(c).and_then(|v| v.parse::<f64>().ok()).ok_or_else(|| anyhow::anyhow!("{} line {}: unreadable x0 or sxx", path.display(), k + 2));
+            Ok((get(cx)?, get(cs)?))
+        })
+        .collect()
+}
+
+/// MD atom-steps of a scene: per md body, points x atoms per box x MD steps per box.
+pub fn md_atom_steps(loaded: &scene::LoadedScene) -> Result<f64> {
+    let (per_body, _) = crate::setup::work_size(&loaded.scene);
+    let mut total = 0.0;
+    for (name, n) in per_body {
+        let Some(scene::Material::Md(m)) = loaded.scene.bodies.get(&name).map(|b| &b.material) else { continue };
+        let per_cell = match crate::md::lattice_kind(&m.lattice)? {
+            md_worker::LatticeKind::Fcc => 4.0,
+            md_worker::LatticeKind::Bcc => 2.0,
+            md_worker::LatticeKind::Sc => 1.0,
+        };
+        let steps = loaded.steps as f64 * (loaded.dt / (m.timestep_fs * 1e-15)).round() + m.relax_steps as f64;
+        total += n as f64 * per_cell * (m.cells_per_side as f64).powi(3) * steps;
+    }
+    Ok(total)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Ten 1 m slabs, -10 left of X = 5, 0 right of it.
+    fn step_profile() -> Vec<(f64, f64)> {
+        (0..10).map(|i| (i as f64 + 0.5, if i < 5 { -10.0 } else { 0.0 })).collect()
+    }
+
+    #[test]
+    fn eq_7_12_is_zero_for_the_reference_itself() {
+        let r = step_profile();
+        let (e, n) = eq_7_12(&r, &r, 0.0).expect("score");
+        assert_eq!((e, n), (0.0, 10));
+        // Points between slab centres see the linear interpolation.
+        let mid: Vec<(f64, f64)> = (0..9).map(|i| (i as f64 + 1.0, interpolate(&r, i as f64 + 1.0))).collect();
+        assert_eq!(eq_7_12(&r, &mid, 0.0).expect("score").0, 0.0);
+        assert_eq!(interpolate(&r, 5.0), -5.0);
+        assert_eq!(interpolate(&r, -3.0), -10.0);
+        assert_eq!(interpolate(&r, 30.0), 0.0);
+    }
+
+    #[test]
+    fn eq_7_12_of_a_front_shifted_by_one_slab() {
+        // The run's front lags one slab: the point at X = 5.5 still reads -10 where the
+        // reference reads 0. sum diff^2 = 100, sum ref^2 = 5 x 100: eps = sqrt(1/5).
+        let r = step_profile();
+        let run: Vec<(f64, f64)> = (0..10).map(|i| (i as f64 + 0.5, if i < 6 { -10.0 } else { 0.0 })).collect();
+        let (e, n) = eq_7_12(&r, &run, 0.0).expect("score");
+        assert_eq!(n, 10);
+        assert!((e - 0.2f64.sqrt()).abs() < 1e-15, "{e}");
+        // A wall of 1 m leaves out the points at 0.5 and 9.5 (within 1 m of 0 and 10): the
+        // reference sum loses one -10 point.
+        let (e, n) = eq_7_12(&r, &run, 1.0).expect("score");
+        assert_eq!(n, 8);
+        assert!((e - 0.25f64.sqrt()).abs() < 1e-15, "{e}");
+        // Nothing scored, or a zero reference, is an error rather than a number.
+        assert!(eq_7_12(&r, &[(20.0, 1.0)], 0.0).unwrap_err().to_string().contains("no material point"));
+        let zero: Vec<(f64, f64)> = r.iter().map(|p| (p.0, 0.0)).collect();
+        assert!(eq_7_12(&zero, &run, 0.0).unwrap_err().to_string().contains("undefined"));
+    }
+
+    #[test]
+    fn direct_profile_groups_times_and_refuses_bad_files() {
+        let text = "time_ps,slab_center_nm,sxx_gpa,syy_gpa\n0,2,-1,0\n0,1,-2,0\n4.9999999999996705,1,3,0\n5.000000000000004,2,4,0\n";
+        let p = DirectProfile::parse(text).expect("parse");
+        assert_eq!(p.frames.len(), 2);
+        assert_eq!(p.at(0.0).expect("t=0"), &[(1e-9, -2e9), (2e-9, -1e9)]);
+        let at5 = p.at(5e-12).expect("t=5");
+        assert_eq!(at5.len(), 2);
+        assert!((at5[1].1 - 4e9).abs() < 1e-3);
+        assert!(p.at(1e-12).is_none());
+        let e = DirectProfile::parse("time_ps,x,sxx_gpa\n0,1,2\n").unwrap_err().to_string();
+        assert!(e.contains("no column `slab_center_nm`"), "{e}");
+        let e = DirectProfile::parse("time_ps,slab_center_nm,sxx_gpa\n0,1,2\n0,2,oops\n").unwrap_err().to_string();
+        assert!(e.contains("line 3") && e.contains("sxx_gpa"), "{e}");
+        let e = DirectProfile::parse("time_ps,slab_center_nm,sxx_gpa\n0,1,2\n").unwrap_err().to_string();
+        assert!(e.contains("at least two slabs"), "{e}");
+    }
+
+    fn elastic_bar(sets: &[&str]) -> scene::LoadedScene {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/cu-shock-1d-elastic.toml");
+        scene::load(&path, &sets.iter().map(|s| s.to_string()).collect::<Vec<_>>()).expect("scene")
+    }
+
+    #[test]
+    fn reference_map_unstrains_the_compressed_body() {
+        let l = elastic_bar(&[]);
+        let m = ReferenceMap::of(&l.scene).expect("map");
+        let (a, b) = (51.11e-9, 105.73875e-9);
+        assert_eq!(m.x_ref(0.0), 0.0);
+        assert!((m.x_ref(0.95 * 10e-9) - 10e-9).abs() < 1e-20);
+        // The interface moves to 51.11 / 0.95 nm; the relaxed body keeps its length.
+        assert!((m.x_ref(a) - a / 0.95).abs() < 1e-20);
+        assert!((m.x_ref(b) - (a / 0.95 + (b - a))).abs() < 1e-20);
+    }
+
+    #[test]
+    fn snapshots_land_on_the_reference_times() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let csv = dir.path().join("ref.csv");
+        let mut text = String::from("time_ps,slab_center_nm,sxx_gpa\n");
+        for t in [0.0, 5.0, 10.0] {
+            for k in 0..60 {
+                text.push_str(&format!("{t},{},{}\n", 0.90375 + 1.8075 * k as f64, if k < 30 { -9.0 } else { 0.0 }));
+            }
+        }
+        std::fs::write(&csv, text).expect("write");
+        let spec = ReferenceSpec::load(&csv, &[5.0, 10.0]).expect("spec");
+        // dt 0.25 ps, 40 steps: steps 20 and 40, a snapshot every 20 steps.
+        assert_eq!(spec.snapshots(&elastic_bar(&[])).expect("snapshots"), 2);
+        assert_eq!(spec.snapshots(&elastic_bar(&["scheme.timestep=0.05e-12"])).expect("snapshots"), 2);
+        let e = spec.snapshots(&elastic_bar(&["scheme.timestep=0.3e-12"])).unwrap_err().to_string();
+        assert!(e.contains("not a whole number of continuum steps"), "{e}");
+        let e = spec.snapshots(&elastic_bar(&["scheme.end_time=8e-12"])).unwrap_err().to_string();
+        assert!(e.contains("after the end time"), "{e}");
+        let e = ReferenceSpec::load(&csv, &[7.0]).unwrap_err().to_string();
+        assert!(e.contains("no rows at t = 7 ps") && e.contains("0, 5, 10"), "{e}");
+        assert!(ReferenceSpec::load(&csv, &[]).is_err());
+    }
+
+    #[test]
+    fn a_run_directory_is_scored_at_each_time() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let csv = dir.path().join("ref.csv");
+        // Reference X: 0..100 nm in 10 nm slabs, -2 GPa left of 50 nm, -1 GPa right of it.
+        let mut text = String::from("time_ps,slab_center_nm,sxx_gpa\n");
+        for t in [5.0, 10.0] {
+            for k in 0..10 {
+                text.push_str(&format!("{t},{},{}\n", 10.0 * k as f64 + 5.0, if k < 5 { -2.0 } else { -1.0 }));
+            }
+        }
+        std::fs::write(&csv, text).expect("write");
+        let spec = ReferenceSpec::load(&csv, &[5.0, 10.0]).expect("spec");
+        let run = dir.path().join("run");
+        std::fs::create_dir_all(run.join("snapshots")).expect("mkdir");
+        std::fs::write(run.join("snapshots/index.csv"), "step,time,file\n0,0e0,a.csv\n20,5e-12,b.csv\n40,1e-11,c.csv\n").expect("index");
+        // Points at the slab centres in the reference coordinate; the map is the identity.
+        let map = ReferenceMap { bodies: vec![(0.0, 100e-9, 0.0, 1.0)] };
+        let table = |f: &dyn Fn(usize) -> f64| {
+            let mut s = String::from("id,x0,x,vx,mass,volume,density,pressure,sxx,syy,szz,sxy,sxz,syz\n");
+            for k in 0..10 {
+                let x = (10.0 * k as f64 + 5.0) * 1e-9;
+                s.push_str(&format!("{k},{x:e},{x:e},0,1,1,1,0,{:e},0,0,0,0,0\n", f(k)));
+            }
+            s
+        };
+        std::fs::write(run.join("snapshots/b.csv"), table(&|k| if k < 5 { -2e9 } else { -1e9 })).expect("b");
+        // At 10 ps one point right of the jump reads -2 GPa: sqrt(1 / (5 x 4 + 5 x 1)) = 0.2.
+        std::fs::write(run.join("snapshots/c.csv"), table(&|k| if k < 6 { -2e9 } else { -1e9 })).expect("c");
+        let s = spec.score(&map, &run).expect("score");
+        assert_eq!(s[0], (0.0, 10));
+        assert!((s[1].0 - 0.2).abs() < 1e-12 && s[1].1 == 10, "{s:?}");
+        std::fs::remove_file(run.join("snapshots/c.csv")).expect("rm");
+        assert!(spec.score(&map, &run).unwrap_err().to_string().contains("c.csv"));
+    }
 }
