@@ -8,6 +8,7 @@ use mscale_proto::orchestrator::v1 as pb;
 use pb::orchestrator_client::OrchestratorClient;
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 use tonic::transport::Channel;
 
 /// Default address of `mscale serve` and of its clients.
@@ -114,21 +115,90 @@ impl Client {
         Ok(r.into_inner())
     }
 
-    /// Follows a job to its end, calling `on` for every event; returns the last one.
-    pub fn watch(&mut self, id: &str, mut on: impl FnMut(&pb::JobEvent)) -> Result<pb::JobEvent> {
+    /// Follows a job to its end from its first event, calling `on` for every event; returns
+    /// the last one. See [`Client::watch_from`].
+    pub fn watch(&mut self, id: &str, on: impl FnMut(&pb::JobEvent)) -> Result<pb::JobEvent> {
+        self.watch_from(id, WatchOptions::default(), on)
+    }
+
+    /// Follows a job to its end, calling `on` for every event after `opts.after_sequence` in
+    /// sequence order, each once; returns the final one. The sequence numbers are checked to
+    /// follow each other (a JOB_EVENT_KIND_NOT_RETAINED event stands for the ones the server no
+    /// longer has, and is passed to `on`); when the stream breaks (the orchestrator stopped or
+    /// restarted, the connection dropped) or shows a gap, the watch reconnects with
+    /// `after_sequence` set to the last event received, for up to `opts.reconnect_for` after
+    /// the last event that came.
+    pub fn watch_from(&mut self, id: &str, opts: WatchOptions, mut on: impl FnMut(&pb::JobEvent)) -> Result<pb::JobEvent> {
         let mut inner = self.inner.clone();
         let server = self.server.clone();
         self.rt.block_on(async move {
-            let mut stream = inner.watch_job(pb::WatchJobRequest { job_id: id.into() }).await.map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?.into_inner();
-            let mut last = None;
-            while let Some(ev) = stream.message().await.map_err(|s| anyhow::anyhow!("{}", status_text(&s)))? {
-                on(&ev);
-                last = Some(ev);
+            let mut after = opts.after_sequence;
+            // Since when no event came, and why.
+            let mut broken: Option<Instant> = None;
+            let mut pause = Duration::from_millis(100);
+            loop {
+                let why = match inner.watch_job(pb::WatchJobRequest { job_id: id.into(), after_sequence: after }).await {
+                    Err(s) if !retryable(&s) => bail!("{}", status_text(&s)),
+                    Err(s) => status_text(&s),
+                    Ok(r) => {
+                        let mut stream = r.into_inner();
+                        loop {
+                            let ev = match stream.message().await {
+                                Ok(Some(ev)) => ev,
+                                Ok(None) => break "the stream ended before the job did".to_string(),
+                                Err(s) if !retryable(&s) => bail!("{}", status_text(&s)),
+                                Err(s) => break status_text(&s),
+                            };
+                            // An orchestrator that numbers no events (older, or a job stored
+                            // before numbering): nothing to check.
+                            if ev.sequence == 0 {
+                                on(&ev);
+                                if is_final(&ev) {
+                                    return Ok(ev);
+                                }
+                                continue;
+                            }
+                            if ev.sequence <= after {
+                                continue; // already had it (a replay overlapping what came live)
+                            }
+                            let not_retained = ev.kind == pb::JobEventKind::NotRetained as i32;
+                            let first = if not_retained { ev.not_retained_from } else { ev.sequence };
+                            if first != after + 1 {
+                                break format!("event {first} came after event {after}");
+                            }
+                            after = ev.sequence;
+                            (broken, pause) = (None, Duration::from_millis(100));
+                            on(&ev);
+                            if !not_retained && is_final(&ev) {
+                                return Ok(ev);
+                            }
+                        }
+                    }
+                };
+                let since = *broken.get_or_insert_with(|| {
+                    tracing::warn!("the watch of job {id} at {server} broke after event {after} ({why}); reconnecting");
+                    Instant::now()
+                });
+                if since.elapsed() >= opts.reconnect_for {
+                    bail!("lost the watch of job {id} at {server} after event {after} ({why}) and could not resume it within {:.0} s", opts.reconnect_for.as_secs_f64());
+                }
+                tokio::time::sleep(pause).await;
+                pause = (pause * 2).min(Duration::from_secs(1));
             }
-            match last {
-                Some(ev) if is_final(&ev) => Ok(ev),
-                _ => bail!("the orchestrator at {server} closed the watch of job {id} before it ended"),
+        })
+    }
+
+    /// Every file of a job's run directory into `out` (see [`RunWriter`]); returns the number
+    /// of files and of bytes.
+    pub fn fetch_run(&mut self, id: &str, out: &Path) -> Result<(usize, u64)> {
+        let mut writer = RunWriter::new(out)?;
+        let mut inner = self.inner.clone();
+        self.rt.block_on(async move {
+            let mut stream = inner.fetch_run(pb::FetchRunRequest { job_id: id.into(), chunk_bytes: 0 }).await.map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?.into_inner();
+            while let Some(c) = stream.message().await.map_err(|s| anyhow::anyhow!("fetch of job {id}: {}", status_text(&s)))? {
+                writer.chunk(&c)?;
             }
+            writer.finish()
         })
     }
 
@@ -176,6 +246,136 @@ impl Client {
     }
 }
 
+/// How [`Client::watch_from`] follows a job.
+#[derive(Debug, Clone, Copy)]
+pub struct WatchOptions {
+    /// Only events after this sequence number (0: from the first).
+    pub after_sequence: u64,
+    /// How long to keep reconnecting after the stream broke and no event came.
+    pub reconnect_for: Duration,
+}
+
+impl Default for WatchOptions {
+    fn default() -> Self {
+        WatchOptions { after_sequence: 0, reconnect_for: Duration::from_secs(60) }
+    }
+}
+
+/// Whether a failed watch is worth reconnecting (the server or the connection went away),
+/// as opposed to a refusal that retrying does not change.
+fn retryable(s: &tonic::Status) -> bool {
+    use tonic::Code::*;
+    !matches!(s.code(), NotFound | InvalidArgument | OutOfRange | Unauthenticated | PermissionDenied | FailedPrecondition | Unimplemented)
+}
+
+/// `path` as sent by a server, if it is a plain relative path (no root, `..` or `.`), which
+/// cannot lead out of the directory it is joined to.
+pub fn safe_relative(path: &str) -> Result<PathBuf> {
+    let p = Path::new(path);
+    let ok = !path.is_empty() && !path.contains('\0') && p.components().all(|c| matches!(c, std::path::Component::Normal(_)));
+    anyhow::ensure!(ok, "the orchestrator sent the file name {path:?}, which is not a plain relative path; refusing to write it");
+    Ok(p.to_path_buf())
+}
+
+/// Writes the chunks of FetchRun under a directory: each file into a temporary file next to
+/// its place, checked against its size and SHA-256 (read back after fsync), then renamed into
+/// place; names that would leave the directory are refused.
+pub struct RunWriter {
+    root: PathBuf,
+    current: Option<Partial>,
+    seen: std::collections::HashSet<String>,
+    files: usize,
+    bytes: u64,
+}
+
+struct Partial {
+    path: String,
+    tmp: PathBuf,
+    dest: PathBuf,
+    file: std::fs::File,
+    hasher: Sha256,
+    written: u64,
+}
+
+impl RunWriter {
+    pub fn new(out: &Path) -> Result<Self> {
+        std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+        let root = out.canonicalize().with_context(|| format!("cannot resolve {}", out.display()))?;
+        Ok(RunWriter { root, current: None, seen: Default::default(), files: 0, bytes: 0 })
+    }
+
+    /// Takes the next chunk.
+    pub fn chunk(&mut self, c: &pb::FetchRunChunk) -> Result<()> {
+        use std::io::Write;
+        if let Some(p) = &self.current {
+            anyhow::ensure!(p.path == c.path, "the orchestrator sent {} before the end of {}", c.path, p.path);
+        } else {
+            self.current = Some(self.open(&c.path)?);
+        }
+        let Some(p) = self.current.as_mut() else { unreachable!("opened above") };
+        anyhow::ensure!(c.offset == p.written, "{}: a chunk at byte {} after {} bytes", c.path, c.offset, p.written);
+        p.file.write_all(&c.data).with_context(|| format!("cannot write {}", p.tmp.display()))?;
+        p.hasher.update(&c.data);
+        p.written += c.data.len() as u64;
+        if c.last {
+            let p = self.current.take().unwrap_or_else(|| unreachable!("set above"));
+            let (files, bytes) = (&mut self.files, &mut self.bytes);
+            let result = (|| {
+                anyhow::ensure!(c.size == p.written, "{}: {} bytes arrived, the orchestrator sent {}", c.path, p.written, c.size);
+                let sent = hex::encode(p.hasher.clone().finalize());
+                anyhow::ensure!(sent == c.sha256, "{} arrived damaged: SHA-256 {sent}, sent as {}", c.path, c.sha256);
+                p.file.sync_all().with_context(|| format!("cannot write {}", p.tmp.display()))?;
+                let on_disk = hex::encode(Sha256::digest(std::fs::read(&p.tmp).with_context(|| format!("cannot read back {}", p.tmp.display()))?));
+                anyhow::ensure!(on_disk == c.sha256, "{} reads back with SHA-256 {on_disk}, not {}", p.tmp.display(), c.sha256);
+                std::fs::rename(&p.tmp, &p.dest).with_context(|| format!("cannot rename {} to {}", p.tmp.display(), p.dest.display()))?;
+                if let Some(dir) = p.dest.parent() {
+                    std::fs::File::open(dir).and_then(|d| d.sync_all()).with_context(|| format!("cannot sync {}", dir.display()))?;
+                }
+                Ok(())
+            })();
+            if result.is_err() {
+                let _ = std::fs::remove_file(&p.tmp);
+            }
+            result?;
+            *files += 1;
+            *bytes += p.written;
+        }
+        Ok(())
+    }
+
+    fn open(&mut self, path: &str) -> Result<Partial> {
+        use std::os::unix::fs::OpenOptionsExt;
+        let rel = safe_relative(path)?;
+        anyhow::ensure!(self.seen.insert(path.to_string()), "the orchestrator sent {path} twice");
+        let dest = self.root.join(&rel);
+        let (Some(dir), Some(name)) = (dest.parent(), dest.file_name()) else { bail!("{path} names no file") };
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        // A directory on the way that is a link must not lead out of the destination.
+        let real = dir.canonicalize().with_context(|| format!("cannot resolve {}", dir.display()))?;
+        anyhow::ensure!(real.starts_with(&self.root), "{path} would be written to {}, outside {}; refusing", real.display(), self.root.display());
+        let tmp = real.join(format!(".{}.fetch-{}", name.to_string_lossy(), std::process::id()));
+        let file = std::fs::OpenOptions::new().write(true).create(true).truncate(true).custom_flags(libc::O_NOFOLLOW).open(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?;
+        Ok(Partial { path: path.to_string(), tmp, dest: real.join(name), file, hasher: Sha256::new(), written: 0 })
+    }
+
+    /// Checks that no file was left unfinished; returns the number of files and of bytes.
+    pub fn finish(mut self) -> Result<(usize, u64)> {
+        if let Some(p) = self.current.take() {
+            let _ = std::fs::remove_file(&p.tmp);
+            bail!("the fetch ended in the middle of {} ({} bytes arrived)", p.path, p.written);
+        }
+        Ok((self.files, self.bytes))
+    }
+}
+
+impl Drop for RunWriter {
+    fn drop(&mut self) {
+        if let Some(p) = self.current.take() {
+            let _ = std::fs::remove_file(&p.tmp);
+        }
+    }
+}
+
 pub fn state_name(state: i32) -> &'static str {
     match pb::JobState::try_from(state) {
         Ok(pb::JobState::Queued) => "queued",
@@ -189,6 +389,63 @@ pub fn state_name(state: i32) -> &'static str {
 
 pub fn is_final(ev: &pb::JobEvent) -> bool {
     matches!(pb::JobState::try_from(ev.state), Ok(pb::JobState::Completed | pb::JobState::Failed | pb::JobState::Cancelled))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn chunk(path: &str, offset: u64, data: &[u8], last: bool) -> pb::FetchRunChunk {
+        let sha256 = if last { hex::encode(Sha256::digest(data)) } else { String::new() };
+        pb::FetchRunChunk { path: path.into(), offset, data: data.to_vec(), last, size: if last { offset + data.len() as u64 } else { 0 }, sha256 }
+    }
+
+    #[test]
+    fn fetched_files_stay_inside_the_destination() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        for bad in ["../escape", "/tmp/escape", "a/../../escape", "", "./x", "a/.."] {
+            let mut w = RunWriter::new(&out).unwrap();
+            let e = w.chunk(&chunk(bad, 0, b"x", true)).unwrap_err();
+            assert!(format!("{e:#}").contains("not a plain relative path"), "{bad}: {e:#}");
+        }
+        assert!(!dir.path().join("escape").exists());
+        // A directory inside DIR that is a link out of it is not written through.
+        std::fs::create_dir_all(dir.path().join("elsewhere")).unwrap();
+        std::os::unix::fs::symlink(dir.path().join("elsewhere"), out.join("link")).unwrap();
+        let mut w = RunWriter::new(&out).unwrap();
+        let e = w.chunk(&chunk("link/f", 0, b"x", true)).unwrap_err();
+        assert!(format!("{e:#}").contains("outside"), "{e:#}");
+        assert!(!dir.path().join("elsewhere/f").exists());
+    }
+
+    #[test]
+    fn fetched_files_are_checked_and_written_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = RunWriter::new(dir.path()).unwrap();
+        let data: Vec<u8> = (0..2500u32).map(|k| (k % 251) as u8).collect();
+        let mut c = chunk("snapshots/a.csv", 0, &data[..1000], false);
+        w.chunk(&c).unwrap();
+        c = chunk("snapshots/a.csv", 1000, &data[1000..], true);
+        c.size = 2500;
+        c.sha256 = hex::encode(Sha256::digest(&data));
+        w.chunk(&c).unwrap();
+        w.chunk(&chunk("empty", 0, b"", true)).unwrap();
+        // A damaged file: refused, nothing left behind.
+        let mut bad = chunk("summary.json", 0, b"{}", true);
+        bad.sha256 = hex::encode(Sha256::digest(b"{ }"));
+        assert!(format!("{:#}", w.chunk(&bad).unwrap_err()).contains("arrived damaged"));
+        assert_eq!(w.finish().unwrap(), (2, 2500));
+        assert_eq!(std::fs::read(dir.path().join("snapshots/a.csv")).unwrap(), data);
+        assert!(!dir.path().join("summary.json").exists());
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name()).filter(|n| n.to_string_lossy().starts_with('.')).collect();
+        assert!(left.is_empty(), "temporary files left: {left:?}");
+        // A stream cut in the middle of a file is an error, and leaves no partial file.
+        let mut w = RunWriter::new(dir.path()).unwrap();
+        w.chunk(&chunk("cut", 0, b"abc", false)).unwrap();
+        assert!(w.finish().is_err());
+        assert!(!dir.path().join("cut").exists());
+    }
 }
 
 // ---- the verbs, as `mscale` runs them (each returns its exit code) ----
@@ -352,8 +609,10 @@ pub fn status(server: &str, token_file: Option<&Path>, job: Option<&str>) -> Res
     Ok(crate::exit::OK)
 }
 
-/// `mscale watch JOB`: a progress bar on a terminal, a line per second otherwise.
-pub fn watch(server: &str, token_file: Option<&Path>, job: &str) -> Result<i32> {
+/// `mscale watch JOB`: a progress bar on a terminal, a line per second otherwise; with
+/// `events`, also every event as a line on stdout (`event SEQ KIND STATE step S/N MESSAGE`).
+/// Reconnects for up to `reconnect_for` when the stream breaks.
+pub fn watch(server: &str, token_file: Option<&Path>, job: &str, events: bool, reconnect_for: Duration) -> Result<i32> {
     use std::io::IsTerminal;
     let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
     let bar = std::io::stderr().is_terminal().then(|| {
@@ -362,7 +621,15 @@ pub fn watch(server: &str, token_file: Option<&Path>, job: &str) -> Result<i32> 
         b
     });
     let mut last_line = std::time::Instant::now() - std::time::Duration::from_secs(2);
-    let last = c.watch(job, |ev| {
+    let opts = WatchOptions { after_sequence: 0, reconnect_for };
+    let last = c.watch_from(job, opts, |ev| {
+        if events {
+            println!("{}", event_line(ev));
+        }
+        if ev.kind == pb::JobEventKind::NotRetained as i32 {
+            eprintln!("mscale: {}", ev.message);
+            return;
+        }
         let eta = if ev.eta_s >= 0.0 { format!("ETA {:.0} s", ev.eta_s) } else { "ETA -".into() };
         let msg = format!("{}  t = {:.4e} s  {:.1} %  energy drift {:.2e}  {eta}", state_name(ev.state), ev.sim_time_s, ev.percent, ev.energy_drift);
         match &bar {
@@ -386,6 +653,16 @@ pub fn watch(server: &str, token_file: Option<&Path>, job: &str) -> Result<i32> 
     Ok(if pb::JobState::try_from(last.state) == Ok(pb::JobState::Completed) { crate::exit::OK } else { crate::exit::RUN_FAILED })
 }
 
+/// One event as `mscale watch --events` prints it.
+pub fn event_line(ev: &pb::JobEvent) -> String {
+    let kind = pb::JobEventKind::try_from(ev.kind).map(|k| k.as_str_name().trim_start_matches("JOB_EVENT_KIND_").to_lowercase()).unwrap_or_else(|_| ev.kind.to_string());
+    if ev.kind == pb::JobEventKind::NotRetained as i32 {
+        return format!("event {}..{} {kind}  {}", ev.not_retained_from, ev.sequence, ev.message);
+    }
+    let msg = if ev.message.is_empty() { String::new() } else { format!("  {}", ev.message) };
+    format!("event {} {kind} {} step {}/{}{msg}", ev.sequence, state_name(ev.state), ev.step, ev.steps)
+}
+
 /// `mscale cancel JOB`.
 pub fn cancel(server: &str, token_file: Option<&Path>, job: &str) -> Result<i32> {
     let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
@@ -394,9 +671,15 @@ pub fn cancel(server: &str, token_file: Option<&Path>, job: &str) -> Result<i32>
     Ok(crate::exit::OK)
 }
 
-/// `mscale fetch JOB FILE --out PATH`.
-pub fn fetch(server: &str, token_file: Option<&Path>, job: &str, file: &str, out: &Path) -> Result<i32> {
+/// `mscale fetch JOB FILE --out PATH`, or without FILE the whole run directory into the
+/// directory `--out DIR`.
+pub fn fetch(server: &str, token_file: Option<&Path>, job: &str, file: Option<&str>, out: &Path) -> Result<i32> {
     let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
+    let Some(file) = file else {
+        let (files, bytes) = c.fetch_run(job, out)?;
+        println!("{files} files, {bytes} bytes into {}", out.display());
+        return Ok(crate::exit::OK);
+    };
     let bytes = c.fetch(job, file)?;
     crate::output::write_atomic(out, &bytes)?;
     println!("{} bytes into {}", bytes.len(), out.display());

@@ -95,9 +95,16 @@ enum Command {
         #[command(flatten)]
         conn: Conn,
     },
-    /// Follow a job with a progress bar; exit code 0 when it completed, 1 otherwise.
+    /// Follow a job with a progress bar; exit code 0 when it completed, 1 otherwise. Every
+    /// event is numbered; a broken stream (the orchestrator restarted) is resumed where it broke.
     Watch {
         job: String,
+        /// Print every event on stdout: `event SEQ KIND STATE step S/N MESSAGE`.
+        #[arg(long)]
+        events: bool,
+        /// Keep reconnecting this long (s) after the stream broke before giving up (exit 1).
+        #[arg(long, value_name = "SECONDS", default_value_t = 60.0)]
+        reconnect_for: f64,
         #[command(flatten)]
         conn: Conn,
     },
@@ -107,10 +114,11 @@ enum Command {
         #[command(flatten)]
         conn: Conn,
     },
-    /// Copy one file of a job's run directory (summary.json, snapshots/index.csv, ...).
+    /// Copy one file of a job's run directory (summary.json, snapshots/index.csv, ...) to
+    /// `--out PATH`, or without FILE every file of it into the directory `--out DIR`.
     Fetch {
         job: String,
-        file: String,
+        file: Option<String>,
         #[arg(long, value_name = "PATH")]
         out: PathBuf,
         #[command(flatten)]
@@ -210,9 +218,12 @@ fn dispatch(cli: Cli) -> i32 {
         Command::Drain { worker, conn } => report(conn.ca().and_then(|_| orchestrator::client::drain(&conn.server, conn.token_file.as_deref(), &worker))),
         Command::Submit { scene, set, priority, checkpoint_every, conn } => report(conn.ca().and_then(|_| orchestrator::client::submit(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every))),
         Command::Status { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::status(&conn.server, conn.token_file.as_deref(), job.as_deref()))),
-        Command::Watch { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::watch(&conn.server, conn.token_file.as_deref(), &job))),
+        Command::Watch { job, events, reconnect_for, conn } => report(conn.ca().and_then(|_| {
+            anyhow::ensure!(reconnect_for.is_finite() && reconnect_for >= 0.0, "--reconnect-for {reconnect_for} must be a number of seconds >= 0");
+            orchestrator::client::watch(&conn.server, conn.token_file.as_deref(), &job, events, std::time::Duration::from_secs_f64(reconnect_for))
+        })),
         Command::Cancel { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::cancel(&conn.server, conn.token_file.as_deref(), &job))),
-        Command::Fetch { job, file, out, conn } => report(conn.ca().and_then(|_| orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, &file, &out))),
+        Command::Fetch { job, file, out, conn } => report(conn.ca().and_then(|_| orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, file.as_deref(), &out))),
         Command::Health { conn } => report(conn.ca().and_then(|_| orchestrator::client::health(&conn.server, conn.token_file.as_deref()))),
         Command::Check { scene, set, estimate } => match scene::load(&scene, &set) {
             Ok(loaded) => {

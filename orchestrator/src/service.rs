@@ -19,6 +19,12 @@
 //! fails naming the worker and the step. A worker silent for longer than the worker timeout is
 //! declared lost; a job holding boxes on it checkpoints and moves off it.
 //!
+//! Watch events: every event of a job has a sequence number (1, 2, 3, ... with no gaps), given
+//! in the store transaction that records it ([`Store`] keeps state changes, checkpoints and
+//! worker changes for good and recent progress). Watchers replay what they missed from the
+//! store and then follow a broadcast channel; one that lags is caught up from the store again,
+//! so an event is never skipped. Progress is published at most every 100 ms.
+//!
 //! Security: mutating calls (SubmitJob, CancelJob, RegisterWorker, Heartbeat, DrainWorker)
 //! need `authorization: Bearer <token>`,
 //! compared in constant time; requests are bounded in size; FetchResult cannot leave the job's
@@ -27,7 +33,7 @@
 
 use crate::run::{self, Outcome, Progress, RunOptions};
 use crate::scene;
-use crate::store::{JobRecord, JobState, Store, WorkerAd, WorkerRecord, WorkerState, now_unix};
+use crate::store::{EventKind, EventRecord, JobRecord, JobState, Store, WorkerAd, WorkerRecord, WorkerState, now_unix};
 use crate::workers::{self, Registry, WorkerError};
 use continuum::coupling::MdShared;
 use anyhow::{Context, Result, bail};
@@ -41,7 +47,8 @@ use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
-use tokio::sync::watch;
+use prost::Message;
+use tokio::sync::{broadcast, watch};
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status};
 
@@ -94,8 +101,11 @@ struct Core {
     state_dir: PathBuf,
     token: String,
     checkpoint_every: u64,
-    /// Live progress of jobs somebody watches or that run now.
-    live: Mutex<HashMap<String, watch::Sender<pb::JobEvent>>>,
+    /// The event channels of jobs somebody watches (lock after `store`).
+    live: Mutex<HashMap<String, LiveJob>>,
+    /// The progress details (end time, ETA, drift, workers) of running jobs' latest progress
+    /// event, encoded: state events carry them too.
+    details: Mutex<HashMap<String, Vec<u8>>>,
     /// The running job and its flags.
     running: Mutex<Option<RunningJob>>,
     /// Registered workers (lock before `store` when both are needed).
@@ -111,6 +121,20 @@ struct Core {
     wake: (Mutex<bool>, Condvar),
     next_id: AtomicU64,
 }
+
+/// The broadcast of a watched job's events.
+struct LiveJob {
+    tx: broadcast::Sender<Arc<pb::JobEvent>>,
+    /// The newest sequence number sent on `tx`.
+    published: u64,
+}
+
+/// Events a watcher may fall behind by before it is caught up from the store.
+const WATCH_BACKLOG: usize = 256;
+/// Events read from the store at a time when a watcher catches up.
+const REPLAY_BATCH: usize = 512;
+/// Largest chunk of FetchRun (bytes).
+pub const FETCH_CHUNK: usize = 1 << 20;
 
 /// How long jobs wait for `--local-workers` to register before running without them.
 const LOCAL_WORKERS_WAIT: Duration = Duration::from_secs(60);
@@ -197,19 +221,45 @@ fn to_pb(j: &JobRecord) -> pb::Job {
     }
 }
 
-fn event_of(j: &JobRecord) -> pb::JobEvent {
+fn pb_event_kind(k: EventKind) -> pb::JobEventKind {
+    match k {
+        EventKind::State => pb::JobEventKind::State,
+        EventKind::Progress => pb::JobEventKind::Progress,
+        EventKind::Checkpoint => pb::JobEventKind::Checkpoint,
+        EventKind::Workers => pb::JobEventKind::Workers,
+    }
+}
+
+/// A stored event as watchers get it: the progress details it was stored with (end time, ETA,
+/// drift, workers), the rest from the record.
+fn event_of(e: &EventRecord) -> pb::JobEvent {
+    let mut ev = pb::JobEvent::decode(e.detail.as_slice()).unwrap_or_else(|_| pb::JobEvent { eta_s: -1.0, ..Default::default() });
+    if e.detail.is_empty() {
+        ev.eta_s = -1.0;
+    }
+    ev.job_id = e.job_id.clone();
+    ev.state = pb_state(e.state) as i32;
+    ev.step = e.step;
+    ev.steps = e.steps;
+    ev.sim_time_s = e.sim_time;
+    ev.percent = if e.steps > 0 { 100.0 * e.step as f64 / e.steps as f64 } else { 0.0 };
+    ev.message = e.message.clone();
+    ev.sequence = e.seq;
+    ev.kind = pb_event_kind(e.kind) as i32;
+    ev.at_unix = e.at;
+    ev
+}
+
+/// The event that stands for events `from..=to` no longer retained.
+fn not_retained(id: &str, from: u64, to: u64) -> pb::JobEvent {
     pb::JobEvent {
-        job_id: j.id.clone(),
-        state: pb_state(j.state) as i32,
-        step: j.step,
-        steps: j.steps,
-        sim_time_s: j.sim_time,
-        end_time_s: 0.0,
-        percent: if j.steps > 0 { 100.0 * j.step as f64 / j.steps as f64 } else { 0.0 },
+        job_id: id.to_string(),
+        sequence: to,
+        not_retained_from: from,
+        kind: pb::JobEventKind::NotRetained as i32,
         eta_s: -1.0,
-        energy_drift: 0.0,
-        message: j.error.clone(),
-        workers: Vec::new(),
+        message: format!("events {from} to {to} of job {id} are no longer retained (old progress events are pruned); they cannot be replayed"),
+        ..Default::default()
     }
 }
 
@@ -226,24 +276,56 @@ impl Core {
         lock(&self.store).get(id).map_err(|e| Status::internal(format!("{e:#}")))?.ok_or_else(|| Status::not_found(format!("no job {id:?}")))
     }
 
-    /// The live channel of a job, created from the store when new.
-    fn channel(&self, id: &str) -> Result<watch::Sender<pb::JobEvent>, Status> {
-        if let Some(tx) = lock(&self.live).get(id) {
-            return Ok(tx.clone());
-        }
-        let ev = event_of(&self.get(id)?);
-        Ok(lock(&self.live).entry(id.to_string()).or_insert_with(|| watch::channel(ev).0).clone())
+    /// Subscribes to a job's events; returns the receiver and the newest sequence number at
+    /// that moment (every later event comes through the receiver or, if it lags, the store).
+    fn subscribe(&self, id: &str) -> Result<(broadcast::Receiver<Arc<pb::JobEvent>>, u64), Status> {
+        let store = lock(&self.store);
+        let last = store.last_sequence(id).map_err(|e| Status::internal(format!("{e:#}")))?;
+        let mut live = lock(&self.live);
+        let job = live.entry(id.to_string()).or_insert_with(|| LiveJob { tx: broadcast::channel(WATCH_BACKLOG).0, published: last });
+        Ok((job.tx.subscribe(), last))
     }
 
-    /// Publishes a job's stored state (after a transition).
-    fn publish_stored(&self, id: &str) {
-        if let (Ok(tx), Ok(j)) = (self.channel(id), self.get(id)) {
-            tx.send_modify(|ev| {
-                let progress = (ev.end_time_s, ev.energy_drift, std::mem::take(&mut ev.workers));
-                *ev = event_of(&j);
-                (ev.end_time_s, ev.energy_drift, ev.workers) = progress;
-            });
+    /// Drops a job's channel when its last watcher has gone.
+    fn unsubscribe(&self, id: &str) {
+        let mut live = lock(&self.live);
+        if live.get(id).is_some_and(|j| j.tx.receiver_count() == 0) {
+            live.remove(id);
         }
+    }
+
+    /// Sends the job's stored events its watchers have not been sent yet (after every change
+    /// the store records); in sequence order, as the store lock is held throughout.
+    fn publish_stored(&self, id: &str) {
+        let store = lock(&self.store);
+        let mut live = lock(&self.live);
+        let Some(job) = live.get_mut(id) else { return }; // nobody watches: watchers read the store
+        loop {
+            let events = match store.events_after(id, job.published, REPLAY_BATCH) {
+                Ok(e) => e,
+                Err(e) => {
+                    tracing::error!("job {id}: cannot read its events: {e:#}");
+                    return;
+                }
+            };
+            for e in &events {
+                job.published = e.seq;
+                // No receiver: the watcher is gone or about to subscribe (it reads the store).
+                let _ = job.tx.send(Arc::new(event_of(e)));
+            }
+            if events.len() < REPLAY_BATCH {
+                return;
+            }
+        }
+    }
+
+    /// Records a job's note (a worker change, a checkpoint) as an event and publishes it.
+    fn note_event(&self, id: &str, kind: EventKind, text: &str) {
+        let detail = lock(&self.details).get(id).cloned().unwrap_or_default();
+        if let Err(e) = lock(&self.store).note_event(id, kind, text, &detail) {
+            tracing::error!("job {id}: cannot record {text:?}: {e:#}");
+        }
+        self.publish_stored(id);
     }
 
     /// Whether jobs should still wait for `--local-workers` to register.
@@ -319,7 +401,8 @@ fn monitor(core: Arc<Core>) {
 }
 
 fn transition(core: &Core, id: &str, state: JobState, note: &str, digest: &str) {
-    if let Err(e) = lock(&core.store).transition(id, state, note, digest) {
+    let detail = if state.is_final() { lock(&core.details).remove(id) } else { lock(&core.details).get(id).cloned() };
+    if let Err(e) = lock(&core.store).transition_event(id, state, note, digest, &detail.unwrap_or_default()) {
         tracing::error!("job {id}: cannot record {}: {e:#}", state.as_str());
     }
     core.publish_stored(id);
@@ -366,9 +449,13 @@ fn run_job(core: &Arc<Core>, job: JobRecord) {
         }
         Attempt::Done(Outcome::Cancelled { checkpoint, step }) if stopping && !flags.1.load(Ordering::SeqCst) => {
             tracing::info!("job {id}: checkpointed at step {step} ({}) as the orchestrator stops", checkpoint.display());
+            core.note_event(&id, EventKind::Checkpoint, &format!("checkpoint at step {step} as the orchestrator stops"));
             transition(core, &id, JobState::Queued, "the orchestrator stopped; resumes from its last checkpoint", "");
         }
-        Attempt::Done(Outcome::Cancelled { step, .. }) => transition(core, &id, JobState::Cancelled, &format!("cancelled by a user after step {step}"), ""),
+        Attempt::Done(Outcome::Cancelled { step, .. }) => {
+            core.note_event(&id, EventKind::Checkpoint, &format!("checkpoint at step {step} as the job is cancelled"));
+            transition(core, &id, JobState::Cancelled, &format!("cancelled by a user after step {step}"), "")
+        }
         Attempt::Error(e) => {
             tracing::error!("job {id} failed: {e:#}");
             transition(core, &id, JobState::Failed, &format!("{e:#}"), "")
@@ -465,9 +552,7 @@ fn is_user_cancel(core: &Core, id: &str) -> bool {
 }
 
 fn note(core: &Core, id: &str, text: &str) {
-    if let Err(e) = lock(&core.store).note(id, text) {
-        tracing::error!("job {id}: cannot record {text:?}: {e:#}");
-    }
+    core.note_event(id, EventKind::Workers, text);
 }
 
 /// The job's workers as a watch event shows them, with their load in this attempt.
@@ -504,35 +589,37 @@ fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_d
     let md_slot: Arc<Mutex<Option<Arc<Mutex<MdShared>>>>> = Arc::default();
     let slot = md_slot.clone();
     opts.md_hook = Some(Arc::new(move |m: &Arc<Mutex<MdShared>>| *lock(&slot) = Some(m.clone())));
-    let tx = core.channel(&id).map_err(|s| anyhow::anyhow!("{}", s.message()))?;
+    // The run writes a checkpoint after these steps (before it reports their progress).
+    let every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { loaded.scene.output.checkpoint_every_steps };
     let (core2, id2, assigned2, last_step) = (core.clone(), id.clone(), assigned.to_vec(), last_step.clone());
-    let last = Mutex::new((Instant::now(), Instant::now()));
+    let last = Mutex::new(Instant::now() - Duration::from_secs(1));
     opts.progress = Some(Arc::new(move |p: &Progress| {
         last_step.store(p.step, Ordering::SeqCst);
+        let checkpoint = !p.done && every > 0 && p.step % every == 0 && p.step < p.steps;
         let mut last = lock(&last);
         let now = Instant::now();
-        if !p.done && now.duration_since(last.0) < Duration::from_millis(100) {
+        // Progress is sampled (at most one event per 100 ms); checkpoints and the last step
+        // always get their event.
+        if !p.done && !checkpoint && now.duration_since(*last) < Duration::from_millis(100) {
             return;
         }
-        last.0 = now;
+        *last = now;
         let rate = p.session_steps as f64 / p.elapsed_s.max(1e-9);
         let workers = if assigned2.is_empty() { Vec::new() } else { job_workers(&core2, &assigned2, lock(&md_slot).as_ref()) };
-        tx.send_modify(|ev| {
-            ev.step = p.step;
-            ev.steps = p.steps;
-            ev.sim_time_s = p.time;
-            ev.end_time_s = p.end_time;
-            ev.percent = 100.0 * p.step as f64 / p.steps.max(1) as f64;
-            ev.eta_s = if p.session_steps > 0 { (p.steps - p.step.min(p.steps)) as f64 / rate } else { -1.0 };
-            ev.energy_drift = p.energy_drift;
-            ev.workers = workers;
-        });
-        if p.done || now.duration_since(last.1) > Duration::from_secs(1) {
-            last.1 = now;
-            if let Err(e) = lock(&core2.store).progress(&id2, p.step, p.steps, p.time) {
-                tracing::warn!("job {id2}: cannot record progress: {e:#}");
-            }
+        let detail = pb::JobEvent {
+            end_time_s: p.end_time,
+            eta_s: if p.session_steps > 0 { (p.steps - p.step.min(p.steps)) as f64 / rate } else { -1.0 },
+            energy_drift: p.energy_drift,
+            workers,
+            ..Default::default()
         }
+        .encode_to_vec();
+        lock(&core2.details).insert(id2.clone(), detail.clone());
+        let (kind, message) = if checkpoint { (EventKind::Checkpoint, format!("checkpoint at step {}", p.step)) } else { (EventKind::Progress, String::new()) };
+        if let Err(e) = lock(&core2.store).progress_event(&id2, kind, p.step, p.steps, p.time, &message, &detail) {
+            tracing::warn!("job {id2}: cannot record progress: {e:#}");
+        }
+        core2.publish_stored(&id2);
     }));
     if opts.resume {
         tracing::info!("job {id}: resuming from its last checkpoint");
@@ -637,6 +724,145 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, Status> + Sen
 }
 
 type EventStream = Pin<Box<dyn Stream<Item = Result<pb::JobEvent, Status>> + Send>>;
+type ChunkStream = Pin<Box<dyn Stream<Item = Result<pb::FetchRunChunk, Status>> + Send>>;
+type EventSender = tokio::sync::mpsc::Sender<Result<pb::JobEvent, Status>>;
+
+/// Sends a watcher the job's events from `next` on, in order and each once, until the final one:
+/// first from the store, then from the job's channel; whenever the channel lags or shows a
+/// gap, from the store again.
+async fn follow(core: &Arc<Core>, id: &str, mut next: u64, mut rx: broadcast::Receiver<Arc<pb::JobEvent>>, stop: &mut watch::Receiver<bool>, tx: &EventSender) {
+    let mut catch_up = true;
+    loop {
+        if catch_up {
+            match replay(core, id, &mut next, tx).await {
+                Ok(true) => return,
+                Ok(false) => catch_up = false,
+                Err(s) => {
+                    let _ = tx.send(Err(s)).await;
+                    return;
+                }
+            }
+        }
+        if *stop.borrow() {
+            let _ = tx.send(Err(Status::unavailable("the orchestrator is stopping; the job resumes when it restarts"))).await;
+            return;
+        }
+        tokio::select! {
+            r = rx.recv() => match r {
+                Ok(ev) if ev.sequence < next => {}
+                Ok(ev) if ev.sequence == next => {
+                    next += 1;
+                    let last = is_final(ev.state);
+                    if tx.send(Ok((*ev).clone())).await.is_err() || last {
+                        return;
+                    }
+                }
+                // Ahead of what this watcher has (it lagged, or the event was stored by a
+                // path that does not publish): the store has the ones in between.
+                Ok(_) | Err(broadcast::error::RecvError::Lagged(_)) => catch_up = true,
+                Err(broadcast::error::RecvError::Closed) => {
+                    let _ = replay(core, id, &mut next, tx).await;
+                    return;
+                }
+            },
+            _ = stop.changed() => {}
+        }
+    }
+}
+
+/// Sends the stored events from `next` on (a hole left by pruned progress events as one
+/// JOB_EVENT_KIND_NOT_RETAINED event); true when the stream is over (the final event was sent,
+/// or the watcher has gone).
+async fn replay(core: &Arc<Core>, id: &str, next: &mut u64, tx: &EventSender) -> Result<bool, Status> {
+    loop {
+        let (c, job, after) = (core.clone(), id.to_string(), *next - 1);
+        let events = blocking(move || lock(&c.store).events_after(&job, after, REPLAY_BATCH).map_err(|e| Status::internal(format!("job {job}: cannot read its events: {e:#}")))).await?;
+        for e in &events {
+            if e.seq > *next && tx.send(Ok(not_retained(id, *next, e.seq - 1))).await.is_err() {
+                return Ok(true);
+            }
+            *next = e.seq + 1;
+            if tx.send(Ok(event_of(e))).await.is_err() || e.state.is_final() {
+                return Ok(true);
+            }
+        }
+        if events.len() < REPLAY_BATCH {
+            return Ok(false);
+        }
+    }
+}
+
+/// The regular files under `root` (relative, `/`-separated, sorted). Symbolic links and
+/// anything else that is not a directory or a regular file are skipped, never followed.
+pub fn run_files(root: &Path) -> std::io::Result<Vec<String>> {
+    let mut files = Vec::new();
+    let mut dirs = vec![String::new()];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(root.join(&dir))? {
+            let entry = entry?;
+            let Ok(name) = entry.file_name().into_string() else {
+                tracing::warn!("fetch: skipping {} (its name is not UTF-8)", entry.path().display());
+                continue;
+            };
+            let rel = if dir.is_empty() { name } else { format!("{dir}/{name}") };
+            let ty = entry.file_type()?; // of the entry itself: links are not followed
+            if ty.is_dir() {
+                dirs.push(rel);
+            } else if ty.is_file() {
+                files.push(rel);
+            } else {
+                tracing::warn!("fetch: skipping {rel} in {} (not a regular file: links are not followed)", root.display());
+            }
+        }
+    }
+    files.sort();
+    Ok(files)
+}
+
+/// Streams every regular file under `root` in chunks of at most `chunk` bytes, each file's
+/// last chunk with its size and SHA-256. A file that vanished since the listing (a running
+/// job's old checkpoint) is skipped.
+fn send_run(root: &Path, chunk: usize, tx: &tokio::sync::mpsc::Sender<Result<pb::FetchRunChunk, Status>>) -> Result<(), Status> {
+    use std::io::Read;
+    use std::os::unix::fs::OpenOptionsExt;
+    let io = |what: &str, e: std::io::Error| Status::internal(format!("{what}: {e}"));
+    for rel in run_files(root).map_err(|e| io(&root.display().to_string(), e))? {
+        let path = root.join(&rel);
+        // A directory on the way swapped for a link since the listing must not lead out.
+        if !path.canonicalize().is_ok_and(|p| p.starts_with(root)) {
+            tracing::warn!("fetch: skipping {rel} (it no longer resolves inside {})", root.display());
+            continue;
+        }
+        let mut f = match std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NOFOLLOW).open(&path) {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+            Err(e) => return Err(io(&rel, e)),
+        };
+        let (mut hasher, mut offset, mut buf) = (Sha256::new(), 0u64, vec![0u8; chunk]);
+        loop {
+            let mut n = 0;
+            while n < chunk {
+                match f.read(&mut buf[n..]).map_err(|e| io(&rel, e))? {
+                    0 => break,
+                    k => n += k,
+                }
+            }
+            hasher.update(&buf[..n]);
+            let last = n < chunk;
+            let size = offset + n as u64;
+            let sha256 = if last { hex::encode(hasher.clone().finalize()) } else { String::new() };
+            let msg = pb::FetchRunChunk { path: rel.clone(), offset, data: buf[..n].to_vec(), last, size: if last { size } else { 0 }, sha256 };
+            if tx.blocking_send(Ok(msg)).is_err() {
+                return Ok(()); // the client has gone
+            }
+            offset = size;
+            if last {
+                break;
+            }
+        }
+    }
+    Ok(())
+}
 
 #[tonic::async_trait]
 impl Orchestrator for JobService {
@@ -692,25 +918,30 @@ impl Orchestrator for JobService {
     type WatchJobStream = EventStream;
 
     async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
-        let mut rx = self.core.channel(&req.get_ref().job_id)?.subscribe();
-        let mut stop = self.core.stop_watchers.subscribe();
+        let pb::WatchJobRequest { job_id: id, after_sequence } = req.into_inner();
+        let job = self.core.get(&id)?;
+        let (rx, newest) = self.core.subscribe(&id)?;
         let (tx, out) = tokio::sync::mpsc::channel(16);
-        tokio::spawn(async move {
-            loop {
-                let ev = rx.borrow_and_update().clone();
-                let last = is_final(ev.state);
-                if tx.send(Ok(ev)).await.is_err() || last || *stop.borrow() {
-                    return;
-                }
-                tokio::select! {
-                    r = rx.changed() => if r.is_err() { return },
-                    _ = stop.changed() => {
-                        let _ = tx.send(Err(Status::unavailable("the orchestrator is stopping; the job resumes when it restarts"))).await;
-                        return;
-                    }
-                }
-            }
-        });
+        if newest == 0 && job.state.is_final() {
+            // A job of a store older than event numbers: its final state, unnumbered.
+            drop(rx);
+            self.core.unsubscribe(&id);
+            let mut ev = event_of(&EventRecord { job_id: id.clone(), seq: 0, kind: EventKind::State, at: job.finished, state: job.state, step: job.step, steps: job.steps, sim_time: job.sim_time, message: job.error.clone(), detail: Vec::new() });
+            ev.kind = pb::JobEventKind::Unspecified as i32;
+            let _ = tx.send(Ok(ev)).await;
+        } else if after_sequence > newest {
+            drop(rx);
+            self.core.unsubscribe(&id);
+            return Err(Status::out_of_range(format!(
+                "job {id} has events up to {newest}; after_sequence {after_sequence} is beyond them (is this the orchestrator, and state directory, the watch began with?)"
+            )));
+        } else {
+            let (core, mut stop) = (self.core.clone(), self.core.stop_watchers.subscribe());
+            tokio::spawn(async move {
+                follow(&core, &id, after_sequence + 1, rx, &mut stop, &tx).await;
+                core.unsubscribe(&id);
+            });
+        }
         Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(out))))
     }
 
@@ -743,6 +974,22 @@ impl Orchestrator for JobService {
         let content = std::fs::read(&path).map_err(|e| Status::not_found(format!("{}: {e}", req.path)))?;
         let sha256 = hex::encode(Sha256::digest(&content));
         Ok(Response::new(pb::FetchResultResponse { content, sha256 }))
+    }
+
+    type FetchRunStream = ChunkStream;
+
+    async fn fetch_run(&self, req: Request<pb::FetchRunRequest>) -> Result<Response<ChunkStream>, Status> {
+        let req = req.into_inner();
+        self.core.get(&req.job_id)?;
+        let root = self.core.job_dir(&req.job_id).join("run").canonicalize().map_err(|_| Status::not_found(format!("job {} has no run directory yet", req.job_id)))?;
+        let chunk = if req.chunk_bytes == 0 { FETCH_CHUNK } else { (req.chunk_bytes as usize).min(FETCH_CHUNK) };
+        let (tx, out) = tokio::sync::mpsc::channel(4);
+        tokio::task::spawn_blocking(move || {
+            if let Err(s) = send_run(&root, chunk, &tx) {
+                let _ = tx.blocking_send(Err(s));
+            }
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(out))))
     }
 
     async fn register_worker(&self, req: Request<pb::RegisterWorkerRequest>) -> Result<Response<pb::RegisterWorkerResponse>, Status> {
@@ -840,6 +1087,7 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         token: opts.token,
         checkpoint_every: opts.checkpoint_every,
         live: Mutex::new(HashMap::new()),
+        details: Mutex::new(HashMap::new()),
         running: Mutex::new(None),
         stopping: AtomicBool::new(false),
         stop_watchers: watch::channel(false).0,

@@ -7,6 +7,11 @@
 //! Workers that joined the pool are kept here too (`workers`, `worker_history`): every
 //! registration is a new row whose sequence number is the worker's epoch, so a worker that
 //! rejoins is a new worker; `lost` is final.
+//!
+//! Every event a watcher can see (`events`) is numbered per job (1, 2, 3, ... with no gaps)
+//! and written in the transaction of the change it reports, so the numbering and the state
+//! changes survive a restart together. Old progress events are pruned (see
+//! [`Store::set_progress_retention`]); state, checkpoint and worker events are kept.
 
 use anyhow::{Context, Result};
 use rusqlite::{Connection, OptionalExtension, params};
@@ -136,8 +141,64 @@ pub struct JobRecord {
     pub resumes: u32,
 }
 
+/// What a job event reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EventKind {
+    /// The job's state changed.
+    State,
+    Progress,
+    /// A checkpoint was written at the event's step.
+    Checkpoint,
+    /// A worker was lost, or the job moved onto other workers.
+    Workers,
+}
+
+impl EventKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            EventKind::State => "state",
+            EventKind::Progress => "progress",
+            EventKind::Checkpoint => "checkpoint",
+            EventKind::Workers => "workers",
+        }
+    }
+
+    pub fn parse(s: &str) -> Result<Self> {
+        Ok(match s {
+            "state" => EventKind::State,
+            "progress" => EventKind::Progress,
+            "checkpoint" => EventKind::Checkpoint,
+            "workers" => EventKind::Workers,
+            other => anyhow::bail!("unknown event kind {other:?} in the store"),
+        })
+    }
+}
+
+/// One numbered event of a job, as stored.
+#[derive(Debug, Clone)]
+pub struct EventRecord {
+    pub job_id: String,
+    /// Per job: 1, 2, 3, ... with no gaps.
+    pub seq: u64,
+    pub kind: EventKind,
+    /// Unix seconds.
+    pub at: i64,
+    /// The job's state, step, steps and simulated time (s) when it happened.
+    pub state: JobState,
+    pub step: u64,
+    pub steps: u64,
+    pub sim_time: f64,
+    pub message: String,
+    /// What the service adds (progress details, workers), encoded by it; empty when none.
+    pub detail: Vec<u8>,
+}
+
+/// Progress events kept per job by default (older ones are pruned; other kinds are kept).
+pub const RETAINED_PROGRESS_EVENTS: u64 = 10_000;
+
 pub struct Store {
     db: Connection,
+    retained_progress: u64,
 }
 
 pub fn now_unix() -> i64 {
@@ -224,6 +285,19 @@ impl Store {
                  registered INTEGER NOT NULL,
                  note TEXT NOT NULL DEFAULT ''
              );
+             CREATE TABLE IF NOT EXISTS events (
+                 job_id TEXT NOT NULL,
+                 seq INTEGER NOT NULL,
+                 kind TEXT NOT NULL,
+                 at INTEGER NOT NULL,
+                 state TEXT NOT NULL,
+                 step INTEGER NOT NULL,
+                 steps INTEGER NOT NULL,
+                 sim_time REAL NOT NULL,
+                 message TEXT NOT NULL,
+                 detail BLOB NOT NULL,
+                 PRIMARY KEY (job_id, seq)
+             ) WITHOUT ROWID;
              CREATE TABLE IF NOT EXISTS worker_history (
                  epoch INTEGER NOT NULL,
                  at INTEGER NOT NULL,
@@ -232,7 +306,12 @@ impl Store {
              );",
         )
         .with_context(|| format!("cannot set up the job store {}", path.display()))?;
-        Ok(Store { db })
+        Ok(Store { db, retained_progress: RETAINED_PROGRESS_EVENTS })
+    }
+
+    /// Keep at most about `n` of each job's newest progress events (at least 1).
+    pub fn set_progress_retention(&mut self, n: u64) {
+        self.retained_progress = n.max(1);
     }
 
     /// Puts every job left `running` by a dead orchestrator back in the queue (one
@@ -245,7 +324,9 @@ impl Store {
         };
         for id in &ids {
             tx.execute("UPDATE jobs SET state = 'queued', resumes = resumes + 1 WHERE id = ?1", params![id])?;
-            tx.execute("INSERT INTO history VALUES (?1, ?2, 'queued', 'the orchestrator restarted; resumes from its last checkpoint')", params![id, now_unix()])?;
+            let note = "the orchestrator restarted; resumes from its last checkpoint";
+            tx.execute("INSERT INTO history VALUES (?1, ?2, 'queued', ?3)", params![id, now_unix(), note])?;
+            append_event(&tx, id, EventKind::State, note, &[], 0)?;
         }
         tx.commit()?;
         Ok(ids)
@@ -258,6 +339,7 @@ impl Store {
             params![job.id, job.scene, job.state.as_str(), job.priority, serde_json::to_string(&job.overrides)?, job.checkpoint_every as i64, job.steps as i64, job.submitted],
         )?;
         tx.execute("INSERT INTO history VALUES (?1, ?2, ?3, 'submitted')", params![job.id, job.submitted, job.state.as_str()])?;
+        append_event(&tx, &job.id, EventKind::State, "submitted", &[], 0)?;
         tx.commit()?;
         Ok(())
     }
@@ -283,10 +365,17 @@ impl Store {
     /// Moves a job to `state` (one transaction, with a history row); `error` and `digest` are
     /// kept when empty. Returns false when the job was already in a final state.
     pub fn transition(&mut self, id: &str, state: JobState, note: &str, digest: &str) -> Result<bool> {
+        Ok(self.transition_event(id, state, note, digest, &[])?.is_some())
+    }
+
+    /// [`Store::transition`] that also returns the numbered state event it stored (with
+    /// `detail`, the service's encoding of what the job row does not hold); None when the job
+    /// was already in a final state.
+    pub fn transition_event(&mut self, id: &str, state: JobState, note: &str, digest: &str, detail: &[u8]) -> Result<Option<EventRecord>> {
         let tx = self.db.transaction()?;
         let old: String = tx.query_row("SELECT state FROM jobs WHERE id = ?1", params![id], |r| r.get(0))?;
         if JobState::parse(&old)?.is_final() {
-            return Ok(false);
+            return Ok(None);
         }
         let now = now_unix();
         tx.execute("UPDATE jobs SET state = ?2 WHERE id = ?1", params![id, state.as_str()])?;
@@ -300,14 +389,66 @@ impl Store {
             tx.execute("UPDATE jobs SET state_digest = ?2 WHERE id = ?1", params![id, digest])?;
         }
         tx.execute("INSERT INTO history VALUES (?1, ?2, ?3, ?4)", params![id, now, state.as_str(), note])?;
+        let ev = append_event(&tx, id, EventKind::State, note, detail, 0)?;
         tx.commit()?;
-        Ok(true)
+        Ok(Some(ev))
     }
 
     /// Records progress (not a state change: no history row).
     pub fn progress(&mut self, id: &str, step: u64, steps: u64, sim_time: f64) -> Result<()> {
         self.db.execute("UPDATE jobs SET step = ?2, steps = ?3, sim_time = ?4 WHERE id = ?1", params![id, step as i64, steps as i64, sim_time])?;
         Ok(())
+    }
+
+    /// Records progress and its numbered event (`Progress` or `Checkpoint`) in one
+    /// transaction; prunes the job's old progress events now and then.
+    pub fn progress_event(&mut self, id: &str, kind: EventKind, step: u64, steps: u64, sim_time: f64, message: &str, detail: &[u8]) -> Result<EventRecord> {
+        let tx = self.db.transaction()?;
+        tx.execute("UPDATE jobs SET step = ?2, steps = ?3, sim_time = ?4 WHERE id = ?1", params![id, step as i64, steps as i64, sim_time])?;
+        let ev = append_event(&tx, id, kind, message, detail, self.retained_progress)?;
+        tx.commit()?;
+        Ok(ev)
+    }
+
+    /// Up to `limit` retained events of a job with a sequence number above `after`, in order.
+    /// Pruned progress events leave holes in the numbering, which the caller reports.
+    pub fn events_after(&self, id: &str, after: u64, limit: usize) -> Result<Vec<EventRecord>> {
+        let mut q = self.db.prepare_cached(
+            "SELECT job_id, seq, kind, at, state, step, steps, sim_time, message, detail FROM events WHERE job_id = ?1 AND seq > ?2 ORDER BY seq LIMIT ?3",
+        )?;
+        let rows = q
+            .query_map(params![id, after as i64, limit as i64], |r| {
+                Ok((
+                    EventRecord {
+                        job_id: r.get(0)?,
+                        seq: r.get::<_, i64>(1)? as u64,
+                        kind: EventKind::State,
+                        at: r.get(3)?,
+                        state: JobState::Queued,
+                        step: r.get::<_, i64>(5)? as u64,
+                        steps: r.get::<_, i64>(6)? as u64,
+                        sim_time: r.get(7)?,
+                        message: r.get(8)?,
+                        detail: r.get(9)?,
+                    },
+                    r.get::<_, String>(2)?,
+                    r.get::<_, String>(4)?,
+                ))
+            })?
+            .collect::<rusqlite::Result<Vec<_>>>()?;
+        rows.into_iter()
+            .map(|(mut e, kind, state)| {
+                e.kind = EventKind::parse(&kind)?;
+                e.state = JobState::parse(&state)?;
+                Ok(e)
+            })
+            .collect()
+    }
+
+    /// The sequence number of a job's newest event (0: none).
+    pub fn last_sequence(&self, id: &str) -> Result<u64> {
+        let n: i64 = self.db.query_row("SELECT COALESCE(MAX(seq), 0) FROM events WHERE job_id = ?1", params![id], |r| r.get(0))?;
+        Ok(n as u64)
     }
 
     /// Records a new registration (one transaction). Live or draining registrations at the same
@@ -390,11 +531,17 @@ impl Store {
 
     /// Adds a note to a job's history without changing its state (a lost worker, a rollback).
     pub fn note(&mut self, id: &str, note: &str) -> Result<()> {
+        self.note_event(id, EventKind::Workers, note, &[]).map(|_| ())
+    }
+
+    /// [`Store::note`] with its numbered event of `kind`, in one transaction.
+    pub fn note_event(&mut self, id: &str, kind: EventKind, note: &str, detail: &[u8]) -> Result<EventRecord> {
         let tx = self.db.transaction()?;
         let state: String = tx.query_row("SELECT state FROM jobs WHERE id = ?1", params![id], |r| r.get(0))?;
         tx.execute("INSERT INTO history VALUES (?1, ?2, ?3, ?4)", params![id, now_unix(), state, note])?;
+        let ev = append_event(&tx, id, kind, note, detail, 0)?;
         tx.commit()?;
-        Ok(())
+        Ok(ev)
     }
 
     /// (Unix time, state, note) of every change of a job, oldest first.
@@ -403,6 +550,25 @@ impl Store {
         let rows = q.query_map(params![id], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?.collect::<rusqlite::Result<_>>()?;
         Ok(rows)
     }
+}
+
+/// Appends a job's next numbered event inside `tx`, from the job row as `tx` sees it. With
+/// `retain_progress` > 0, every 256th event prunes the job's progress events older than that
+/// many sequence numbers (never the newest event).
+fn append_event(tx: &rusqlite::Transaction<'_>, id: &str, kind: EventKind, message: &str, detail: &[u8], retain_progress: u64) -> Result<EventRecord> {
+    let (state, step, steps, sim_time): (String, i64, i64, f64) = tx.query_row("SELECT state, step, steps, sim_time FROM jobs WHERE id = ?1", params![id], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)))?;
+    let last: i64 = tx.query_row("SELECT COALESCE(MAX(seq), 0) FROM events WHERE job_id = ?1", params![id], |r| r.get(0))?;
+    let seq = last + 1;
+    let at = now_unix();
+    tx.execute(
+        "INSERT INTO events (job_id, seq, kind, at, state, step, steps, sim_time, message, detail) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)",
+        params![id, seq, kind.as_str(), at, state, step, steps, sim_time, message, detail],
+    )?;
+    if retain_progress > 0 && seq % 256 == 0 && seq as u64 > retain_progress {
+        tx.execute("DELETE FROM events WHERE job_id = ?1 AND kind = 'progress' AND seq <= ?2", params![id, seq - retain_progress as i64])?;
+    }
+    let state = JobState::parse(&state)?;
+    Ok(EventRecord { job_id: id.to_string(), seq: seq as u64, kind, at, state, step: step as u64, steps: steps as u64, sim_time, message: message.to_string(), detail: detail.to_vec() })
 }
 
 #[cfg(test)]
@@ -451,6 +617,40 @@ mod tests {
         assert_eq!(s.get("a").unwrap().unwrap().state, JobState::Cancelled);
         let states: Vec<String> = s.history("b").unwrap().into_iter().map(|h| h.1).collect();
         assert_eq!(states, vec!["queued", "running", "queued"]);
+    }
+
+    #[test]
+    fn events_are_numbered_without_gaps_across_a_restart_and_old_progress_is_pruned() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let mut s = Store::open(dir.path()).unwrap();
+            s.set_progress_retention(300);
+            s.insert(&job("a", 0)).unwrap();
+            assert!(s.transition("a", JobState::Running, "started", "").unwrap());
+            for k in 1..=600 {
+                let kind = if k % 100 == 0 { EventKind::Checkpoint } else { EventKind::Progress };
+                let e = s.progress_event("a", kind, k, 1000, k as f64, "", b"d").unwrap();
+                assert_eq!((e.seq, e.step, e.state), (k + 2, k, JobState::Running));
+            }
+        }
+        // Reopened as after a crash: the numbering goes on after the newest event.
+        let mut s = Store::open(dir.path()).unwrap();
+        s.requeue_interrupted().unwrap();
+        assert_eq!(s.last_sequence("a").unwrap(), 603);
+        let e = s.transition_event("a", JobState::Cancelled, "cancelled", "", b"x").unwrap().unwrap();
+        assert_eq!((e.seq, e.state, e.detail.as_slice()), (604, JobState::Cancelled, &b"x"[..]));
+        let all = s.events_after("a", 0, 10_000).unwrap();
+        let seqs: Vec<u64> = all.iter().map(|e| e.seq).collect();
+        // Pruned at seq 512: progress events up to 512 - 300 = 212 are gone, the others kept.
+        assert_eq!(&seqs[..2], &[1, 2]);
+        assert!(all.iter().filter(|e| e.seq <= 212).all(|e| e.kind != EventKind::Progress), "old progress kept");
+        assert!(seqs.contains(&102) && seqs.contains(&202), "checkpoint events are never pruned: {:?}", &seqs[..5]);
+        assert!(seqs.windows(2).filter(|w| w[0] >= 212).all(|w| w[1] == w[0] + 1), "recent events have a hole");
+        assert_eq!(all.last().map(|e| (e.seq, e.kind)), Some((604, EventKind::State)));
+        assert_eq!(s.events_after("a", 600, 2).unwrap().iter().map(|e| e.seq).collect::<Vec<_>>(), vec![601, 602]);
+        assert_eq!(s.events_after("a", 604, 10).unwrap().len(), 0);
+        let states: Vec<(JobState, String)> = all.iter().filter(|e| e.kind == EventKind::State).map(|e| (e.state, e.message.clone())).collect();
+        assert_eq!(states.iter().map(|s| s.0).collect::<Vec<_>>(), vec![JobState::Queued, JobState::Running, JobState::Queued, JobState::Cancelled]);
     }
 
     #[test]
