@@ -203,6 +203,7 @@ impl MdWorker for WorkerService {
             .iter()
             .map(|b| serde_json::from_slice(b).map_err(|e| Status::invalid_argument(format!("box state: {e}"))))
             .collect::<Result<Vec<_>, _>>()?;
+        tracing::info!(session = req.session, boxes = states.len(), "restored boxes");
         blocking(move || lock(&backend).restore(states)).await?;
         Ok(Response::new(pb::RestoreResponse {}))
     }
