@@ -363,6 +363,16 @@ pub fn write(run_dir: &Path, ck: &Checkpoint) -> Result<PathBuf> {
     Ok(path)
 }
 
+/// Reads the named MD boxes from the checkpoint file `path` when called (a lost worker's boxes,
+/// to replay them elsewhere): nothing is kept in memory meanwhile.
+pub fn boxes_of(path: PathBuf) -> md_worker::recovery::CheckpointBoxes {
+    std::sync::Arc::new(move |ids: &[u64]| {
+        let ck = std::fs::read(&path).map_err(anyhow::Error::from).and_then(|b| decode(&b)).map_err(|e| format!("{}: {e:#}", path.display()))?;
+        let mut saved: std::collections::HashMap<u64, BoxState> = ck.md.map(|m| m.boxes).unwrap_or_default().into_iter().map(|b| (b.meta.id, b)).collect();
+        ids.iter().map(|id| saved.remove(id).ok_or_else(|| format!("{} holds no box of point {id}", path.display()))).collect()
+    })
+}
+
 /// The newest checkpoint of a run directory that verifies; a damaged one is logged and the
 /// previous one used.
 pub fn load_latest(run_dir: &Path) -> Result<(Checkpoint, PathBuf)> {

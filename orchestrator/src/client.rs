@@ -457,6 +457,8 @@ pub struct PoolOptions {
     pub local_workers: usize,
     /// Seconds without a heartbeat after which a worker is declared lost.
     pub worker_timeout_s: f64,
+    /// Bound on each call to a worker (`--step-deadline`).
+    pub step_deadline: md_worker::recovery::StepDeadline,
 }
 
 /// `mscale serve`.
@@ -485,6 +487,7 @@ pub fn serve(state: PathBuf, listen: String, token_file: Option<PathBuf>, checkp
         token_file,
         local_ca,
         worker_timeout: std::time::Duration::from_secs_f64(pool.worker_timeout_s),
+        step_deadline: pool.step_deadline,
     })?;
     Ok(crate::exit::OK)
 }

@@ -35,6 +35,11 @@ enum Command {
         /// Continue the run in DIR from its newest good checkpoint.
         #[arg(long, value_name = "DIR", conflicts_with = "out")]
         resume: Option<PathBuf>,
+        /// Bound on each call to a worker: `auto` (max(60 s, 10x the call's expected time at the
+        /// worker's measured throughput)) or SECONDS. A worker past it is lost and its boxes are
+        /// replayed on the other workers.
+        #[arg(long, value_name = "auto|SECONDS", default_value = "auto", value_parser = md_worker::recovery::StepDeadline::parse)]
+        step_deadline: md_worker::recovery::StepDeadline,
     },
     /// Run the job service (mscale.orchestrator.v1) with gRPC health and reflection.
     Serve {
@@ -63,6 +68,11 @@ enum Command {
         /// Declare a worker lost after this many seconds without a heartbeat.
         #[arg(long, value_name = "SECONDS", default_value_t = orchestrator::workers::DEFAULT_TIMEOUT_S)]
         worker_timeout: f64,
+        /// Bound on each call to a worker: `auto` (max(60 s, 10x the call's expected time at the
+        /// worker's measured throughput)) or SECONDS. A worker past it is lost and its boxes are
+        /// replayed on the job's other workers.
+        #[arg(long, value_name = "auto|SECONDS", default_value = "auto", value_parser = md_worker::recovery::StepDeadline::parse)]
+        step_deadline: md_worker::recovery::StepDeadline,
     },
     /// List the workers registered with a running `mscale serve`.
     Workers {
@@ -210,8 +220,8 @@ fn main() -> ExitCode {
 
 fn dispatch(cli: Cli) -> i32 {
     match cli.command {
-        Command::Serve { state, listen, token_file, checkpoint_every, tls_cert, tls_key, local_workers, worker_timeout } => {
-            let pool = orchestrator::client::PoolOptions { local_workers, worker_timeout_s: worker_timeout };
+        Command::Serve { state, listen, token_file, checkpoint_every, tls_cert, tls_key, local_workers, worker_timeout, step_deadline } => {
+            let pool = orchestrator::client::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline };
             report(orchestrator::client::serve(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key), pool))
         }
         Command::Workers { conn } => report(conn.ca().and_then(|_| orchestrator::client::workers(&conn.server, conn.token_file.as_deref()))),
@@ -280,7 +290,7 @@ fn dispatch(cli: Cli) -> i32 {
                 }
             }
         }
-        Command::Run { scene, out, set, workers, checkpoint_every, resume } => {
+        Command::Run { scene, out, set, workers, checkpoint_every, resume, step_deadline } => {
             let scene = match (scene, &resume) {
                 (Some(s), _) => s,
                 (None, Some(dir)) => dir.join("scene.resolved.toml"),
@@ -298,6 +308,7 @@ fn dispatch(cli: Cli) -> i32 {
             opts.workers = workers;
             opts.checkpoint_every = checkpoint_every;
             opts.resume = resume.is_some();
+            opts.step_deadline = step_deadline;
             match orchestrator::checkpoint::stop_on_signals() {
                 Ok(flag) => opts.cancel = Some(flag),
                 Err(e) => eprintln!("mscale: warning: cannot handle SIGINT/SIGTERM, no checkpoint will be written on them: {e}"),

@@ -70,16 +70,25 @@ pub struct RunOptions {
     /// proportion to it. The results do not depend on it.
     pub worker_weights: Vec<f64>,
     pub md_hook: Option<MdHook>,
+    /// Bound on each call to a remote worker; past it the worker is lost and its boxes are
+    /// replayed on the others.
+    pub step_deadline: md_worker::recovery::StepDeadline,
+    /// Told of every worker lost mid-run once its boxes live on the survivors.
+    pub on_worker_lost: Option<LossFn>,
 }
+
+/// See [`RunOptions::on_worker_lost`].
+pub type LossFn = Arc<dyn Fn(&md_worker::recovery::Recovery) + Send + Sync>;
 
 impl RunOptions {
     pub fn new(out: PathBuf, command_line: Vec<String>) -> Self {
-        RunOptions { out, command_line, progress_bar: std::io::stderr().is_terminal(), workers: Vec::new(), checkpoint_every: 0, resume: false, cancel: None, progress: None, worker_weights: Vec::new(), md_hook: None }
+        RunOptions { out, command_line, progress_bar: std::io::stderr().is_terminal(), workers: Vec::new(), checkpoint_every: 0, resume: false, cancel: None, progress: None, worker_weights: Vec::new(), md_hook: None, step_deadline: Default::default(), on_worker_lost: None }
     }
 }
 
 /// The MD pool of a scene with md bodies (one potential per run), or `None`.
-fn md_shared(loaded: &LoadedScene, workers: &[String], weights: &[f64]) -> Result<Option<Arc<Mutex<MdShared>>>> {
+fn md_shared(loaded: &LoadedScene, opts: &RunOptions) -> Result<Option<Arc<Mutex<MdShared>>>> {
+    let (workers, weights) = (&opts.workers, &opts.worker_weights);
     let mut potentials = loaded.scene.bodies.values().filter_map(|b| match &b.material {
         Material::Md(m) => Some(m.potential.clone()),
         _ => None,
@@ -93,6 +102,24 @@ fn md_shared(loaded: &LoadedScene, workers: &[String], weights: &[f64]) -> Resul
     if !weights.is_empty() {
         pool.set_weights(weights.to_vec())?;
     }
+    pool.set_deadline(opts.step_deadline);
+    let told = opts.on_worker_lost.clone();
+    pool.set_loss_hook(Box::new(move |r: &md_worker::recovery::Recovery| {
+        tracing::warn!(
+            "MD worker {} was lost during step {} ({}); its {} boxes were restored from {} onto {} and {} box-steps ({} MD steps) replayed",
+            r.worker,
+            r.step,
+            r.why,
+            r.boxes.len(),
+            r.baseline,
+            r.onto.join(", "),
+            r.replayed_box_steps,
+            r.replayed_md_steps
+        );
+        if let Some(f) = &told {
+            f(r);
+        }
+    }));
     tracing::info!("MD on {}", pool.endpoint_names().join(", "));
     Ok(Some(Arc::new(Mutex::new(MdShared { pool, potential, points: Vec::new(), step: 0 }))))
 }
@@ -209,7 +236,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     }
     output::write_atomic(&dir.join("scene.resolved.toml"), resolved.as_bytes())?;
     let wall = Instant::now();
-    let md = md_shared(loaded, &opts.workers, &opts.worker_weights)?;
+    let md = md_shared(loaded, opts)?;
     if let (Some(hook), Some(m)) = (&opts.md_hook, &md) {
         hook(m);
     }
@@ -218,6 +245,9 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     if let Some((ck, path)) = &saved {
         let mut guard = md.as_ref().map(|m| m.lock()).transpose().map_err(|_| anyhow::anyhow!("MD state poisoned"))?;
         ck.restore_into(&mut sim, guard.as_deref_mut()).with_context(|| format!("cannot resume from {}", path.display()))?;
+        if let Some(m) = guard.as_deref_mut() {
+            m.pool.mark_checkpoint(ck.step, checkpoint::boxes_of(path.clone()));
+        }
         before = ck.driver.clone();
         tracing::info!("resuming {} at step {} (t = {:e} s) from {}", scene.name, ck.step, ck.time, path.display());
     }
@@ -267,6 +297,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         let mut guard = md.as_ref().map(|m| m.lock()).transpose().map_err(|_| anyhow::anyhow!("MD state poisoned"))?;
         let ck = checkpoint::Checkpoint::capture(sim, &scene_sha, guard.as_deref_mut(), driver)?;
         let path = checkpoint::write(dir, &ck)?;
+        // The input log of the MD boxes starts again from this checkpoint.
+        if let Some(m) = guard.as_deref_mut() {
+            m.pool.mark_checkpoint(sim.step, checkpoint::boxes_of(path.clone()));
+        }
         tracing::debug!("checkpoint at step {} in {}", sim.step, path.display());
         Ok(path)
     };
@@ -495,5 +529,15 @@ fn summary<const D: usize>(
         },
         "command_line": opts.command_line,
         "state_digest": output::state_digest(&sim.points, sim.step, sim.time),
+        "md_recovery": md.as_ref().map(|m| {
+            let r = m.pool.recoveries();
+            json!({
+                "lost_workers": r.len(),
+                "restored_boxes": r.iter().map(|x| x.boxes.len()).sum::<usize>(),
+                "replayed_box_steps": r.iter().map(|x| x.replayed_box_steps).sum::<u64>(),
+                "replayed_md_steps": r.iter().map(|x| x.replayed_md_steps).sum::<u64>(),
+                "events": r,
+            })
+        }),
     }))
 }

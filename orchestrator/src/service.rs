@@ -13,11 +13,14 @@
 //! Workers (`md-worker serve --orchestrator URL`, or `--local-workers N` started here) register
 //! and heartbeat ([`crate::workers`]). A job's MD boxes are spread over the live workers of one
 //! back end and precision in proportion to their throughput, or run in this process when there
-//! are none. A worker that stops answering mid-job (killed) is declared lost and the job rolls
-//! back to its last checkpoint onto the surviving workers (the whole job: continuum and every
-//! box, which by the determinism contract ends with the same digest); with no survivor the job
-//! fails naming the worker and the step. A worker silent for longer than the worker timeout is
-//! declared lost; a job holding boxes on it checkpoints and moves off it.
+//! are none. A worker that stops answering mid-job (killed, or past `--step-deadline`) is
+//! declared lost and only its boxes are rebuilt on the job's surviving workers of the same back
+//! end and precision: restored from the last checkpoint and sent again every input logged since
+//! (`md_worker::recovery`), so the job ends with the digest of an uninterrupted run; with no
+//! survivor the job fails naming the worker and the step. A worker silent for longer than the
+//! worker timeout is declared lost and a call in flight on it is aborted, with the same
+//! recovery. Where replay is impossible (the input log outgrew its bound) the whole job rolls
+//! back to its last checkpoint onto the survivors instead.
 //!
 //! Watch events: every event of a job has a sequence number (1, 2, 3, ... with no gaps), given
 //! in the store transaction that records it ([`Store`] keeps state changes, checkpoints and
@@ -73,6 +76,8 @@ pub struct ServeOptions {
     pub local_ca: Option<PathBuf>,
     /// A worker without a heartbeat for this long is declared lost.
     pub worker_timeout: Duration,
+    /// Bound on each call to a worker.
+    pub step_deadline: md_worker::recovery::StepDeadline,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -120,6 +125,10 @@ struct Core {
     stop_watchers: watch::Sender<bool>,
     wake: (Mutex<bool>, Condvar),
     next_id: AtomicU64,
+    step_deadline: md_worker::recovery::StepDeadline,
+    /// Abort handles of the running job's workers, by address: a worker declared lost gets its
+    /// calls aborted (its boxes are then replayed on the others).
+    aborts: Mutex<HashMap<String, md_worker::recovery::AbortHandle>>,
 }
 
 /// The broadcast of a watched job's events.
@@ -377,7 +386,8 @@ fn runner(core: Arc<Core>) {
 }
 
 /// Declares silent workers lost, every fraction of the timeout, until the orchestrator stops;
-/// a running job holding boxes on one checkpoints and moves off it.
+/// a call in flight on one is aborted (its boxes are replayed on the others), or where the job
+/// has no abort handle for it, the job checkpoints and moves off it.
 fn monitor(core: Arc<Core>) {
     let period = (lock(&core.workers).timeout() / 4).clamp(Duration::from_millis(50), Duration::from_millis(500));
     while !core.stopping.load(Ordering::SeqCst) {
@@ -387,7 +397,11 @@ fn monitor(core: Arc<Core>) {
             let why = format!("no heartbeat for {:.1} s (the worker timeout is {:.1} s)", silent.as_secs_f64(), reg.timeout().as_secs_f64());
             match reg.declare_lost(&mut lock(&core.store), epoch, &why) {
                 Ok(true) => {
-                    if let Some(run) = lock(&core.running).as_ref().filter(|r| r.workers.contains(&epoch)) {
+                    let abort = reg.get(epoch).and_then(|w| lock(&core.aborts).get(&w.ad.address).cloned());
+                    if let Some(h) = abort {
+                        tracing::warn!("aborting the MD calls on the lost worker w{epoch}: its boxes are replayed on the job's other workers");
+                        h.abort(&why);
+                    } else if let Some(run) = lock(&core.running).as_ref().filter(|r| r.workers.contains(&epoch)) {
                         tracing::warn!("job {}: moves off the lost worker w{epoch} (checkpoint after this step)", run.id);
                         run.reassign.store(true, Ordering::SeqCst);
                         run.stop.store(true, Ordering::SeqCst);
@@ -542,7 +556,7 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
         let from = from.map_or("the start (no checkpoint yet)".to_string(), |s| format!("its checkpoint of step {s}"));
         let onto = survivors.iter().map(|w| w.id.as_str()).collect::<Vec<_>>().join(", ");
         note(core, id, &format!("worker {names} was lost at step {at}; rolled back to {from} onto {onto}"));
-        tracing::warn!("job {id}: worker {names} was lost at step {at} ({why}); rolling back to {from} onto {onto}");
+        tracing::warn!("job {id}: worker {names} was lost at step {at} ({why}); its boxes could not be replayed alone, so the whole job is rolling back to {from} onto {onto}");
         kind = Some(k);
     }
 }
@@ -588,7 +602,32 @@ fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_d
     opts.worker_weights = assigned.iter().map(|w| w.ad.atom_steps_per_s).collect();
     let md_slot: Arc<Mutex<Option<Arc<Mutex<MdShared>>>>> = Arc::default();
     let slot = md_slot.clone();
-    opts.md_hook = Some(Arc::new(move |m: &Arc<Mutex<MdShared>>| *lock(&slot) = Some(m.clone())));
+    let core3 = core.clone();
+    opts.md_hook = Some(Arc::new(move |m: &Arc<Mutex<MdShared>>| {
+        *lock(&slot) = Some(m.clone());
+        *lock(&core3.aborts) = lock(m).pool.abort_handles().into_iter().collect();
+    }));
+    opts.step_deadline = core.step_deadline;
+    let (core4, id4, assigned4) = (core.clone(), id.clone(), assigned.to_vec());
+    opts.on_worker_lost = Some(Arc::new(move |r: &md_worker::recovery::Recovery| {
+        let text = format!(
+            "worker {} was lost at step {} ({}); its {} boxes were restored from {} onto {} and {} box-steps replayed",
+            r.worker,
+            r.step,
+            r.why,
+            r.boxes.len(),
+            r.baseline,
+            r.onto.join(", "),
+            r.replayed_box_steps
+        );
+        if let Some(w) = assigned4.iter().find(|w| w.ad.address == r.worker) {
+            let mut reg = lock(&core4.workers);
+            if let Err(e) = reg.declare_lost(&mut lock(&core4.store), w.epoch, &format!("stopped answering during step {} of job {id4}: {}", r.step, r.why)) {
+                tracing::error!("cannot record worker {} as lost: {e:#}", w.id);
+            }
+        }
+        note(&core4, &id4, &text);
+    }));
     // The run writes a checkpoint after these steps (before it reports their progress).
     let every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { loaded.scene.output.checkpoint_every_steps };
     let (core2, id2, assigned2, last_step) = (core.clone(), id.clone(), assigned.to_vec(), last_step.clone());
@@ -630,7 +669,9 @@ fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_d
         let shares = assigned.iter().map(|w| format!("{} at {} ({:.3e} atom-steps/s)", w.id, w.ad.address, w.ad.atom_steps_per_s)).collect::<Vec<_>>().join(", ");
         tracing::info!("job {id}: on workers {shares}");
     }
-    run::run(loaded, &opts)
+    let outcome = run::run(loaded, &opts);
+    lock(&core.aborts).clear();
+    outcome
 }
 
 /// Applies `f` to every string value of a TOML document.
@@ -1093,6 +1134,8 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         stop_watchers: watch::channel(false).0,
         wake: (Mutex::new(false), Condvar::new()),
         next_id: AtomicU64::new(0),
+        step_deadline: opts.step_deadline,
+        aborts: Mutex::new(HashMap::new()),
     });
     let listener = std::net::TcpListener::bind(addr).with_context(|| format!("cannot listen on {addr}"))?;
     listener.set_nonblocking(true)?;
