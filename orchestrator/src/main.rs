@@ -182,7 +182,8 @@ enum ReportCommand {
     /// Run every combination of the sweeps; write report.csv and report.png (error against wall time).
     ErrorVsTime {
         scene: PathBuf,
-        /// A parameter and its values: --sweep scheme.particles_per_cell=8,16,32 (repeatable).
+        /// A parameter and its values: --sweep scheme.particles_per_cell=8,16,32 (repeatable);
+        /// KEY1+KEY2=V1,... sets both keys to each value.
         #[arg(long = "sweep", value_name = "KEY=V1,V2,...", required = true)]
         sweep: Vec<orchestrator::report::Sweep>,
         /// Override applied to every run (repeatable).
@@ -201,6 +202,10 @@ enum ReportCommand {
         /// Times (ps) to score at with --reference: 5,10.
         #[arg(long, value_delimiter = ',', value_name = "T1,T2,...", requires = "reference")]
         reference_times: Vec<f64>,
+        /// The --sweep key whose runs are replicas (e.g. the MD seeds): replicas.csv gives the
+        /// mean and spread over them per setting of the other sweeps.
+        #[arg(long, value_name = "KEY")]
+        replicas: Option<String>,
     },
 }
 
@@ -262,7 +267,7 @@ fn dispatch(cli: Cli) -> i32 {
                 exit::BAD_INPUT
             }
         },
-        Command::Report(ReportCommand::ErrorVsTime { scene, sweep, set, out, workers, reference, reference_times }) => {
+        Command::Report(ReportCommand::ErrorVsTime { scene, sweep, set, out, workers, reference, reference_times, replicas }) => {
             let out = out.unwrap_or_else(|| orchestrator::report::default_out(&scene));
             let reference = match reference.map(|r| orchestrator::report::ReferenceSpec::load(&r, &reference_times)).transpose() {
                 Ok(r) => r,
@@ -271,7 +276,7 @@ fn dispatch(cli: Cli) -> i32 {
                     return exit::BAD_INPUT;
                 }
             };
-            match orchestrator::report::error_vs_time(&scene, &set, &sweep, &out, &workers, reference.as_ref()) {
+            match orchestrator::report::error_vs_time(&scene, &set, &sweep, &out, &workers, reference.as_ref(), replicas.as_deref()) {
                 Ok(rows) => {
                     println!("{} runs; report in {}/report.csv and report.png", rows.len(), out.display());
                     exit::OK
@@ -280,7 +285,7 @@ fn dispatch(cli: Cli) -> i32 {
                     eprintln!("mscale: {e}");
                     exit::BAD_INPUT
                 }
-                Err(e @ orchestrator::report::ReportError::Reference(_)) => {
+                Err(e @ orchestrator::report::ReportError::Input(_)) => {
                     eprintln!("mscale: {e}");
                     exit::BAD_INPUT
                 }

@@ -28,15 +28,15 @@ impl std::str::FromStr for Sweep {
     fn from_str(s: &str) -> Result<Self, String> {
         let (key, values) = s.split_once('=').ok_or_else(|| format!("expected --sweep key=v1,v2,..., got `{s}`"))?;
         let values: Vec<String> = values.split(',').map(|v| v.trim().to_string()).filter(|v| !v.is_empty()).collect();
-        if key.trim().is_empty() || values.is_empty() {
+        if key.split('+').any(|k| k.trim().is_empty()) || values.is_empty() {
             return Err(format!("expected --sweep key=v1,v2,..., got `{s}`"));
         }
         Ok(Sweep { key: key.trim().to_string(), values })
     }
 }
 
-/// Every combination of the sweeps, as lists of `key=value` overrides (first sweep slowest).
-pub fn combinations(sweeps: &[Sweep]) -> Vec<Vec<String>> {
+/// Every combination of the sweeps' values, one value per sweep (first sweep slowest).
+pub fn value_combinations(sweeps: &[Sweep]) -> Vec<Vec<String>> {
     let mut out = vec![Vec::new()];
     for s in sweeps {
         out = out
@@ -44,13 +44,23 @@ pub fn combinations(sweeps: &[Sweep]) -> Vec<Vec<String>> {
             .flat_map(|prefix| {
                 s.values.iter().map(move |v| {
                     let mut c = prefix.clone();
-                    c.push(format!("{}={v}", s.key));
+                    c.push(v.clone());
                     c
                 })
             })
             .collect();
     }
     out
+}
+
+/// Every combination of the sweeps, as lists of `key=value` overrides (first sweep slowest). A
+/// key `a+b` sets every one of its keys to the value (`--sweep
+/// bodies.left.material.seed+bodies.right.material.seed=1,2`).
+pub fn combinations(sweeps: &[Sweep]) -> Vec<Vec<String>> {
+    value_combinations(sweeps)
+        .into_iter()
+        .map(|values| sweeps.iter().zip(&values).flat_map(|(s, v)| s.key.split('+').map(move |k| format!("{}={v}", k.trim()))).collect())
+        .collect()
 }
 
 /// Overrides applied to every run of a report: only the final state is written, so the time
@@ -71,22 +81,33 @@ pub struct Row {
 /// Validates every combination first (a bad value is refused before anything runs), then runs
 /// them one after another and writes `report.csv` and `report.png` in `out`. With a
 /// `reference`, each run writes snapshots at the reference times and is scored against it.
-pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: &Path, workers: &[String], reference: Option<&ReferenceSpec>) -> Result<Vec<Row>, ReportError> {
+///
+/// `replicas` names one of the sweeps (typically the MD seeds, `a.seed+b.seed=1,2,3`) whose
+/// runs are replicas of one setting: `replicas.csv` then gives, per combination of the other
+/// sweeps, the mean and sample standard deviation over them.
+pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: &Path, workers: &[String], reference: Option<&ReferenceSpec>, replicas: Option<&str>) -> Result<Vec<Row>, ReportError> {
+    let replica_sweep = match replicas {
+        None => None,
+        Some(key) => Some(sweeps.iter().position(|s| s.key == key).ok_or_else(|| {
+            ReportError::Input(format!("--replicas {key}: no --sweep has this key (sweeps: {}); give the replica sweep's key exactly", sweeps.iter().map(|s| s.key.as_str()).collect::<Vec<_>>().join(", ")))
+        })?),
+    };
     let combos = combinations(sweeps);
+    let value_rows = value_combinations(sweeps);
     let mut loaded = Vec::new();
     for combo in &combos {
         let all: Vec<String> = sets.iter().cloned().chain(REPORT_OUTPUT.iter().map(|s| s.to_string())).chain(combo.iter().cloned()).collect();
         let mut l = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
         let mut map = None;
         if let Some(r) = reference {
-            let bad = |e: anyhow::Error| ReportError::Reference(format!("{e:#} (run {})", combo.join(" ")));
+            let bad = |e: anyhow::Error| ReportError::Input(format!("{e:#} (run {})", combo.join(" ")));
             map = Some(ReferenceMap::of(&l.scene).map_err(bad)?);
             let snapshots = r.snapshots(&l).map_err(bad)?;
             let mut all = all;
             all.push(format!("output.snapshots={snapshots}"));
             l = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
         }
-        let atom_steps = md_atom_steps(&l).map_err(|e| ReportError::Reference(format!("{e:#}")))?;
+        let atom_steps = md_atom_steps(&l).map_err(|e| ReportError::Input(format!("{e:#}")))?;
         loaded.push((l, map, atom_steps));
     }
     let mut rows = Vec::new();
@@ -110,9 +131,12 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
             }
             _ => Vec::new(),
         };
-        let values = combo.iter().map(|c| c.split_once('=').map(|(_, v)| v.to_string()).unwrap_or_default()).collect();
-        rows.push(Row { values, summary, atom_steps: *atom_steps, scores });
+        rows.push(Row { values: value_rows[k].clone(), summary, atom_steps: *atom_steps, scores });
         write_outputs(sweeps, &rows, out, reference).map_err(ReportError::Io)?;
+        if let Some(r) = replica_sweep {
+            let text = replica_summary(sweeps, r, &rows, reference.map(|x| x.times.as_slice()).unwrap_or_default());
+            output::write_atomic(&out.join("replicas.csv"), text.as_bytes()).map_err(ReportError::Io)?;
+        }
     }
     Ok(rows)
 }
@@ -121,9 +145,10 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
 pub enum ReportError {
     #[error("{0}")]
     Scene(SceneError),
-    /// `--reference` does not fit the scene or a run (refused before anything runs).
+    /// `--reference` or `--replicas` does not fit the scene or the sweeps (refused before
+    /// anything runs).
     #[error("{0}")]
-    Reference(String),
+    Input(String),
     #[error("{0:#}")]
     Io(anyhow::Error),
 }
@@ -138,6 +163,54 @@ fn field(s: &Value, path: &[&str]) -> String {
         Value::String(s) => s.clone(),
         other => other.to_string(),
     }
+}
+
+/// Mean and sample standard deviation (empty below two values).
+fn mean_std(v: &[f64]) -> (f64, Option<f64>) {
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    let std = (v.len() > 1).then(|| (v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (n - 1.0)).sqrt());
+    (mean, std)
+}
+
+/// `replicas.csv`: per combination of the sweeps other than `replica`, the number of completed
+/// replicas and the mean and sample standard deviation of wall time and of each error.
+pub fn replica_summary(sweeps: &[Sweep], replica: usize, rows: &[Row], times: &[f64]) -> String {
+    let mut csv = String::new();
+    for (k, s) in sweeps.iter().enumerate() {
+        if k != replica {
+            let _ = write!(csv, "{},", s.key);
+        }
+    }
+    csv.push_str("replicas,wall_seconds_mean,wall_seconds_std");
+    for &t in times {
+        let c = error_column(t);
+        let _ = write!(csv, ",{c}_mean,{c}_std");
+    }
+    csv.push('\n');
+    let key = |r: &Row| r.values.iter().enumerate().filter(|(k, _)| *k != replica).map(|(_, v)| v.clone()).collect::<Vec<_>>();
+    let mut groups: Vec<(Vec<String>, Vec<&Row>)> = Vec::new();
+    for r in rows.iter().filter(|r| r.summary["status"] == "completed") {
+        let k = key(r);
+        match groups.iter_mut().find(|(g, _)| *g == k) {
+            Some((_, members)) => members.push(r),
+            None => groups.push((k, vec![r])),
+        }
+    }
+    let cell = |(m, s): (f64, Option<f64>)| format!("{m:e},{}", s.map(|s| format!("{s:e}")).unwrap_or_default());
+    for (values, members) in groups {
+        for v in &values {
+            let _ = write!(csv, "{},", v.replace(',', ";"));
+        }
+        let wall: Vec<f64> = members.iter().filter_map(|r| r.summary["wall_seconds"].as_f64()).collect();
+        let _ = write!(csv, "{},{}", members.len(), cell(mean_std(&wall)));
+        for k in 0..times.len() {
+            let e: Vec<f64> = members.iter().filter_map(|r| r.scores.get(k).map(|s| s.0)).collect();
+            let _ = write!(csv, ",{}", if e.is_empty() { ",".to_string() } else { cell(mean_std(&e)) });
+        }
+        csv.push('\n');
+    }
+    csv
 }
 
 /// Column name of the eq. 7.12 error at time `t` (s): `sxx_error_5ps`.
@@ -501,6 +574,33 @@ pub fn md_atom_steps(loaded: &scene::LoadedScene) -> Result<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_joined_key_sets_every_key_to_the_value() {
+        let sweeps: Vec<Sweep> = ["a+b=1,2", "c=x"].iter().map(|s| s.parse().expect("sweep")).collect();
+        assert_eq!(combinations(&sweeps), [vec!["a=1", "b=1", "c=x"], vec!["a=2", "b=2", "c=x"]]);
+        assert_eq!(value_combinations(&sweeps), [vec!["1", "x"], vec!["2", "x"]]);
+        assert!("a+=1".parse::<Sweep>().is_err());
+    }
+
+    #[test]
+    fn replicas_are_averaged_per_setting() {
+        let sweeps: Vec<Sweep> = ["cells=60,120", "seed=1,2"].iter().map(|s| s.parse().expect("sweep")).collect();
+        let row = |cells: &str, seed: &str, wall: f64, e: f64| Row {
+            values: vec![cells.into(), seed.into()],
+            summary: serde_json::json!({"status": "completed", "wall_seconds": wall}),
+            atom_steps: 0.0,
+            scores: vec![(e, 10)],
+        };
+        let rows = [row("60", "1", 1.0, 0.1), row("60", "2", 3.0, 0.3), row("120", "1", 5.0, 0.2)];
+        let text = replica_summary(&sweeps, 1, &rows, &[5e-12]);
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], "cells,replicas,wall_seconds_mean,wall_seconds_std,sxx_error_5ps_mean,sxx_error_5ps_std");
+        let f: Vec<f64> = lines[1].split(',').map(|v| v.parse().expect("number")).collect();
+        assert_eq!(f[..4], [60.0, 2.0, 2.0, 2f64.sqrt()]);
+        assert!((f[4] - 0.2).abs() < 1e-15 && (f[5] - 0.02f64.sqrt()).abs() < 1e-15, "{f:?}");
+        assert_eq!(lines[2], "120,1,5e0,,2e-1,");
+    }
 
     /// Ten 1 m slabs, -10 left of X = 5, 0 right of it.
     fn step_profile() -> Vec<(f64, f64)> {
