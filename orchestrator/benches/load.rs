@@ -5,12 +5,13 @@
 //! --orchestrator`), and 10 jobs queued at
 //! once, each followed by its own WatchJob stream.
 //!
-//! Checks: every job completes; no event is lost: each watch stream shows its job's state
-//! changes in order (queued, running, completed), progress never going backwards, and the
-//! final event at the last step (progress events are samples: the service publishes at most
-//! one per 100 ms and a watcher gets the latest, so the number of steps that had an event of
-//! their own is reported, not required); every job's boxes were spread over all the
-//! registered workers. Reports the scheduling overhead per step (everything but MD compute,
+//! Checks: every job completes; no event is lost: each watch stream (a raw WatchJob stream
+//! from `after_sequence` 0, no client-side repair) delivers its job's events numbered 1, 2,
+//! 3, ... with no gap and none reported as not retained, from the first (submitted) to the
+//! final one, with the state changes in order (queued, running, completed), progress never
+//! going backwards, and the final event at the last step (progress is published at most every
+//! 100 ms, so the number of steps that had an event of their own is reported, not required);
+//! every job's boxes were spread over all the registered workers. Reports the scheduling overhead per step (everything but MD compute,
 //! from each job's summary.json), the job set-up time and the hand-over between queued jobs,
 //! as one JSON line.
 //!
@@ -184,6 +185,9 @@ fn start_workers(rt: &tokio::runtime::Runtime, server: &str, token_file: &Path, 
 struct Seen {
     /// (state, step) of every event.
     events: Vec<(i32, u64)>,
+    /// Sequence number of every event, and how many events said others were not retained.
+    sequences: Vec<u64>,
+    not_retained: usize,
     steps: u64,
     /// Largest number of workers an event listed, and how many of them held boxes.
     workers: usize,
@@ -191,16 +195,28 @@ struct Seen {
     error: Option<String>,
 }
 
+/// Follows one job on a raw WatchJob stream (what the service sends, not repaired by
+/// `mscale watch`'s reconnection).
 fn watch(server: String, job: String) -> Seen {
     let mut seen = Seen::default();
-    let r = Client::connect(&server, None).and_then(|mut c| {
-        c.watch(&job, |ev| {
-            seen.events.push((ev.state, ev.step));
-            seen.steps = seen.steps.max(ev.steps);
-            if ev.workers.len() >= seen.workers {
-                seen.workers = ev.workers.len();
-                seen.workers_with_boxes = ev.workers.iter().filter(|w| w.boxes > 0).count();
+    let r: Result<()> = tokio::runtime::Builder::new_current_thread().enable_all().build().map_err(anyhow::Error::from).and_then(|rt| {
+        rt.block_on(async {
+            let mut c = pb::orchestrator_client::OrchestratorClient::connect(format!("http://{server}")).await?;
+            let mut stream = c.watch_job(pb::WatchJobRequest { job_id: job.clone(), after_sequence: 0 }).await?.into_inner();
+            while let Some(ev) = stream.message().await? {
+                if ev.kind == pb::JobEventKind::NotRetained as i32 {
+                    seen.not_retained += 1;
+                    continue;
+                }
+                seen.sequences.push(ev.sequence);
+                seen.events.push((ev.state, ev.step));
+                seen.steps = seen.steps.max(ev.steps);
+                if ev.workers.len() >= seen.workers {
+                    seen.workers = ev.workers.len();
+                    seen.workers_with_boxes = ev.workers.iter().filter(|w| w.boxes > 0).count();
+                }
             }
+            Ok(())
         })
     });
     if let Err(e) = r {
@@ -260,6 +276,11 @@ fn main() -> Result<()> {
         // Progress events are samples (the service publishes at most one every 100 ms and a
         // watcher sees the latest), so a step may have no event of its own; what must not go
         // missing is a state change, the final event, or progress going backwards.
+        // Numbered 1, 2, 3, ... from the first event to the final one: nothing skipped.
+        let contiguous = s.not_retained == 0 && !s.sequences.is_empty() && s.sequences.iter().zip(1u64..).all(|(q, k)| *q == k);
+        if !contiguous {
+            problems.push(format!("{id}: events not numbered 1..n without a gap ({} reported not retained): {:?}", s.not_retained, s.sequences));
+        }
         let running = s.events.iter().any(|e| e.0 == pb::JobState::Running as i32);
         if !running {
             problems.push(format!("{id}: the watch stream never showed the job running"));
@@ -287,7 +308,8 @@ fn main() -> Result<()> {
         coupling.push(transfer / steps_run * 1e3);
         setups.push(setup);
         per_job.push(json!({
-            "job": id, "state": state, "events": s.events.len(), "steps": s.steps, "steps_with_an_event": distinct.len(),
+            "job": id, "state": state, "events": s.events.len(), "first_sequence": s.sequences.first(), "last_sequence": s.sequences.last(), "contiguous": contiguous,
+            "steps": s.steps, "steps_with_an_event": distinct.len(),
             "workers_with_boxes": s.workers_with_boxes, "wall_s": wall, "setup_s": setup,
             "step_overhead_ms": step_ms, "coupling_ms_per_step": transfer / steps_run * 1e3,
         }));
@@ -303,6 +325,9 @@ fn main() -> Result<()> {
         "jobs": a.jobs, "points_per_job": a.points, "steps_per_job": a.steps,
         "total_s": total_s,
         "jobs_completed": per_job.iter().filter(|j| j["state"] == "completed").count(),
+        // Watch streams that got every event of their job, 1..n with no gap, to the final one.
+        "watchers_contiguous": per_job.iter().filter(|j| j["contiguous"] == true).count(),
+        "events_received": seen.iter().map(|s| s.sequences.len()).sum::<usize>(),
         // Per step, everything but MD compute (continuum + coupling), the workers doing no MD.
         "median_step_overhead_ms": median(&step_overhead),
         // Of which the round trip to the workers (serialisation, transfer, waiting).

@@ -1,7 +1,10 @@
 //! The job service across real processes on 127.0.0.1: `mscale serve` and the client verbs
 //! (`submit`, `watch`, `status`, `cancel`, `fetch`, `health`). A submitted job ends with the
 //! `state_digest` of `mscale run`, also when the orchestrator is killed with SIGKILL mid-job
-//! and restarted; unauthenticated and invalid submits are refused.
+//! and restarted; unauthenticated and invalid submits are refused. Every watch gets the job's
+//! events numbered 1, 2, 3, ... with no gap up to the final one, also across a restart of the
+//! orchestrator (`mscale watch` reconnects); `mscale fetch JOB --out DIR` copies the whole run
+//! directory and nothing outside it.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -24,9 +27,13 @@ struct Server {
 
 impl Server {
     fn start(state: &Path, token_file: &Path, log: &Path) -> Server {
+        Self::start_on(state, token_file, log, "127.0.0.1:0")
+    }
+
+    fn start_on(state: &Path, token_file: &Path, log: &Path, listen: &str) -> Server {
         let err = std::fs::File::create(log).unwrap();
         let mut child = Command::new(bin())
-            .args(["serve", "--state", state.to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token_file.to_str().unwrap(), "--checkpoint-every", "100"])
+            .args(["serve", "--state", state.to_str().unwrap(), "--listen", listen, "--token-file", token_file.to_str().unwrap(), "--checkpoint-every", "100"])
             .env("RUST_LOG", "info")
             .stdout(Stdio::piped())
             .stderr(err)
@@ -88,10 +95,55 @@ fn submit(server: &Server, token: &Path, scene: &str, sets: &[&str]) -> String {
     String::from_utf8_lossy(&o.stdout).trim().to_string()
 }
 
-/// Watches a job to its end through `mscale watch`; returns the exit code and the status line.
+/// Watches a job to its end through `mscale watch --events`; returns the exit code and the
+/// status line, after checking that the events came numbered 1, 2, 3, ... to the final one
+/// without a reconnection.
 fn watch(server: &Server, job: &str) -> (i32, String) {
-    let o = server.client(&["watch", job]);
-    (o.status.code().unwrap_or(-1), String::from_utf8_lossy(&o.stdout).to_string())
+    let o = server.client(&["watch", job, "--events"]);
+    assert!(!String::from_utf8_lossy(&o.stderr).contains("reconnecting"), "{}", text(&o));
+    let (events, line) = contiguous_events(&o);
+    assert!(!events.is_empty());
+    (o.status.code().unwrap_or(-1), line)
+}
+
+/// One line of `mscale watch --events`: (sequence, kind, state, message).
+type Event = (u64, String, String, String);
+
+/// The events `mscale watch --events` printed, checked to be numbered 1, 2, 3, ... with no gap
+/// (no event reported as not retained) and to end with the job's final state; and the status
+/// line printed after them.
+fn contiguous_events(o: &Output) -> (Vec<Event>, String) {
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let mut events = Vec::new();
+    for l in stdout.lines().filter(|l| l.starts_with("event ")) {
+        let f: Vec<&str> = l.splitn(7, ' ').collect();
+        let seq = f[1].parse::<u64>().unwrap_or_else(|_| panic!("event line {l:?} has no plain sequence number (events not retained?): {}", text(o)));
+        events.push((seq, f[2].to_string(), f[3].to_string(), f.get(6).map(|m| m.trim().to_string()).unwrap_or_default()));
+    }
+    let seqs: Vec<u64> = events.iter().map(|e| e.0).collect();
+    assert_eq!(seqs, (1..=seqs.len() as u64).collect::<Vec<_>>(), "events not numbered 1..n without gaps: {}", text(o));
+    let last = events.last().unwrap_or_else(|| panic!("no events: {}", text(o)));
+    assert!(["completed", "failed", "cancelled"].contains(&last.2.as_str()) && last.1 == "state", "the last event is not a final state: {last:?}");
+    assert_eq!((events[0].1.as_str(), events[0].2.as_str(), events[0].3.as_str()), ("state", "queued", "submitted"), "{}", text(o));
+    let status = stdout.lines().rfind(|l| !l.starts_with("event ")).unwrap_or_default().to_string();
+    (events, status)
+}
+
+/// Every regular file under `dir`, relative, with its content.
+fn files_under(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            let t = e.file_type().unwrap();
+            if t.is_dir() {
+                stack.push(e.path());
+            } else if t.is_file() {
+                out.insert(e.path().strip_prefix(dir).unwrap().to_string_lossy().into_owned(), std::fs::read(e.path()).unwrap());
+            }
+        }
+    }
+    out
 }
 
 fn digest_of(status_line: &str) -> String {
@@ -123,7 +175,37 @@ fn submitted_jobs_end_with_the_digest_of_mscale_run() {
             let f = server.client(&["fetch", &job, bad, "--out", tmp.path().join("x").to_str().unwrap()]);
             assert!(!f.status.success() && String::from_utf8_lossy(&f.stderr).contains("not a path inside"), "{bad}: {}", text(&f));
         }
+
+        // The whole run directory: every file, byte for byte; a link planted in it that leads
+        // out of the job's directory is not followed.
+        let run = tmp.path().join("state/jobs").join(&job).join("run");
+        std::os::unix::fs::symlink("../input/scene.toml", run.join("escape.toml")).unwrap();
+        std::os::unix::fs::symlink("/etc", run.join("etc")).unwrap();
+        let dir = tmp.path().join(format!("{job}-run"));
+        let f = server.client(&["fetch", &job, "--out", dir.to_str().unwrap()]);
+        assert!(f.status.success(), "{}", text(&f));
+        let (sent, got) = (files_under(&run), files_under(&dir));
+        assert!(sent.contains_key("summary.json") && sent.contains_key("snapshots/index.csv") && sent.len() > 3, "{:?}", sent.keys());
+        assert_eq!(sent.keys().collect::<Vec<_>>(), got.keys().collect::<Vec<_>>());
+        assert!(sent == got, "fetched files differ from the run directory's");
+        assert!(!dir.join("escape.toml").exists() && !dir.join("etc").exists(), "a link out of the run directory was followed");
+        assert!(String::from_utf8_lossy(&f.stdout).contains(&format!("{} files", sent.len())), "{}", text(&f));
     }
+
+    // Watching again from a sequence number gets the events after it, the same ones; beyond
+    // the newest is refused.
+    let job = String::from_utf8_lossy(&server.client(&["status"]).stdout).lines().next().unwrap().split_whitespace().next().unwrap().to_string();
+    let mut c = orchestrator::client::Client::connect(&server.addr, None).unwrap();
+    let mut all = Vec::new();
+    let last = c.watch(&job, |e| all.push(e.clone())).unwrap();
+    assert_eq!(last.sequence, all.len() as u64);
+    let mut tail = Vec::new();
+    let opts = orchestrator::client::WatchOptions { after_sequence: 3, reconnect_for: Duration::from_secs(5) };
+    c.watch_from(&job, opts, |e| tail.push(e.clone())).unwrap();
+    assert_eq!(tail, all[3..]);
+    let opts = orchestrator::client::WatchOptions { after_sequence: last.sequence + 1, ..opts };
+    let e = c.watch_from(&job, opts, |_| {}).unwrap_err();
+    assert!(format!("{e:#}").contains("is beyond them") && format!("{e:#}").contains("OutOfRange"), "{e:#}");
     let st = server.client(&["status"]);
     assert_eq!(String::from_utf8_lossy(&st.stdout).matches("completed").count(), 2, "{}", text(&st));
 }
@@ -187,9 +269,15 @@ fn a_job_survives_the_orchestrator_killed_mid_run() {
     assert!(!state.join("jobs").join(&job).join("run/summary.json").exists(), "the job ended before the kill; make it longer");
 
     let server = Server::start(&state, &token, &tmp.path().join("serve2.log"));
-    let (code, line) = watch(&server, &job);
-    assert_eq!(code, 0, "{line}\n{}", server.log());
+    let o = server.client(&["watch", &job, "--events"]);
+    let (events, line) = contiguous_events(&o);
+    assert_eq!(o.status.code(), Some(0), "{line}\n{}", server.log());
     assert!(line.contains("resumed 1x"), "{line}");
+    // Every state change and checkpoint before the kill is there, then the restart.
+    let states: Vec<(&str, &str)> = events.iter().filter(|e| e.1 == "state").map(|e| (e.2.as_str(), e.3.as_str())).collect();
+    assert_eq!(states[..3], [("queued", "submitted"), ("running", "started"), ("queued", "the orchestrator restarted; resumes from its last checkpoint")], "{states:?}");
+    assert_eq!(states[3..], [("running", "resumed"), ("completed", "")], "{states:?}");
+    assert!(events.iter().any(|e| e.1 == "checkpoint"), "no checkpoint event: {events:?}");
     assert!(server.log().contains("resuming small at step"), "the job did not resume from a checkpoint:\n{}", server.log());
     assert_eq!(digest_of(&line), run_digest(&tmp.path().join("straight"), SMALL, &LONG));
 }
@@ -203,9 +291,12 @@ fn a_cancelled_job_ends_cancelled_and_watch_says_so() {
     wait_for_checkpoint(&state, &job);
     let o = server.client(&["cancel", &job, "--token-file", token.to_str().unwrap()]);
     assert!(o.status.success(), "{}", text(&o));
-    let (code, line) = watch(&server, &job);
-    assert_eq!(code, 1, "{line}");
+    let o = server.client(&["watch", &job, "--events"]);
+    let (events, line) = contiguous_events(&o);
+    assert_eq!(o.status.code(), Some(1), "{line}");
     assert!(line.contains("cancelled") && line.contains("cancelled by a user after step"), "{line}");
+    let n = events.len();
+    assert!(events[n - 2].1 == "checkpoint" && events[n - 2].3.contains("as the job is cancelled"), "{:?}", &events[n - 2..]);
 }
 
 #[test]
@@ -245,8 +336,11 @@ fn sigterm_stops_the_orchestrator_with_a_checkpoint_and_the_job_resumes() {
     let mut server = Server::start(&state, &token, &tmp.path().join("serve1.log"));
     let job = submit(&server, &token, SMALL, &LONG);
     wait_for_checkpoint(&state, &job);
-    // A watcher must not hold the shutdown up.
-    let watcher = Command::new(bin()).args(["watch", &job, "--server", &server.addr]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    // A watcher must not hold the shutdown up; it reconnects to the orchestrator started again
+    // at the same address and follows the job to its end, missing nothing. One that may wait
+    // only 0.3 s gives up.
+    let watcher = Command::new(bin()).args(["watch", &job, "--events", "--server", &server.addr]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let quitter = Command::new(bin()).args(["watch", &job, "--reconnect-for", "0.3", "--server", &server.addr]).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
     std::thread::sleep(Duration::from_millis(200));
     assert!(Command::new("kill").args(["-TERM", &server.child.id().to_string()]).status().unwrap().success());
     let start = Instant::now();
@@ -257,15 +351,21 @@ fn sigterm_stops_the_orchestrator_with_a_checkpoint_and_the_job_resumes() {
         assert!(start.elapsed() < Duration::from_secs(30), "mscale serve did not stop within 30 s of SIGTERM:\n{}", server.log());
         std::thread::sleep(Duration::from_millis(20));
     };
-    let watch_out = watcher.wait_with_output().unwrap();
-    assert_eq!(watch_out.status.code(), Some(1), "watch of a job interrupted by a stop exits 1");
+    let quit = quitter.wait_with_output().unwrap();
+    assert_eq!(quit.status.code(), Some(1), "{}", text(&quit));
+    assert!(String::from_utf8_lossy(&quit.stderr).contains("could not resume it within"), "{}", text(&quit));
     assert!(status.success(), "{}", server.log());
     assert!(!state.join("jobs").join(&job).join("run/summary.json").exists(), "the job ended before SIGTERM; make it longer");
     assert!(server.log().contains("as the orchestrator stops"), "{}", server.log());
 
-    let server = Server::start(&state, &token, &tmp.path().join("serve2.log"));
-    let (code, line) = watch(&server, &job);
-    assert_eq!(code, 0, "{line}\n{}", server.log());
+    let addr = server.addr.clone();
+    drop(server);
+    let server = Server::start_on(&state, &token, &tmp.path().join("serve2.log"), &addr);
+    let watch_out = watcher.wait_with_output().unwrap();
+    let (events, line) = contiguous_events(&watch_out);
+    assert_eq!(watch_out.status.code(), Some(0), "{}\n{}", text(&watch_out), server.log());
+    assert!(String::from_utf8_lossy(&watch_out.stderr).contains("reconnecting"), "{}", text(&watch_out));
+    assert!(events.iter().any(|e| e.3 == "the orchestrator stopped; resumes from its last checkpoint"), "{events:?}");
     assert!(server.log().contains("resuming small at step"), "{}", server.log());
     assert_eq!(digest_of(&line), run_digest(&tmp.path().join("straight"), SMALL, &LONG));
 }
