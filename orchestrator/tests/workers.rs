@@ -1,9 +1,10 @@
 //! The worker pool of `mscale serve` across real processes on 127.0.0.1: `md-worker serve
 //! --orchestrator` processes (started by the test, or by `mscale serve --local-workers`)
 //! register and heartbeat; a job's boxes are spread over them and it ends with the digest of
-//! `mscale run` in one process, also when a worker is killed with SIGKILL mid-job (the job
-//! rolls back to its last checkpoint onto the survivor); with no survivor it fails naming the
-//! worker and the step. Another protocol version and a missing token are refused; a silent
+//! `mscale run` in one process, also when a worker is killed with SIGKILL mid-job or frozen
+//! with SIGSTOP (past the step deadline, or past the heartbeat timeout): only the lost worker's
+//! boxes are restored from the last checkpoint onto the survivor and their logged inputs
+//! replayed; with no survivor the job fails naming the worker and the step. Another protocol version and a missing token are refused; a silent
 //! worker is declared lost and comes back as a new worker; a drained worker takes no sessions.
 //!
 //! The md-worker program is built next to `mscale` (`cargo build -p md-worker`) on first use.
@@ -132,6 +133,20 @@ fn worker(server: &Server, token: &Path, log: &Path, heartbeat: &str) -> Proc {
     Proc { child, log: log.to_path_buf() }
 }
 
+/// `s` without ANSI colour codes.
+fn plain(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    let mut chars = s.chars();
+    while let Some(c) = chars.next() {
+        if c == '\u{1b}' {
+            chars.by_ref().find(|c| c.is_ascii_alphabetic());
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
 fn text(o: &Output) -> String {
     format!("stdout: {}\nstderr: {}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
 }
@@ -229,14 +244,22 @@ fn a_worker_killed_mid_job_is_replaced_from_the_checkpoint_and_without_survivors
     let last = events.last().unwrap();
     assert_eq!(last.state, pb::JobState::Completed as i32, "{last:?}\n{}", server.proc.log());
     let log = server.proc.log();
-    assert!(log.contains("rolling back to its checkpoint of step"), "{log}");
     let j = server.client(false).get(&job).unwrap();
     assert_eq!(j.state_digest, run_digest(&tmp.path().join("straight"), &LONGER), "{log}");
-    let states: Vec<(String, i32)> = server.client(false).workers().unwrap().into_iter().map(|w| (w.id, w.state)).collect();
+    let workers = server.client(false).workers().unwrap();
+    let states: Vec<(String, i32)> = workers.iter().map(|w| (w.id.clone(), w.state)).collect();
     assert_eq!(states.iter().filter(|s| s.1 == pb::WorkerState::Lost as i32).count(), 1, "{states:?}");
-    // Later events show the job on the survivor alone.
-    assert_eq!(last.workers.len(), 1, "{last:?}");
-    assert_eq!(last.workers[0].boxes, 16, "{last:?}");
+    let lost = workers.iter().find(|w| w.state == pb::WorkerState::Lost as i32).unwrap();
+    assert!(lost.note.contains("stopped answering during step"), "{lost:?}");
+    // Only the killed worker's boxes were restored and replayed; the job was neither rolled
+    // back nor resumed.
+    assert!(!log.contains("rolling back") && !log.contains("resuming"), "{log}");
+    let n = only_the_lost_boxes_were_replayed(&state, &job, &lost.address, &b);
+    assert!(log.contains(&format!("its {n} boxes were restored from the checkpoint of step")), "{log}");
+    // The last event shows every box on the survivor, none on the lost worker.
+    let on = |addr: &str| last.workers.iter().find(|w| w.address == addr).unwrap_or_else(|| panic!("{last:?}"));
+    assert_eq!((on(&lost.address).boxes, on(&lost.address).state), (0, pb::WorkerState::Lost as i32), "{last:?}");
+    assert_eq!(last.workers.iter().map(|w| w.boxes).sum::<u32>(), 16, "{last:?}");
 
     // Now kill the survivor mid-job: nobody can take its boxes, the job fails naming it.
     let survivor = states.iter().find(|s| s.1 == pb::WorkerState::Live as i32).unwrap().0.clone();
@@ -247,6 +270,64 @@ fn a_worker_killed_mid_job_is_replaced_from_the_checkpoint_and_without_survivors
     assert_eq!(last.state, pb::JobState::Failed as i32, "{last:?}");
     let j = server.client(false).get(&job).unwrap();
     assert!(j.error.contains(&format!("worker {survivor} at")) && j.error.contains("was lost at step") && j.error.contains("no live worker of back end cpu/double"), "{}", j.error);
+}
+
+/// Checks the job's summary.json: one lost worker (at `lost_addr`), whose boxes (fewer than
+/// all 16) alone were restored, on `survivor` (its log shows one restore, of exactly those),
+/// and replayed from the checkpoint up to the step of the loss. Returns how many boxes.
+fn only_the_lost_boxes_were_replayed(state: &Path, job: &str, lost_addr: &str, survivor: &Proc) -> usize {
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(state.join("jobs").join(job).join("run/summary.json")).unwrap()).unwrap();
+    let rec = &summary["md_recovery"];
+    assert_eq!(rec["lost_workers"], 1, "{rec}");
+    let ev = &rec["events"][0];
+    assert_eq!(ev["worker"], lost_addr, "{rec}");
+    let n = ev["boxes"].as_array().unwrap().len();
+    assert!(n > 0 && n < 16 && rec["restored_boxes"] == n, "{rec}");
+    // Each box is sent once per continuum step: from the checkpoint to the step of the loss.
+    let step = ev["step"].as_u64().unwrap();
+    let from: u64 = ev["baseline"].as_str().unwrap().strip_prefix("the checkpoint of step ").unwrap().parse().unwrap();
+    let box_steps = ev["replayed_box_steps"].as_u64().unwrap();
+    assert!(step > from && (n as u64 * (step - 1 - from)..=n as u64 * (step - from)).contains(&box_steps), "{rec}");
+    assert_eq!(ev["replayed_md_steps"].as_u64().unwrap(), 10 * box_steps, "{rec}");
+    let restores: Vec<String> = plain(&survivor.log()).lines().filter(|l| l.contains("restored boxes")).map(String::from).collect();
+    assert_eq!(restores.len(), 1, "{restores:?}");
+    assert!(restores[0].contains(&format!("boxes={n}")), "{restores:?}");
+    n
+}
+
+#[test]
+fn a_frozen_worker_is_lost_past_the_step_deadline_or_the_heartbeat_timeout_and_only_its_boxes_are_replayed() {
+    let (tmp, token) = setup();
+    let straight = run_digest(&tmp.path().join("straight"), &LONGER);
+    // The step deadline (3 s) comes long before the heartbeat timeout (60 s), then the
+    // heartbeat timeout (2 s) long before the automatic step deadline (at least 60 s).
+    for (name, flags, why) in [
+        ("deadline", ["--step-deadline", "3", "--worker-timeout", "60"], "within its deadline of 3.0 s"),
+        ("heartbeat", ["--step-deadline", "auto", "--worker-timeout", "2"], "no heartbeat for"),
+    ] {
+        let state = tmp.path().join(name);
+        let server = Server::start(&state, &token, &tmp.path().join(format!("{name}-serve.log")), &flags);
+        let a = worker(&server, &token, &tmp.path().join(format!("{name}-a.log")), "0.5");
+        let b = worker(&server, &token, &tmp.path().join(format!("{name}-b.log")), "0.5");
+        server.wait_live(2);
+        let job = server.submit(&token, &LONGER, 10);
+        wait_for_checkpoint(&state, &job);
+        a.signal("-STOP");
+        let events = watch(&server, &job);
+        a.signal("-CONT");
+        let last = events.last().unwrap();
+        let log = server.proc.log();
+        assert_eq!(last.state, pb::JobState::Completed as i32, "{name}: {last:?}\n{log}");
+        assert_eq!(server.client(false).get(&job).unwrap().state_digest, straight, "{name}: {log}");
+        let workers = server.client(false).workers().unwrap();
+        let lost: Vec<&pb::Worker> = workers.iter().filter(|w| w.state == pb::WorkerState::Lost as i32).collect();
+        assert_eq!(lost.len(), 1, "{name}: {workers:?}");
+        let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(state.join("jobs").join(&job).join("run/summary.json")).unwrap()).unwrap();
+        assert!(summary["md_recovery"]["events"][0]["why"].as_str().unwrap().contains(why), "{name}: {}", summary["md_recovery"]);
+        assert!(!log.contains("rolling back") && !log.contains("resuming"), "{name}: {log}");
+        only_the_lost_boxes_were_replayed(&state, &job, &lost[0].address, &b);
+        assert!(!a.log().contains("restored boxes"), "{name}: {}", a.log());
+    }
 }
 
 #[test]
