@@ -30,8 +30,12 @@ pub enum InitialAtoms {
         kind: LatticeKind,
         /// Lattice constant (A).
         a0: f64,
-        /// Conventional cells along x, y, z.
+        /// Cells along x, y, z (conventional cells for the cube orientation; otherwise
+        /// oriented cells of `a0 |o_k|` along axis k).
         cells: [usize; 3],
+        /// Crystal directions along x, y, z (default [100] [010] [001]).
+        #[serde(default)]
+        orient: crate::Orientation,
     },
     /// Given atoms (e.g. from a LAMMPS data file).
     Explicit {
@@ -81,7 +85,7 @@ impl BoxSpec {
     pub fn lattice(id: PointId, kind: LatticeKind, a0: f64, cells: [usize; 3]) -> Self {
         BoxSpec {
             id,
-            atoms: InitialAtoms::Lattice { kind, a0, cells },
+            atoms: InitialAtoms::Lattice { kind, a0, cells, orient: crate::Orientation::CUBE },
             strain: [0.0; 3],
             temperature_k: 0.0,
             seed: 0,
@@ -91,6 +95,14 @@ impl BoxSpec {
             mode: DeformMode::Affine,
             skin: 1.0,
         }
+    }
+
+    /// The same box with the crystal directions `o` along x, y, z (lattice boxes only).
+    pub fn oriented(mut self, o: crate::Orientation) -> Self {
+        if let InitialAtoms::Lattice { orient, .. } = &mut self.atoms {
+            *orient = o;
+        }
+        self
     }
 }
 
@@ -462,10 +474,11 @@ fn finite3(v: &[f64]) -> bool {
 pub(crate) fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
     let bad = |msg: String| Err(MdError::invalid(format!("box spec of point {}", s.id), msg));
     match &s.atoms {
-        InitialAtoms::Lattice { a0, cells, .. } => {
+        InitialAtoms::Lattice { a0, cells, orient, .. } => {
             if !(a0.is_finite() && *a0 > 0.0) || cells.contains(&0) {
                 return bad(format!("lattice needs a0 > 0 and cells >= 1, got a0 = {a0}, cells = {cells:?}"));
             }
+            orient.validate()?;
         }
         InitialAtoms::Explicit { lengths, types, x, v, .. } => {
             if lengths.iter().any(|l| !(l.is_finite() && *l > 0.0)) {
@@ -521,8 +534,8 @@ pub(crate) fn validate_work(w: &BoxWork, mode: DeformMode) -> Result<(), MdError
 /// Build one box from its spec: atoms, strain, velocities, forces, relaxation.
 pub fn prepare_box(pot: &Potential, masses: &[f64], s: &BoxSpec) -> Result<BoxState, MdError> {
     let (lo, mut l, types, mut x, mut v) = match &s.atoms {
-        InitialAtoms::Lattice { kind, a0, cells } => {
-            let (x, l) = lattice::build_lattice(*kind, *a0, *cells);
+        InitialAtoms::Lattice { kind, a0, cells, orient } => {
+            let (x, l) = lattice::build_oriented(*kind, *a0, *cells, orient)?;
             let n = x.len();
             ([0.0; 3], l, vec![0u32; n], x, vec![[0.0; 3]; n])
         }

@@ -36,5 +36,5 @@ pub use backend::{
 };
 pub use error::MdError;
 pub use kernel::DeformMode;
-pub use lattice::LatticeKind;
+pub use lattice::{LatticeKind, Orientation};
 pub use potential::{EamFormat, LjCut, Potential};

@@ -223,14 +223,7 @@ pub fn proportional_blocks(n: usize, weights: &[f64]) -> Vec<usize> {
 
 fn spec_atoms(s: &BoxSpec) -> u64 {
     match &s.atoms {
-        crate::InitialAtoms::Lattice { kind, cells, .. } => {
-            let per_cell = match kind {
-                crate::LatticeKind::Fcc => 4,
-                crate::LatticeKind::Bcc => 2,
-                crate::LatticeKind::Sc => 1,
-            };
-            per_cell * cells.iter().map(|&c| c as u64).product::<u64>()
-        }
+        crate::InitialAtoms::Lattice { kind, cells, orient, .. } => kind.atoms_per_cell(orient) * cells.iter().map(|&c| c as u64).product::<u64>(),
         crate::InitialAtoms::Explicit { types, .. } => types.len() as u64,
     }
 }

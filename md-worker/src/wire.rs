@@ -5,7 +5,7 @@
 use crate::backend::{BoxResult, BoxSpec, BoxWork, Diagnostics, InitialAtoms, StressSampling};
 use crate::error::MdError;
 use crate::kernel::DeformMode;
-use crate::lattice::LatticeKind;
+use crate::lattice::{LatticeKind, Orientation};
 use mscale_proto::coupling::v1 as pb;
 
 /// Largest gRPC message either side accepts (bytes).
@@ -42,8 +42,8 @@ fn finite(point: u64, field: &str, v: f64) -> Result<f64, MdError> {
 }
 
 pub fn spec_to_pb(s: &BoxSpec) -> pb::BoxSpec {
-    let (lattice, a0, cells) = match &s.atoms {
-        InitialAtoms::Lattice { kind, a0, cells } => (
+    let (lattice, a0, cells, orientation) = match &s.atoms {
+        InitialAtoms::Lattice { kind, a0, cells, orient } => (
             match kind {
                 LatticeKind::Fcc => "fcc",
                 LatticeKind::Bcc => "bcc",
@@ -51,9 +51,10 @@ pub fn spec_to_pb(s: &BoxSpec) -> pb::BoxSpec {
             },
             *a0,
             cells.iter().map(|&c| c as u32).collect(),
+            if *orient == Orientation::CUBE { Vec::new() } else { orient.0.iter().flatten().copied().collect() },
         ),
         // Explicit atoms do not travel: the server refuses an empty lattice name.
-        InitialAtoms::Explicit { .. } => ("", 0.0, Vec::new()),
+        InitialAtoms::Explicit { .. } => ("", 0.0, Vec::new(), Vec::new()),
     };
     pb::BoxSpec {
         point_id: s.id,
@@ -71,6 +72,7 @@ pub fn spec_to_pb(s: &BoxSpec) -> pb::BoxSpec {
             DeformMode::Seed => "seed",
         }
         .into(),
+        orientation,
     }
 }
 
@@ -103,7 +105,13 @@ pub fn spec_from_pb(p: &pb::BoxSpec) -> Result<BoxSpec, MdError> {
         "seed" => DeformMode::Seed,
         other => return Err(invalid(id, "deformation", format!("{other:?}; expected affine or seed"))),
     };
-    let mut s = BoxSpec::lattice(id, kind, a0, [p.cells[0] as usize, p.cells[1] as usize, p.cells[2] as usize]);
+    let orient = match p.orientation.as_slice() {
+        [] => Orientation::CUBE,
+        o if o.len() == 9 => Orientation([[o[0], o[1], o[2]], [o[3], o[4], o[5]], [o[6], o[7], o[8]]]),
+        o => return Err(invalid(id, "orientation", format!("{o:?}; expected 9 integers (x, y, z directions) or none"))),
+    };
+    orient.validate().map_err(|e| invalid(id, "orientation", e))?;
+    let mut s = BoxSpec::lattice(id, kind, a0, [p.cells[0] as usize, p.cells[1] as usize, p.cells[2] as usize]).oriented(orient);
     s.strain = [p.strain[0], p.strain[1], p.strain[2]];
     s.temperature_k = p.temperature_k;
     s.seed = p.seed;

@@ -3,7 +3,7 @@
 
 mod common;
 use common::*;
-use md_worker::{BoxResult, BoxSpec, BoxWork, InitialAtoms, LatticeKind};
+use md_worker::{BoxResult, BoxSpec, BoxWork, InitialAtoms, LatticeKind, Orientation};
 
 fn stress_of(spec: BoxSpec) -> [f64; 6] {
     let mut b = make_backend("cpu", mishin());
@@ -37,6 +37,16 @@ fn fcc_110(a0: f64, cells: [usize; 3]) -> InitialAtoms {
     }
 }
 
+const X110: Orientation = Orientation([[1, 1, 0], [-1, 1, 0], [0, 0, 1]]);
+const X111: Orientation = Orientation([[1, 1, 1], [-1, 1, 0], [-1, -1, 2]]);
+
+/// Stress of a Mishin Cu box with crystal directions `o` strained by `e` along x.
+fn oriented_stress(o: Orientation, cells: [usize; 3], e: f64) -> [f64; 6] {
+    let mut s = BoxSpec::lattice(2, LatticeKind::Fcc, 3.615, cells).oriented(o);
+    s.strain = [e, 0.0, 0.0];
+    stress_of(s)
+}
+
 #[test]
 fn c44_of_mishin_cu_from_a_110_oriented_box() {
     let eps = 1e-4;
@@ -45,22 +55,47 @@ fn c44_of_mishin_cu_from_a_110_oriented_box() {
         s.strain = [e, 0.0, 0.0];
         stress_of(s)
     };
-    let rot = |e: f64| {
-        let mut s = BoxSpec::lattice(2, LatticeKind::Fcc, 3.615, [1; 3]);
-        s.atoms = fcc_110(3.615, [4, 4, 3]);
-        s.strain = [e, 0.0, 0.0];
-        stress_of(s)
-    };
     let (cp, cm) = (cub(eps), cub(-eps));
     let (c11, c12) = ((cp[0] - cm[0]) / (2.0 * eps), (cp[1] - cm[1]) / (2.0 * eps));
-    let (rp, rm) = (rot(eps), rot(-eps));
+    let (rp, rm) = (oriented_stress(X110, [2, 2, 3], eps), oriented_stress(X110, [2, 2, 3], -eps));
     // Along [110]: C'11 = (C11 + C12 + 2 C44) / 2.
     let c11_110 = (rp[0] - rm[0]) / (2.0 * eps);
     let c44 = c11_110 - 0.5 * (c11 + c12);
     eprintln!("C11 = {c11:.2}, C12 = {c12:.2}, C'11[110] = {c11_110:.2}, C44 = {c44:.3} GPa (Mishin 2001: 76.2)");
     assert!((c44 / 76.2 - 1.0).abs() < 0.005, "C44 = {c44} GPa");
-    // The rotated box must be the same crystal: same energy per atom, no shear stress.
+    // The rotated box must be the same crystal: no shear stress.
     assert!(rp[3].abs() < 1e-6 && rp[4].abs() < 1e-6 && rp[5].abs() < 1e-6, "{rp:?}");
+    // Along [111]: C'11 = (C11 + 2 C12 + 4 C44) / 3, from the constants just measured (the
+    // finite differences agree to O(eps^2)); checks that the builder rotates the crystal right.
+    let (tp, tm) = (oriented_stress(X111, [1, 2, 1], eps), oriented_stress(X111, [1, 2, 1], -eps));
+    let c11_111 = (tp[0] - tm[0]) / (2.0 * eps);
+    let predicted = (c11 + 2.0 * c12 + 4.0 * c44) / 3.0;
+    eprintln!("C'11[111] = {c11_111:.3} GPa, from C11, C12, C44: {predicted:.3} GPa");
+    assert!((c11_111 / predicted - 1.0).abs() < 1e-4, "C'11[111] = {c11_111}, expected {predicted}");
+}
+
+#[test]
+fn an_oriented_lattice_box_equals_the_same_crystal_built_atom_by_atom() {
+    // x = [110], y = [-110], z = [001] built from explicit atoms (cell a/sqrt2 x a/sqrt2 x a):
+    // the same crystal as 2 x 2 x 3 oriented cells (96 atoms each), so the same stress and energy.
+    let mut explicit = BoxSpec::lattice(3, LatticeKind::Fcc, 3.615, [1; 3]);
+    explicit.atoms = fcc_110(3.615, [4, 4, 3]);
+    explicit.strain = [0.01, -0.02, 0.0];
+    let mut oriented = BoxSpec::lattice(4, LatticeKind::Fcc, 3.615, [2, 2, 3]).oriented(X110);
+    oriented.strain = explicit.strain;
+    let run = |s: BoxSpec| {
+        let mut b = make_backend("cpu", mishin());
+        let id = s.id;
+        b.open(&[s]).unwrap();
+        let mut out = [BoxResult::default()];
+        b.step(&[BoxWork::new(id, [[0.0; 3]; 3], 0, 0.001)], &mut out).unwrap();
+        (out[0].stress_gpa, out[0].potential_energy_ev)
+    };
+    let ((se, ee), (so, eo)) = (run(explicit), run(oriented));
+    for k in 0..6 {
+        assert!((se[k] - so[k]).abs() < 1e-9, "stress {k}: {se:?} vs {so:?}");
+    }
+    assert!((ee - eo).abs() < 1e-10 * ee.abs(), "energy {ee} vs {eo} eV");
 }
 
 /// NVE, 500-atom box at 300 K, 1 fs, 10^4 steps: energy drift and momentum.
