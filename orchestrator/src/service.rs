@@ -1222,6 +1222,87 @@ mod tests {
         }
     }
 
+    /// A core over a store in `dir`, with no workers and no runner.
+    fn test_core(dir: &Path) -> Arc<Core> {
+        let store = Store::open(dir).unwrap();
+        let registry = Registry::load(&store, Duration::from_secs(15)).unwrap();
+        Arc::new(Core {
+            workers: Mutex::new(registry),
+            expect_workers: 0,
+            started: Instant::now(),
+            store: Mutex::new(store),
+            state_dir: dir.to_path_buf(),
+            token: "t".into(),
+            checkpoint_every: 0,
+            live: Mutex::new(HashMap::new()),
+            details: Mutex::new(HashMap::new()),
+            running: Mutex::new(None),
+            stopping: AtomicBool::new(false),
+            stop_watchers: watch::channel(false).0,
+            wake: (Mutex::new(false), Condvar::new()),
+            next_id: AtomicU64::new(0),
+            step_deadline: Default::default(),
+            aborts: Mutex::new(HashMap::new()),
+        })
+    }
+
+    #[test]
+    fn a_watcher_that_falls_behind_is_caught_up_from_the_store() {
+        let dir = tempfile::tempdir().unwrap();
+        let core = test_core(dir.path());
+        let job = JobRecord {
+            id: "j1".into(),
+            scene: "s".into(),
+            state: JobState::Queued,
+            priority: 0,
+            overrides: Vec::new(),
+            checkpoint_every: 0,
+            step: 0,
+            steps: 1000,
+            sim_time: 0.0,
+            error: String::new(),
+            state_digest: String::new(),
+            submitted: now_unix(),
+            started: 0,
+            finished: 0,
+            resumes: 0,
+        };
+        lock(&core.store).insert(&job).unwrap();
+        let published = WATCH_BACKLOG as u64 + 50;
+        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        rt.block_on(async {
+            let (rx, newest) = core.subscribe("j1").unwrap();
+            assert_eq!(newest, 1);
+            let (tx, mut out) = tokio::sync::mpsc::channel(100_000);
+            let (c, mut stop) = (core.clone(), core.stop_watchers.subscribe());
+            let watcher = tokio::spawn(async move { follow(&c, "j1", 1, rx, &mut stop, &tx).await });
+            // The stored event comes first (replayed); then the watcher waits on the channel.
+            assert_eq!(out.recv().await.unwrap().unwrap().sequence, 1);
+            // More events than the channel holds, published while the watcher cannot run (one
+            // thread, no await): its receiver lags and loses the oldest.
+            transition(&core, "j1", JobState::Running, "started", "");
+            for k in 1..=published {
+                lock(&core.store).progress_event("j1", EventKind::Progress, k, 1000, 0.0, "", &[]).unwrap();
+                core.publish_stored("j1");
+            }
+            transition(&core, "j1", JobState::Completed, "", "digest");
+            let mut seqs = vec![1];
+            while let Some(ev) = out.recv().await {
+                let ev = ev.unwrap();
+                seqs.push(ev.sequence);
+                if is_final(ev.state) {
+                    break;
+                }
+            }
+            assert_eq!(seqs, (1..=published + 3).collect::<Vec<_>>(), "the watcher skipped events");
+            watcher.await.unwrap();
+        });
+        // The watcher has gone: its channel too.
+        assert!(lock(&core.live).get("j1").is_some_and(|j| j.tx.receiver_count() == 0));
+        core.unsubscribe("j1");
+        assert!(lock(&core.live).is_empty());
+    }
+
     #[test]
     fn tokens_compare_whole() {
         assert!(constant_time_eq(b"abc", b"abc"));
