@@ -329,6 +329,33 @@ fn a_hundred_concurrent_status_calls_are_answered_while_a_job_runs() {
     assert_eq!(code, 0);
 }
 
+/// `mscale watch JOB --events` in the background, once it has received its first event.
+struct Watcher {
+    child: Child,
+    out: BufReader<std::process::ChildStdout>,
+    first: String,
+}
+
+impl Watcher {
+    fn start(server: &Server, job: &str, extra: &[&str]) -> Watcher {
+        let mut child = Command::new(bin()).args(["watch", job, "--events", "--server", &server.addr]).args(extra).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+        let mut out = BufReader::new(child.stdout.take().unwrap());
+        let mut first = String::new();
+        out.read_line(&mut first).unwrap();
+        assert!(first.starts_with("event 1 "), "the watcher's first line: {first:?}");
+        Watcher { child, out, first }
+    }
+
+    /// Waits for it to exit; all it printed.
+    fn finish(mut self) -> Output {
+        use std::io::Read;
+        let mut rest = String::new();
+        self.out.read_to_string(&mut rest).unwrap();
+        let o = self.child.wait_with_output().unwrap();
+        Output { status: o.status, stdout: format!("{}{rest}", self.first).into_bytes(), stderr: o.stderr }
+    }
+}
+
 #[test]
 fn sigterm_stops_the_orchestrator_with_a_checkpoint_and_the_job_resumes() {
     let (tmp, token) = setup();
@@ -339,9 +366,8 @@ fn sigterm_stops_the_orchestrator_with_a_checkpoint_and_the_job_resumes() {
     // A watcher must not hold the shutdown up; it reconnects to the orchestrator started again
     // at the same address and follows the job to its end, missing nothing. One that may wait
     // only 0.3 s gives up.
-    let watcher = Command::new(bin()).args(["watch", &job, "--events", "--server", &server.addr]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
-    let quitter = Command::new(bin()).args(["watch", &job, "--reconnect-for", "0.3", "--server", &server.addr]).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
-    std::thread::sleep(Duration::from_millis(200));
+    let watcher = Watcher::start(&server, &job, &[]);
+    let quitter = Watcher::start(&server, &job, &["--reconnect-for", "0.3"]);
     assert!(Command::new("kill").args(["-TERM", &server.child.id().to_string()]).status().unwrap().success());
     let start = Instant::now();
     let status = loop {
@@ -351,7 +377,7 @@ fn sigterm_stops_the_orchestrator_with_a_checkpoint_and_the_job_resumes() {
         assert!(start.elapsed() < Duration::from_secs(30), "mscale serve did not stop within 30 s of SIGTERM:\n{}", server.log());
         std::thread::sleep(Duration::from_millis(20));
     };
-    let quit = quitter.wait_with_output().unwrap();
+    let quit = quitter.finish();
     assert_eq!(quit.status.code(), Some(1), "{}", text(&quit));
     assert!(String::from_utf8_lossy(&quit.stderr).contains("could not resume it within"), "{}", text(&quit));
     assert!(status.success(), "{}", server.log());
@@ -361,7 +387,7 @@ fn sigterm_stops_the_orchestrator_with_a_checkpoint_and_the_job_resumes() {
     let addr = server.addr.clone();
     drop(server);
     let server = Server::start_on(&state, &token, &tmp.path().join("serve2.log"), &addr);
-    let watch_out = watcher.wait_with_output().unwrap();
+    let watch_out = watcher.finish();
     let (events, line) = contiguous_events(&watch_out);
     assert_eq!(watch_out.status.code(), Some(0), "{}\n{}", text(&watch_out), server.log());
     assert!(String::from_utf8_lossy(&watch_out.stderr).contains("reconnecting"), "{}", text(&watch_out));
