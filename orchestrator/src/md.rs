@@ -5,7 +5,7 @@
 use crate::scene::{Body, MdMaterial};
 use anyhow::{Context, Result};
 use md_worker::pool::{Endpoint, InProcess, MdPool, Remote};
-use md_worker::{BoxResult, BoxSpec, BoxWork, DeformMode, LatticeKind, MdBackend, Potential};
+use md_worker::{BoxResult, BoxSpec, BoxWork, DeformMode, LatticeKind, MdBackend, Orientation, Potential};
 use std::path::Path;
 use std::sync::Arc;
 
@@ -40,9 +40,15 @@ fn atoms_per_cell(kind: LatticeKind) -> f64 {
     }
 }
 
+/// Atoms in one box of an md material.
+pub fn atoms_per_box(m: &MdMaterial) -> Result<u64> {
+    Ok(lattice_kind(&m.lattice)?.atoms_per_cell(&Orientation(m.orientation)) * (m.cells_per_side as u64).pow(3))
+}
+
 /// Reads the potential (refusing malformed or truncated files with their line) and measures
-/// the density and C11 of the lattice from the stress of one cell strained by +/- 0.1 %.
-pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64) -> Result<LatticeProperties> {
+/// the density and the longitudinal modulus along x (C11 for the cube orientation) of the
+/// lattice from the stress of one (oriented) cell strained by +/- 0.1 % along x.
+pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64, orient: Orientation) -> Result<LatticeProperties> {
     let pot = Arc::new(Potential::from_file(potential)?);
     let kind = lattice_kind(lattice)?;
     let density = atoms_per_cell(kind) * pot.mass(0) * AMU_KG / (a0 * 1e-10).powi(3);
@@ -52,7 +58,7 @@ pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64) -> Result<La
         .iter()
         .enumerate()
         .map(|(k, e)| {
-            let mut s = BoxSpec::lattice(k as u64, kind, a0, [1, 1, 1]);
+            let mut s = BoxSpec::lattice(k as u64, kind, a0, [1, 1, 1]).oriented(orient);
             s.strain = [*e, 0.0, 0.0];
             s
         })
@@ -70,7 +76,7 @@ pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64) -> Result<La
 /// The box of one material point of an md body.
 pub fn box_spec(id: u64, body: &Body, md: &MdMaterial) -> Result<BoxSpec> {
     let n = md.cells_per_side;
-    let mut s = BoxSpec::lattice(id, lattice_kind(&md.lattice)?, md.lattice_constant_angstrom, [n, n, n]);
+    let mut s = BoxSpec::lattice(id, lattice_kind(&md.lattice)?, md.lattice_constant_angstrom, [n, n, n]).oriented(Orientation(md.orientation));
     s.strain = [body.initial_strain[0], body.initial_strain[1], body.initial_strain[2]];
     s.temperature_k = body.temperature_k;
     s.seed = md.seed;
@@ -124,8 +130,7 @@ pub fn estimate(loaded: &crate::scene::LoadedScene, md_points_per_body: &[(Strin
     let mut md_points = 0;
     for (name, n) in md_points_per_body {
         let Some(crate::scene::Material::Md(m)) = scene.bodies.get(name).map(|b| &b.material) else { continue };
-        let kind = lattice_kind(&m.lattice)?;
-        let per_box = (atoms_per_cell(kind) as u64) * (m.cells_per_side as u64).pow(3);
+        let per_box = atoms_per_box(m)?;
         let steps = loaded.steps * (loaded.dt / (m.timestep_fs * 1e-15)).round() as u64 + m.relax_steps as u64;
         md_points += n;
         atoms += per_box * *n as u64;
@@ -163,4 +168,20 @@ pub fn estimate(loaded: &crate::scene::LoadedScene, md_points_per_body: &[(Strin
         memory_bytes: bytes_per_atom * atoms as f64,
         wall_seconds: atom_steps * ns_per_atom_step * 1e-9,
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_oriented_lattice_has_the_same_density_and_its_own_longitudinal_modulus() {
+        let pot = Path::new(env!("CARGO_MANIFEST_DIR")).join("../md-worker/potentials/Cu_mishin1.eam.alloy");
+        let cube = lattice_properties(&pot, "fcc", 3.615, Orientation::CUBE).unwrap();
+        let x110 = lattice_properties(&pot, "fcc", 3.615, Orientation([[1, 1, 0], [-1, 1, 0], [0, 0, 1]])).unwrap();
+        assert!((cube.density - x110.density).abs() < 1e-9 * cube.density);
+        // Mishin Cu: C11 169.9, C12 122.6, C44 76.2 GPa; along [110] (C11 + C12 + 2 C44) / 2 = 222.4.
+        assert!((cube.c11_gpa / 169.9 - 1.0).abs() < 0.01, "C11 = {}", cube.c11_gpa);
+        assert!((x110.c11_gpa / 222.4 - 1.0).abs() < 0.01, "C'11[110] = {}", x110.c11_gpa);
+    }
 }

@@ -181,8 +181,13 @@ pub struct MdMaterial {
     /// fcc, bcc or sc.
     pub lattice: String,
     pub lattice_constant_angstrom: f64,
-    /// Lattice cells per box side (4 atoms per fcc cell: 5 gives 500 atoms).
+    /// Lattice cells per box side (4 atoms per fcc cell: 5 gives 500 atoms). With an
+    /// orientation, cells of a0 |o_k| along axis k (LAMMPS's lattice spacings).
     pub cells_per_side: usize,
+    /// Crystal directions along x, y, z (integer Miller indices, as LAMMPS `lattice ... orient`):
+    /// mutually orthogonal and right-handed; default [100] [010] [001].
+    #[serde(default = "default_orientation")]
+    pub orientation: [[i32; 3]; 3],
     /// MD time step (fs).
     #[serde(default = "default_md_timestep")]
     pub timestep_fs: f64,
@@ -210,6 +215,10 @@ pub struct MdMaterial {
     /// 1D, seed otherwise).
     #[serde(default = "default_deformation")]
     pub deformation: String,
+}
+
+fn default_orientation() -> [[i32; 3]; 3] {
+    md_worker::Orientation::CUBE.0
 }
 
 fn default_deformation() -> String {
@@ -544,6 +553,9 @@ fn vec_str(v: &[f64]) -> String {
 /// Largest CFL number the explicit schemes are stable at (Gong, Ch. 7: c dt/h <= 1).
 pub const CFL_LIMIT: f64 = 1.0;
 
+/// Largest MD box a scene may ask for (atoms).
+pub const MAX_ATOMS_PER_BOX: u64 = 256_000;
+
 impl Scene {
     /// Checks physics and numerics; fills defaults. Returns the time step, the step count and
     /// the files the scene names (resolved against `base`).
@@ -713,6 +725,13 @@ impl Scene {
                 if !(1..=40).contains(&md.cells_per_side) {
                     return Err(loc.err(&k("material.cells_per_side"), md.cells_per_side, "allowed: 1 to 40 lattice cells per box side"));
                 }
+                if let Err(e) = md_worker::Orientation(md.orientation).validate() {
+                    return Err(loc.err(&k("material.orientation"), format!("{:?}", md.orientation), e.to_string()));
+                }
+                let atoms = crate::md::atoms_per_box(md).map_err(|e| loc.err(&k("material.lattice"), format!("{:?}", md.lattice), e.to_string()))?;
+                if atoms > MAX_ATOMS_PER_BOX {
+                    return Err(loc.err(&k("material.cells_per_side"), md.cells_per_side, format!("{atoms} atoms per box; at most {MAX_ATOMS_PER_BOX} (fewer cells, or an orientation with smaller indices)")));
+                }
                 if !(md.timestep_fs > 0.0 && md.timestep_fs <= 5.0) {
                     return Err(loc.err(&k("material.timestep_fs"), md.timestep_fs, "the MD time step must lie in (0, 5] fs"));
                 }
@@ -734,7 +753,7 @@ impl Scene {
                 // From here on the path is absolute, so the resolved scene reads back anywhere.
                 let file = file.canonicalize().unwrap_or(file);
                 md.potential = file.clone();
-                let props = crate::md::lattice_properties(&file, &md.lattice, md.lattice_constant_angstrom)
+                let props = crate::md::lattice_properties(&file, &md.lattice, md.lattice_constant_angstrom, md_worker::Orientation(md.orientation))
                     .map_err(|e| loc.err(&k("material.potential"), format!("{:?}", md.potential), format!("{e}")))?;
                 if (rho - props.density).abs() > 0.01 * props.density {
                     return Err(loc.err(&k("density"), rho, format!("an md body's density must match its lattice: {:.1} kg/m^3 for {} at a0 = {} A", props.density, md.lattice, md.lattice_constant_angstrom)));

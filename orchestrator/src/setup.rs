@@ -72,7 +72,7 @@ fn closure(body: &Body, name: &str, points: std::ops::Range<usize>, md: Option<&
             let shared = md.ok_or_else(|| SetupError::MdUnavailable(name.to_string()))?;
             let md_err = |e: String| SetupError::Md(name.to_string(), e);
             let specs = points.map(|p| crate::md::box_spec(p as u64, body, m)).collect::<anyhow::Result<Vec<_>>>().map_err(|e| md_err(format!("{e:#}")))?;
-            let props = crate::md::lattice_properties(&m.potential, &m.lattice, m.lattice_constant_angstrom).map_err(|e| md_err(format!("{e:#}")))?;
+            let props = crate::md::lattice_properties(&m.potential, &m.lattice, m.lattice_constant_angstrom, md_worker::Orientation(m.orientation)).map_err(|e| md_err(format!("{e:#}")))?;
             let stress_sampling = m.stress_sampling.parse().map_err(|e: md_worker::MdError| md_err(e.to_string()))?;
             let settings = MdSettings { dt_ps: m.timestep_fs * 1e-3, energy_consistency: m.energy_consistency, wave_speed: props.wave_speed, stress_sampling };
             Box::new(MdClosure::open(shared.clone(), settings, &specs).map_err(|e| md_err(e.to_string()))?)
