@@ -513,6 +513,7 @@ impl MdPool {
             for (id, e) in &dest {
                 self.owner.insert(*id, *e);
             }
+            let expect: Vec<Vec<usize>> = plans.iter().map(|p| p.as_ref().map_or(Vec::new(), |p| p.current.iter().filter_map(|w| position.get(&w.id).copied()).collect())).collect();
             let results = self.on_every_endpoint(plans, |ep, plan| match plan {
                 None => Ok(Vec::new()),
                 Some(plan) => replay(ep, &potential, plan, step),
@@ -521,8 +522,7 @@ impl MdPool {
             for (e, r) in results.into_iter().enumerate() {
                 match r {
                     Ok(res) => {
-                        let slots: Vec<usize> = res.iter().map(|r| position.get(&r.id).copied().ok_or(MdError::UnknownBox(r.id))).collect::<Result<_, _>>()?;
-                        for (k, r) in check_results(&self.endpoints[e].name(), &slots, work, res)? {
+                        for (k, r) in check_results(&self.endpoints[e].name(), &expect[e], work, res)? {
                             out[k] = r;
                         }
                     }
