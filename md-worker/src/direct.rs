@@ -46,8 +46,10 @@ pub struct BarSpec {
     pub kind: LatticeKind,
     /// Lattice constant (A).
     pub a0: f64,
-    /// Conventional cells along x, y, z.
+    /// Cells along x, y, z (conventional cells, or oriented cells of a0 |o_k|).
     pub cells: [usize; 3],
+    /// Crystal directions along x, y, z.
+    pub orient: crate::Orientation,
     /// Thickness of each frozen end layer (A, reference x).
     pub wall_a: f64,
     /// Initial strain regions (later ones win where they overlap).
@@ -117,7 +119,7 @@ impl Bar {
         if s.cells.contains(&0) || !(s.a0 > 0.0) || !(s.slab_a > 0.0) || !(s.wall_a >= 0.0) || !(s.skin > 0.0) {
             return Err(MdError::invalid("bar", "needs cells >= 1, a0 > 0, slab > 0, wall >= 0, skin > 0"));
         }
-        let (mut x, l) = lattice::build_lattice(s.kind, s.a0, s.cells);
+        let (mut x, l) = lattice::build_oriented(s.kind, s.a0, s.cells, &s.orient)?;
         let n = x.len();
         let bar_len_ref = l[0];
         let rs = pot.cutoff() + s.skin;
@@ -369,9 +371,12 @@ pub struct DirectArgs {
     /// Lattice constant (A).
     #[arg(long)]
     pub a0: f64,
-    /// Cells along x, y, z, e.g. 300,5,5.
+    /// Cells along x, y, z, e.g. 300,5,5 (oriented cells with --orient).
     #[arg(long, value_delimiter = ',', num_args = 3)]
     pub cells: Vec<usize>,
+    /// Crystal directions along x, y, z as X/Y/Z, e.g. 1,1,0/-1,1,0/0,0,1 (LAMMPS `orient`).
+    #[arg(long, default_value = "1,0,0/0,1,0/0,0,1")]
+    pub orient: crate::Orientation,
     /// Thickness of each frozen end layer (A).
     #[arg(long, default_value_t = 10.0)]
     pub wall: f64,
@@ -412,6 +417,7 @@ pub fn run_cli(a: &DirectArgs) -> Result<(), MdError> {
         kind,
         a0: a.a0,
         cells: [a.cells[0], a.cells[1], a.cells[2]],
+        orient: a.orient,
         wall_a: a.wall,
         regions: a.regions.clone(),
         temperature_k: a.temperature,

@@ -53,6 +53,21 @@ impl Default for Orientation {
     }
 }
 
+impl std::str::FromStr for Orientation {
+    type Err = MdError;
+    /// `X/Y/Z` with three integers each, e.g. `1,1,0/-1,1,0/0,0,1`; checked as [`Orientation::validate`].
+    fn from_str(s: &str) -> Result<Self, MdError> {
+        let bad = || MdError::invalid("orientation", format!("{s:?}; expected three directions X/Y/Z of three integers each, e.g. 1,1,0/-1,1,0/0,0,1"));
+        let rows: Vec<Vec<i32>> = s.split('/').map(|r| r.split(',').map(|c| c.trim().parse::<i32>()).collect::<Result<_, _>>()).collect::<Result<_, _>>().map_err(|_| bad())?;
+        if rows.len() != 3 || rows.iter().any(|r| r.len() != 3) {
+            return Err(bad());
+        }
+        let o = Orientation(std::array::from_fn(|k| [rows[k][0], rows[k][1], rows[k][2]]));
+        o.validate()?;
+        Ok(o)
+    }
+}
+
 impl Orientation {
     /// x = [100], y = [010], z = [001].
     pub const CUBE: Orientation = Orientation([[1, 0, 0], [0, 1, 0], [0, 0, 1]]);
@@ -293,5 +308,10 @@ mod tests {
             let e = build_oriented(LatticeKind::Fcc, 3.615, [1; 3], &Orientation(o)).unwrap_err().to_string();
             assert!(e.contains(msg), "{o:?}: {e}");
         }
+        assert_eq!("1,1,0/-1,1,0/0,0,1".parse::<Orientation>().unwrap(), Orientation([[1, 1, 0], [-1, 1, 0], [0, 0, 1]]));
+        for bad in ["1,1,0/-1,1,0", "1,1/-1,1,0/0,0,1", "a,1,0/-1,1,0/0,0,1"] {
+            assert!(bad.parse::<Orientation>().unwrap_err().to_string().contains("expected three directions"), "{bad}");
+        }
+        assert!("1,1,0/1,-1,0/0,0,1".parse::<Orientation>().unwrap_err().to_string().contains("left-handed"));
     }
 }

@@ -11,6 +11,7 @@ fn bar(strain: f64) -> BarSpec {
         kind: LatticeKind::Fcc,
         a0: 3.615,
         cells: [40, 3, 3],
+        orient: md_worker::Orientation::CUBE,
         wall_a: 8.0,
         regions: if strain != 0.0 { vec![Region { x0: -1.0, x1: 1e9, strain }] } else { vec![] },
         temperature_k: 0.0,
