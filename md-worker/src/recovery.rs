@@ -107,20 +107,15 @@ impl InputLog {
 
 /// How long a remote worker may take for one call (a step, open, snapshot or restore) before
 /// it is declared lost and its boxes are replayed elsewhere.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub enum StepDeadline {
     /// max([`StepDeadline::AUTO_MIN`], [`StepDeadline::AUTO_FACTOR`] x the call's expected
     /// time), the expected time from the worker's measured atom-steps per second in this run
     /// (before its first measured call: [`StepDeadline::ASSUMED_ATOM_STEPS_PER_S`]).
+    #[default]
     Auto,
     /// The same bound for every call.
     Fixed(Duration),
-}
-
-impl Default for StepDeadline {
-    fn default() -> Self {
-        StepDeadline::Auto
-    }
 }
 
 impl StepDeadline {
