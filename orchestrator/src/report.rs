@@ -560,13 +560,8 @@ pub fn md_atom_steps(loaded: &scene::LoadedScene) -> Result<f64> {
     let mut total = 0.0;
     for (name, n) in per_body {
         let Some(scene::Material::Md(m)) = loaded.scene.bodies.get(&name).map(|b| &b.material) else { continue };
-        let per_cell = match crate::md::lattice_kind(&m.lattice)? {
-            md_worker::LatticeKind::Fcc => 4.0,
-            md_worker::LatticeKind::Bcc => 2.0,
-            md_worker::LatticeKind::Sc => 1.0,
-        };
         let steps = loaded.steps as f64 * (loaded.dt / (m.timestep_fs * 1e-15)).round() + m.relax_steps as f64;
-        total += n as f64 * per_cell * (m.cells_per_side as f64).powi(3) * steps;
+        total += n as f64 * crate::md::atoms_per_box(m)? as f64 * steps;
     }
     Ok(total)
 }
