@@ -5,6 +5,10 @@ eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2), sigma_xx over material points, in 
 
 usage: compare_direct.py RUN_DIR DIRECT_CSV --strain -0.05 --interface-nm 51.11 [--times 5,10]
 
+`mscale report error-vs-time SCENE --reference DIRECT_CSV --reference-times 5,10 ...` computes the
+same numbers in Rust for every run of a sweep (reference coordinate taken from the scene's
+bodies); this script scores one existing run directory.
+
 RUN_DIR: an `mscale run` directory (snapshots/index.csv, particles_*.csv).
 DIRECT_CSV: `md-worker direct` output (time_ps,slab_center_nm,sxx_gpa,...; reference x).
 The run's initial positions x0 (strained configuration) are mapped to the reference
