@@ -219,6 +219,24 @@ pub struct Recovery {
     pub replayed_md_steps: u64,
 }
 
+impl std::fmt::Display for Recovery {
+    /// One line for logs and job notes.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "worker {} was lost at step {} ({}); its {} boxes were restored from {} onto {} and {} box-steps ({} MD steps) replayed",
+            self.worker,
+            self.step,
+            self.why,
+            self.boxes.len(),
+            self.baseline,
+            self.onto.join(", "),
+            self.replayed_box_steps,
+            self.replayed_md_steps
+        )
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -105,17 +105,7 @@ fn md_shared(loaded: &LoadedScene, opts: &RunOptions) -> Result<Option<Arc<Mutex
     pool.set_deadline(opts.step_deadline);
     let told = opts.on_worker_lost.clone();
     pool.set_loss_hook(Box::new(move |r: &md_worker::recovery::Recovery| {
-        tracing::warn!(
-            "MD worker {} was lost during step {} ({}); its {} boxes were restored from {} onto {} and {} box-steps ({} MD steps) replayed",
-            r.worker,
-            r.step,
-            r.why,
-            r.boxes.len(),
-            r.baseline,
-            r.onto.join(", "),
-            r.replayed_box_steps,
-            r.replayed_md_steps
-        );
+        tracing::warn!("MD {r}");
         if let Some(f) = &told {
             f(r);
         }

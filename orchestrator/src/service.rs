@@ -610,23 +610,13 @@ fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_d
     opts.step_deadline = core.step_deadline;
     let (core4, id4, assigned4) = (core.clone(), id.clone(), assigned.to_vec());
     opts.on_worker_lost = Some(Arc::new(move |r: &md_worker::recovery::Recovery| {
-        let text = format!(
-            "worker {} was lost at step {} ({}); its {} boxes were restored from {} onto {} and {} box-steps replayed",
-            r.worker,
-            r.step,
-            r.why,
-            r.boxes.len(),
-            r.baseline,
-            r.onto.join(", "),
-            r.replayed_box_steps
-        );
         if let Some(w) = assigned4.iter().find(|w| w.ad.address == r.worker) {
             let mut reg = lock(&core4.workers);
             if let Err(e) = reg.declare_lost(&mut lock(&core4.store), w.epoch, &format!("stopped answering during step {} of job {id4}: {}", r.step, r.why)) {
                 tracing::error!("cannot record worker {} as lost: {e:#}", w.id);
             }
         }
-        note(&core4, &id4, &text);
+        note(&core4, &id4, &r.to_string());
     }));
     // The run writes a checkpoint after these steps (before it reports their progress).
     let every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { loaded.scene.output.checkpoint_every_steps };
