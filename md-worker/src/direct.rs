@@ -372,7 +372,7 @@ pub struct DirectArgs {
     #[arg(long)]
     pub a0: f64,
     /// Cells along x, y, z, e.g. 300,5,5 (oriented cells with --orient).
-    #[arg(long, value_delimiter = ',', num_args = 3)]
+    #[arg(long, value_delimiter = ',')]
     pub cells: Vec<usize>,
     /// Crystal directions along x, y, z as X/Y/Z, e.g. 1,1,0/-1,1,0/0,0,1 (LAMMPS `orient`).
     #[arg(long, default_value = "1,0,0/0,1,0/0,0,1")]

@@ -56,3 +56,21 @@ fn bad_input_exits_2_with_a_message() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("no-such.data"));
 }
+
+#[test]
+fn direct_takes_the_documented_comma_lists_and_writes_slab_stresses() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("bar.csv");
+    // The form of tests/golden/cu-shock-1d/README.md, on a small oriented bar.
+    let out = md_worker(&[
+        "direct", "--potential", "potentials/Cu_mishin1.eam.alloy", "--a0", "3.615", "--cells", "8,2,2", "--orient", "1,1,0/-1,1,0/0,0,1",
+        "--region", "0:20:-0.02", "--steps", "4", "--dt", "0.001", "--every", "2", "--slab", "10.2", "--out", csv.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let times: std::collections::BTreeSet<String> = text.lines().filter(|l| !l.starts_with('#') && !l.starts_with("time")).map(|l| l.split(',').next().unwrap().to_string()).collect();
+    assert_eq!(times.len(), 3, "{text}");
+    let out = md_worker(&["direct", "--potential", "potentials/Cu_mishin1.eam.alloy", "--a0", "3.615", "--cells", "8,2", "--steps", "1", "--out", csv.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--cells NX,NY,NZ"), "{}", String::from_utf8_lossy(&out.stderr));
+}
