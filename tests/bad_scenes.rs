@@ -103,3 +103,54 @@ fn shipped_scenes_are_valid() {
         }
     }
 }
+
+/// The small scene's `[reference]` replaced by a direct-MD one (`profile` relative to scenes/).
+const RIEMANN: &str = "solution = \"isothermal-riemann\"\nleft = \"left\"\nright = \"right\"\n";
+
+/// (what, the direct-md reference's lines, overrides, every fragment the message must contain)
+const DIRECT_MD_CASES: &[(&str, &str, &[&str], &[&str])] = &[
+    ("direct-md profile missing", "solution = \"direct-md\"\nprofile = \"nowhere/bar.csv\"\ntimes_ps = [5.0]\n", &[],
+        &["bad.toml", "line 40", "`reference.profile` = \"nowhere/bar.csv\"", "cannot read the direct-MD reference", "relative to the scene file"]),
+    ("direct-md profile unreadable", "solution = \"direct-md\"\nprofile = \"cu-shock-1d.toml\"\ntimes_ps = [5.0]\n", &[],
+        &["line 40", "`reference.profile` = \"cu-shock-1d.toml\"", "no column `time_ps`", "md-worker direct --slab"]),
+    ("direct-md time outside the profile", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0, 12.5]\n", &[],
+        &["line 41", "`reference.times_ps[1]` = 12.5", "outside the profile's range 0 to 10 ps"]),
+    ("direct-md time between frames", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [7.25]\n", &[],
+        &["`reference.times_ps[0]` = 7.25", "no frame at t = 7.25 ps", "0, 0.5, 1"]),
+    ("direct-md time after the end", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0]\n", &["scheme.end_time=4e-12"],
+        &["`reference.times_ps[0]` = 5", "after the end time 4 ps"]),
+    ("direct-md no times", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = []\n", &[],
+        &["`reference.times_ps` = []", "at least one time"]),
+    ("direct-md unknown component", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0]\ncomponent = \"sxy\"\n", &[],
+        &["line 42", "`reference.component` = \"sxy\"", "allowed: \"sxx\", \"syy\", \"szz\""]),
+    ("direct-md without particle files", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0]\n", &["output.particles=false"],
+        &["--set output.particles=false", "`output.particles`", "needs output.particles = true"]),
+    ("unknown reference solution", "solution = \"oracle\"\n", &[], &["unknown variant `oracle`", "direct-md"]),
+];
+
+#[test]
+fn every_bad_direct_md_reference_is_refused_with_its_message() {
+    let mut failures = Vec::new();
+    for (what, to, sets, fragments) in DIRECT_MD_CASES {
+        match parse_edited(RIEMANN, to, sets) {
+            Ok(_) => failures.push(format!("{what}: accepted")),
+            Err(e) => {
+                let msg = e.to_string();
+                for f in *fragments {
+                    if !msg.contains(f) {
+                        failures.push(format!("{what}: message lacks `{f}`:\n    {msg}"));
+                    }
+                }
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{} of {} cases failed:\n{}", failures.len(), DIRECT_MD_CASES.len(), failures.join("\n"));
+    // The same reference with valid values is accepted, its profile made absolute and listed
+    // among the scene's files.
+    let ok = "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0, 10.0]\n";
+    let loaded = parse_edited(RIEMANN, ok, &[]).expect("valid direct-md reference");
+    let Some(scene::Reference::DirectMd(r)) = &loaded.scene.reference else { panic!("not a direct-md reference: {:?}", loaded.scene.reference) };
+    assert!(r.profile.is_absolute() && r.profile.ends_with("tests/golden/cu-shock-1d/direct-bar.csv"), "{}", r.profile.display());
+    assert_eq!(r.component, "sxx");
+    assert!(loaded.files.contains(&r.profile));
+}

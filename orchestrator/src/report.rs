@@ -1,12 +1,15 @@
 //! `mscale report error-vs-time`: run every combination of parameter sweeps of one scene and
 //! tabulate error against cost, the question users ask before trusting a setting.
 //!
-//! Without a reference the error is the scene's own (`[reference]`, an exact solution). With
-//! `--reference CSV --reference-times 5,10` every run is scored against a direct-MD profile
-//! (`md-worker direct --slab`) by the seed's eq. 7.12,
-//! eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2), sigma_xx over the material points in the
-//! reference coordinate (the bodies' initial strain undone, see [`ReferenceMap`]); the runs
-//! then write snapshots exactly at those times (the times must be whole continuum steps).
+//! Without `--reference` the error is the scene's own `[reference]`: an exact solution, or a
+//! direct-MD profile (`solution = "direct-md"`). With `--reference CSV --reference-times 5,10`
+//! every run is given that direct-MD profile (`md-worker direct --slab`) as its reference, and
+//! writes snapshots exactly at those times (which must be whole continuum steps). A run with a
+//! direct-MD reference scores itself by the seed's eq. 7.12,
+//! eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2), of one stress component (sigma_xx along the
+//! bar) over the material points in the reference coordinate (the bodies' initial strain undone,
+//! see [`ReferenceMap`]), in [`score_run`]: `mscale run` writes it into summary.json, the report
+//! reads it from there. 1D only: the 2D form is not implemented yet.
 
 use crate::output;
 use crate::run::{self, Outcome, RunOptions};
@@ -73,14 +76,17 @@ pub struct Row {
     pub summary: Value,
     /// MD atom-steps of the run (0 without md bodies).
     pub atom_steps: f64,
-    /// eq. 7.12 error and points scored at each `--reference-times` time (empty without
-    /// `--reference`).
+    /// eq. 7.12 error and points scored at each time of the direct-MD reference (empty without
+    /// one, or when the run did not complete).
     pub scores: Vec<(f64, usize)>,
 }
 
 /// Validates every combination first (a bad value is refused before anything runs), then runs
 /// them one after another and writes `report.csv` and `report.png` in `out`. With a
-/// `reference`, each run writes snapshots at the reference times and is scored against it.
+/// `reference` (`--reference`), every run is given it as its scene's `[reference] solution =
+/// "direct-md"` and writes snapshots at the reference times; without one, a scene's own
+/// direct-md reference is used. Either way each run scores itself ([`score_run`]) and the
+/// report reads the errors from its summary.json.
 ///
 /// `replicas` names one of the sweeps (typically the MD seeds, `a.seed+b.seed=1,2,3`) whose
 /// runs are replicas of one setting: `replicas.csv` then gives, per combination of the other
@@ -96,22 +102,29 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
     let value_rows = value_combinations(sweeps);
     let mut loaded = Vec::new();
     for combo in &combos {
-        let all: Vec<String> = sets.iter().cloned().chain(REPORT_OUTPUT.iter().map(|s| s.to_string())).chain(combo.iter().cloned()).collect();
-        let mut l = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
-        let mut map = None;
+        let mut all: Vec<String> = sets.iter().cloned().chain(REPORT_OUTPUT.iter().map(|s| s.to_string())).chain(combo.iter().cloned()).collect();
         if let Some(r) = reference {
+            let own = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
+            if let Some(scene::Reference::IsothermalRiemann(_)) = own.scene.reference {
+                return Err(ReportError::Input(format!("--reference: scene `{}` names an isothermal-riemann reference; a direct-MD reference scores the stress of md or elastic bars", own.scene.name)));
+            }
+            all.extend(r.overrides());
+            let l = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
             let bad = |e: anyhow::Error| ReportError::Input(format!("{e:#} (run {})", combo.join(" ")));
-            map = Some(ReferenceMap::of(&l.scene).map_err(bad)?);
             let snapshots = r.snapshots(&l).map_err(bad)?;
-            let mut all = all;
             all.push(format!("output.snapshots={snapshots}"));
-            l = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
         }
+        let l = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
         let atom_steps = md_atom_steps(&l).map_err(|e| ReportError::Input(format!("{e:#}")))?;
-        loaded.push((l, map, atom_steps));
+        loaded.push((l, atom_steps));
     }
+    // The times and component scored (the columns): those of the reference every run has.
+    let (times, component) = match loaded.first().and_then(|(l, _)| l.scene.reference.as_ref()) {
+        Some(scene::Reference::DirectMd(r)) => (r.times_ps.iter().map(|t| t * 1e-12).collect::<Vec<f64>>(), r.component.clone()),
+        _ => (Vec::new(), "sxx".to_string()),
+    };
     let mut rows = Vec::new();
-    for (k, (combo, (l, map, atom_steps))) in combos.iter().zip(&loaded).enumerate() {
+    for (k, (combo, (l, atom_steps))) in combos.iter().zip(&loaded).enumerate() {
         tracing::info!("report run {}/{}: {}", k + 1, combos.len(), combo.join(" "));
         let dir = out.join("runs").join(format!("{k:03}"));
         let mut opts = RunOptions::new(dir.clone(), std::env::args().collect());
@@ -121,20 +134,17 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
             Outcome::Completed(s) | Outcome::Failed(s, _) => s,
             Outcome::Cancelled { step, .. } => return Err(ReportError::Io(anyhow::anyhow!("report run {k} was cancelled at step {step}"))),
         };
-        let scores = match (reference, map) {
-            (Some(r), Some(m)) if summary["status"] == "completed" => {
-                let s = r.score(m, &dir).map_err(ReportError::Io)?;
-                for (t, (e, n)) in r.times.iter().zip(&s) {
-                    tracing::info!("report run {}: eq. 7.12 error of sigma_xx at {} ps = {:.2} % over {n} points", k + 1, t * 1e12, 100.0 * e);
-                }
-                s
-            }
-            _ => Vec::new(),
-        };
+        let scores = if summary["status"] == "completed" { scores_of_summary(&summary, &times) } else { Vec::new() };
+        if summary["status"] == "completed" && !times.is_empty() && scores.is_empty() {
+            return Err(ReportError::Io(anyhow::anyhow!("report run {} was not scored against its direct-MD reference: {}", k + 1, summary["errors"]["failure"].as_str().unwrap_or("no errors in its summary.json"))));
+        }
+        for (t, (e, n)) in times.iter().zip(&scores) {
+            tracing::info!("report run {}: eq. 7.12 error of {component} at {} ps = {:.2} % over {n} points", k + 1, t * 1e12, 100.0 * e);
+        }
         rows.push(Row { values: value_rows[k].clone(), summary, atom_steps: *atom_steps, scores });
-        write_outputs(sweeps, &rows, out, reference).map_err(ReportError::Io)?;
+        write_outputs(sweeps, &rows, out, &times, &component).map_err(ReportError::Io)?;
         if let Some(r) = replica_sweep {
-            let text = replica_summary(sweeps, r, &rows, reference.map(|x| x.times.as_slice()).unwrap_or_default());
+            let text = replica_summary_of(&component, sweeps, r, &rows, &times);
             output::write_atomic(&out.join("replicas.csv"), text.as_bytes()).map_err(ReportError::Io)?;
         }
     }
@@ -176,6 +186,11 @@ fn mean_std(v: &[f64]) -> (f64, Option<f64>) {
 /// `replicas.csv`: per combination of the sweeps other than `replica`, the number of completed
 /// replicas and the mean and sample standard deviation of wall time and of each error.
 pub fn replica_summary(sweeps: &[Sweep], replica: usize, rows: &[Row], times: &[f64]) -> String {
+    replica_summary_of("sxx", sweeps, replica, rows, times)
+}
+
+/// [`replica_summary`] of the errors of a stress `component`.
+fn replica_summary_of(component: &str, sweeps: &[Sweep], replica: usize, rows: &[Row], times: &[f64]) -> String {
     let mut csv = String::new();
     for (k, s) in sweeps.iter().enumerate() {
         if k != replica {
@@ -184,7 +199,7 @@ pub fn replica_summary(sweeps: &[Sweep], replica: usize, rows: &[Row], times: &[
     }
     csv.push_str("replicas,wall_seconds_mean,wall_seconds_std");
     for &t in times {
-        let c = error_column(t);
+        let c = error_column(component, t);
         let _ = write!(csv, ",{c}_mean,{c}_std");
     }
     csv.push('\n');
@@ -213,20 +228,19 @@ pub fn replica_summary(sweeps: &[Sweep], replica: usize, rows: &[Row], times: &[
     csv
 }
 
-/// Column name of the eq. 7.12 error at time `t` (s): `sxx_error_5ps`.
-fn error_column(t: f64) -> String {
-    format!("sxx_error_{}ps", (t * 1e15).round() / 1e3)
+/// Column name of the eq. 7.12 error of `component` at time `t` (s): `sxx_error_5ps`.
+fn error_column(component: &str, t: f64) -> String {
+    format!("{component}_error_{}ps", (t * 1e15).round() / 1e3)
 }
 
-fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, reference: Option<&ReferenceSpec>) -> Result<()> {
+fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], component: &str) -> Result<()> {
     let mut csv = String::new();
     for s in sweeps {
         let _ = write!(csv, "{},", s.key);
     }
     csv.push_str("method,status,pressure_l1,pressure_l2,pressure_spike,wall_seconds,compute_seconds,steps,closure_evaluations,energy_drift,md_atom_steps,");
-    let times = reference.map(|r| r.times.as_slice()).unwrap_or_default();
     for &t in times {
-        let _ = write!(csv, "{},", error_column(t));
+        let _ = write!(csv, "{},", error_column(component, t));
     }
     if !times.is_empty() {
         csv.push_str("scored_points,");
@@ -266,19 +280,16 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, reference: Option<&
         let _ = writeln!(csv, "runs/{k:03}");
     }
     output::write_atomic(&out.join("report.csv"), csv.as_bytes())?;
-    plot(rows, &out.join("report.png"), reference)
+    plot(rows, &out.join("report.png"), times, component)
 }
 
 /// Error against wall time on log-log axes, one series per method: pressure L1 over the jump,
 /// or with a reference the eq. 7.12 error at the last reference time.
-fn plot(rows: &[Row], path: &Path, reference: Option<&ReferenceSpec>) -> Result<()> {
+fn plot(rows: &[Row], path: &Path, times: &[f64], component: &str) -> Result<()> {
     let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     for r in rows {
         let s = &r.summary;
-        let e = match reference {
-            Some(_) => r.scores.last().map(|s| s.0),
-            None => s["errors"]["pressure_l1"].as_f64(),
-        };
+        let e = if times.is_empty() { s["errors"]["pressure_l1"].as_f64() } else { r.scores.last().map(|s| s.0) };
         let (Some(t), Some(e)) = (s["wall_seconds"].as_f64(), e) else { continue };
         if s["status"] != "completed" || !(t > 0.0 && e > 0.0) {
             continue;
@@ -293,10 +304,10 @@ fn plot(rows: &[Row], path: &Path, reference: Option<&ReferenceSpec>) -> Result<
         pts.sort_by(|a, b| a.0.total_cmp(&b.0));
     }
     let refs: Vec<output::Series<'_>> = series.iter().map(|(m, p)| output::Series { label: m, points: p.clone(), line: true }).collect();
-    match reference {
-        Some(r) => {
-            let t = r.times.last().copied().unwrap_or_default() * 1e12;
-            output::plot_loglog(path, &format!("sigma_xx error against direct MD at {t} ps"), "wall time (s)", "eq. 7.12 error of sigma_xx", &refs)
+    match times.last() {
+        Some(t) => {
+            let sigma = format!("sigma_{}", component.trim_start_matches('s'));
+            output::plot_loglog(path, &format!("{sigma} error against direct MD at {} ps", t * 1e12), "wall time (s)", &format!("eq. 7.12 error of {sigma}"), &refs)
         }
         None => output::plot_loglog(path, "pressure error against wall time", "wall time (s)", "pressure L1 error / jump", &refs),
     }
@@ -314,12 +325,18 @@ pub fn read_csv(path: &Path) -> Result<Vec<Vec<String>>> {
     Ok(text.lines().map(|l| l.split(',').map(str::to_string).collect()).collect())
 }
 
-/// A direct-MD reference for `--reference`: sigma_xx in slabs of the reference (unstrained)
-/// coordinate at a series of times, as `md-worker direct --slab` writes it
-/// (`time_ps,slab_center_nm,sxx_gpa,...`, tension positive).
+/// A direct-MD reference (a scene's `[reference] solution = "direct-md"`, or `--reference`):
+/// one stress component in slabs of the reference (unstrained) coordinate at a series of times,
+/// as `md-worker direct --slab` writes it (`time_ps,slab_center_nm,sxx_gpa,...`, tension
+/// positive).
+///
+/// This is the 1D form. The 2D form of eq. 7.12 (Eulerian x-y bins with atom counts, scored in
+/// the current configuration over the bins holding most of a bulk bin's atoms) is not
+/// implemented yet: it would add a frame type sampled at (x, y) and a mask, and feed the same
+/// [`eq_7_12_sum`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct DirectProfile {
-    /// (time (s), slabs sorted by X: (X (m), sigma_xx (Pa))).
+    /// (time (s), slabs sorted by X: (X (m), stress (Pa))).
     pub frames: Vec<(f64, Vec<(f64, f64)>)>,
 }
 
@@ -329,20 +346,32 @@ pub const REFERENCE_WALL_M: f64 = 1e-9;
 
 /// Two times closer than this (s, 1e-3 ps) are the same snapshot (the direct CSV's times
 /// carry round-off from summing 1 fs steps).
-const TIME_TOLERANCE_S: f64 = 1e-15;
+pub const TIME_TOLERANCE_S: f64 = 1e-15;
 
 impl DirectProfile {
+    /// sigma_xx of the profile in `path`.
     pub fn read(path: &Path) -> Result<DirectProfile> {
+        Self::read_component(path, "sxx")
+    }
+
+    /// Stress `component` (`sxx`, `syy`, `szz`: the column `<component>_gpa`) of the profile in
+    /// `path`.
+    pub fn read_component(path: &Path, component: &str) -> Result<DirectProfile> {
         let text = std::fs::read_to_string(path).with_context(|| format!("cannot read the direct-MD reference {}", path.display()))?;
-        Self::parse(&text).with_context(|| format!("direct-MD reference {}", path.display()))
+        Self::parse_component(&text, component).with_context(|| format!("direct-MD reference {}", path.display()))
     }
 
     pub fn parse(text: &str) -> Result<DirectProfile> {
+        Self::parse_component(text, "sxx")
+    }
+
+    pub fn parse_component(text: &str, component: &str) -> Result<DirectProfile> {
+        let column = format!("{component}_gpa");
         let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
         let (_, header) = lines.next().ok_or_else(|| anyhow::anyhow!("is empty; expected a header time_ps,slab_center_nm,sxx_gpa,... (`md-worker direct --slab` output)"))?;
         let cols: Vec<&str> = header.split(',').map(str::trim).collect();
         let col = |name: &str| cols.iter().position(|c| *c == name).ok_or_else(|| anyhow::anyhow!("line 1: no column `{name}` (found {}); expected `md-worker direct --slab` output", cols.join(",")));
-        let (ct, cx, cs) = (col("time_ps")?, col("slab_center_nm")?, col("sxx_gpa")?);
+        let (ct, cx, cs) = (col("time_ps")?, col("slab_center_nm")?, col(&column)?);
         let mut frames: Vec<(f64, Vec<(f64, f64)>)> = Vec::new();
         for (k, line) in lines {
             let f: Vec<&str> = line.split(',').map(str::trim).collect();
@@ -350,7 +379,7 @@ impl DirectProfile {
                 let v = f.get(c).ok_or_else(|| anyhow::anyhow!("line {}: missing column `{name}`", k + 1))?;
                 v.parse::<f64>().ok().filter(|x| x.is_finite()).ok_or_else(|| anyhow::anyhow!("line {}: `{name}` = {v:?} is not a finite number", k + 1))
             };
-            let (t, x, s) = (num(ct, "time_ps")? * 1e-12, num(cx, "slab_center_nm")? * 1e-9, num(cs, "sxx_gpa")? * 1e9);
+            let (t, x, s) = (num(ct, "time_ps")? * 1e-12, num(cx, "slab_center_nm")? * 1e-9, num(cs, &column)? * 1e9);
             match frames.iter_mut().find(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S) {
                 Some((_, rows)) => rows.push((x, s)),
                 None => frames.push((t, vec![(x, s)])),
@@ -373,7 +402,14 @@ impl DirectProfile {
         self.frames.iter().filter(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S).min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs())).map(|(_, r)| r.as_slice())
     }
 
-    fn times_ps(&self) -> String {
+    /// First and last time of the profile (s).
+    pub fn time_range(&self) -> (f64, f64) {
+        let t = self.frames.iter().map(|f| f.0);
+        (t.clone().fold(f64::INFINITY, f64::min), t.fold(f64::NEG_INFINITY, f64::max))
+    }
+
+    /// The profile's times (ps), for messages.
+    pub fn times_ps(&self) -> String {
         self.frames.iter().map(|(t, _)| format!("{}", (t * 1e15).round() / 1e3)).collect::<Vec<_>>().join(", ")
     }
 }
@@ -391,31 +427,135 @@ pub fn interpolate(rows: &[(f64, f64)], x: f64) -> f64 {
     y0 + (y1 - y0) * (x - x0) / (x1 - x0)
 }
 
-/// The seed's eq. 7.12: eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the material points
-/// `(X, s_MS)` (reference coordinate (m), sigma_xx (Pa)), with s_MD the reference slabs
+/// The seed's eq. 7.12 over (s_MD, s_MS) pairs of one stress component (Pa):
+/// eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2). Returns (eps, pairs). Every form of the score
+/// (the 1D slabs of [`eq_7_12`]; a 2D form would sample bins) ends here.
+pub fn eq_7_12_sum(pairs: impl IntoIterator<Item = (f64, f64)>) -> Result<(f64, usize)> {
+    let (mut num, mut den, mut count) = (0.0, 0.0, 0);
+    for (r, s) in pairs {
+        num += (r - s) * (r - s);
+        den += r * r;
+        count += 1;
+    }
+    if count == 0 {
+        anyhow::bail!("no material point to score");
+    }
+    if den == 0.0 {
+        anyhow::bail!("the reference stress is zero at every scored point: eq. 7.12 is undefined");
+    }
+    let eps = (num / den).sqrt();
+    anyhow::ensure!(eps.is_finite(), "eq. 7.12 is not finite (a run's stress is not finite)");
+    Ok((eps, count))
+}
+
+/// The seed's eq. 7.12 in 1D: eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the material
+/// points `(X, s_MS)` (reference coordinate (m), stress (Pa)), with s_MD the reference slabs
 /// interpolated at X. Points within `wall` of the reference bar's ends (the outer slab faces)
 /// are left out. Returns (eps, points scored).
 pub fn eq_7_12(reference: &[(f64, f64)], points: &[(f64, f64)], wall: f64) -> Result<(f64, usize)> {
     let n = reference.len();
     let lo = reference[0].0 - 0.5 * (reference[1].0 - reference[0].0);
     let hi = reference[n - 1].0 + 0.5 * (reference[n - 1].0 - reference[n - 2].0);
-    let (mut num, mut den, mut count) = (0.0, 0.0, 0);
-    for &(x, s) in points {
-        if x < lo + wall || x > hi - wall {
-            continue;
-        }
-        let r = interpolate(reference, x);
-        num += (r - s) * (r - s);
-        den += r * r;
-        count += 1;
-    }
-    if count == 0 {
+    let pairs: Vec<(f64, f64)> = points.iter().filter(|&&(x, _)| x >= lo + wall && x <= hi - wall).map(|&(x, s)| (interpolate(reference, x), s)).collect();
+    if pairs.is_empty() {
         anyhow::bail!("no material point lies inside the reference bar ({:.4} to {:.4} nm, less {} nm at each end)", lo * 1e9, hi * 1e9, wall * 1e9);
     }
-    if den == 0.0 {
-        anyhow::bail!("the reference sigma_xx is zero at every scored point: eq. 7.12 is undefined");
+    eq_7_12_sum(pairs)
+}
+
+/// One eq. 7.12 score of a run: at `time` (s), from the snapshot nearest to it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Score {
+    pub time: f64,
+    pub snapshot_step: u64,
+    pub snapshot_time: f64,
+    pub error: f64,
+    pub points: usize,
+}
+
+/// The eq. 7.12 error of `component` of the run in `run_dir` against `profile` at each of
+/// `times` (s), each from the snapshot of `snapshots/index.csv` nearest to it (scored against
+/// the profile's frame at the time asked for). The one implementation of the score: `mscale
+/// run` calls it for a scene's `[reference] solution = "direct-md"`, `mscale report` reads it
+/// back from the runs' summary.json.
+pub fn score_run(profile: &DirectProfile, component: &str, times: &[f64], map: &ReferenceMap, run_dir: &Path) -> Result<Vec<Score>> {
+    let index_path = run_dir.join("snapshots/index.csv");
+    let index = std::fs::read_to_string(&index_path).with_context(|| format!("cannot read {}", index_path.display()))?;
+    let snaps: Vec<(u64, f64, String)> = index
+        .lines()
+        .skip(1)
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            Some((f.first()?.parse().ok()?, f.get(1)?.parse().ok()?, f.get(2)?.to_string()))
+        })
+        .collect();
+    let mut out = Vec::new();
+    for &t in times {
+        let Some((step, ts, file)) = snaps.iter().min_by(|a, b| (a.1 - t).abs().total_cmp(&(b.1 - t).abs())) else {
+            anyhow::bail!("{} lists no snapshot", index_path.display());
+        };
+        let path = run_dir.join("snapshots").join(file);
+        let points = read_x0_component(&path, component)?;
+        let pts: Vec<(f64, f64)> = points.iter().map(|&(x0, s)| (map.x_ref(x0), s)).collect();
+        let reference = profile.at(t).ok_or_else(|| anyhow::anyhow!("the direct-MD reference has no frame at t = {} ps (it has {} ps)", t * 1e12, profile.times_ps()))?;
+        let (error, n) = eq_7_12(reference, &pts, REFERENCE_WALL_M).with_context(|| format!("eq. 7.12 of {component} of {} at t = {} ps", path.display(), t * 1e12))?;
+        out.push(Score { time: t, snapshot_step: *step, snapshot_time: *ts, error, points: n });
     }
-    Ok(((num / den).sqrt(), count))
+    Ok(out)
+}
+
+/// The summary.json `errors` of a run scored against a direct-MD reference: the eq. 7.12 error
+/// per time (with the snapshot it came from), and a flat `<component>_error_<t>ps` per time
+/// (the report's column names).
+pub fn direct_md_errors_json(profile: &Path, component: &str, scores: &[Score]) -> Value {
+    let mut m = serde_json::Map::new();
+    m.insert("reference".into(), "direct-md".into());
+    m.insert("profile".into(), profile.display().to_string().into());
+    m.insert("component".into(), component.into());
+    m.insert("measure".into(), "eq. 7.12: sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the material points in the reference coordinate, points within 1 nm of the bar's ends left out".into());
+    m.insert(
+        "times".into(),
+        scores
+            .iter()
+            .map(|s| serde_json::json!({"time_ps": ps(s.time), "snapshot_step": s.snapshot_step, "snapshot_time_ps": ps(s.snapshot_time), "error": s.error, "points": s.points}))
+            .collect::<Vec<_>>()
+            .into(),
+    );
+    for s in scores {
+        m.insert(error_column(component, s.time), s.error.into());
+    }
+    Value::Object(m)
+}
+
+/// A time (s) in ps, rounded to 1e-6 ps (the round-off of summed steps removed).
+fn ps(t: f64) -> f64 {
+    (t * 1e18).round() / 1e6
+}
+
+/// The log line of a scored run: `eq. 7.12 error of sxx against direct MD: 4.58 % at 5 ps, ...`.
+pub fn direct_md_log_line(component: &str, scores: &[Score]) -> String {
+    let parts: Vec<String> = scores
+        .iter()
+        .map(|s| {
+            let at = if (s.snapshot_time - s.time).abs() > TIME_TOLERANCE_S { format!(" (snapshot at {} ps)", ps(s.snapshot_time)) } else { String::new() };
+            format!("{:.2} % at {} ps{at}", 100.0 * s.error, ps(s.time))
+        })
+        .collect();
+    format!("eq. 7.12 error of {component} against direct MD: {} ({} points)", parts.join(", "), scores.first().map_or(0, |s| s.points))
+}
+
+/// The scores a run wrote into its summary.json `errors`, one per time of `times` (s) in order;
+/// empty unless the run scored every one of them.
+pub fn scores_of_summary(summary: &Value, times: &[f64]) -> Vec<(f64, usize)> {
+    let Some(list) = summary["errors"]["times"].as_array() else { return Vec::new() };
+    let found: Option<Vec<(f64, usize)>> = times
+        .iter()
+        .map(|&t| {
+            let e = list.iter().find(|e| e["time_ps"].as_f64().is_some_and(|x| (x * 1e-12 - t).abs() <= TIME_TOLERANCE_S))?;
+            Some((e["error"].as_f64()?, e["points"].as_u64()? as usize))
+        })
+        .collect();
+    found.unwrap_or_default()
 }
 
 /// Maps a 1D scene's initial positions x0 (the strained configuration the bodies are given in)
@@ -464,7 +604,10 @@ impl ReferenceMap {
 pub struct ReferenceSpec {
     pub path: PathBuf,
     pub profile: DirectProfile,
+    /// (s).
     pub times: Vec<f64>,
+    /// The same times as given (ps).
+    pub times_ps: Vec<f64>,
 }
 
 impl ReferenceSpec {
@@ -484,7 +627,7 @@ impl ReferenceSpec {
             }
             times.push(t * 1e-12);
         }
-        Ok(ReferenceSpec { path: path.to_path_buf(), profile, times })
+        Ok(ReferenceSpec { path: path.to_path_buf(), profile, times, times_ps: times_ps.to_vec() })
     }
 
     /// Snapshot count that puts a snapshot at every reference time: every = gcd of their step
@@ -506,30 +649,21 @@ impl ReferenceSpec {
     }
 
     /// eq. 7.12 error of sigma_xx of the run in `run_dir` at each reference time:
-    /// (error, points scored) per time.
+    /// (error, points scored) per time ([`score_run`]).
     pub fn score(&self, map: &ReferenceMap, run_dir: &Path) -> Result<Vec<(f64, usize)>> {
-        let index_path = run_dir.join("snapshots/index.csv");
-        let index = std::fs::read_to_string(&index_path).with_context(|| format!("cannot read {}", index_path.display()))?;
-        let snaps: Vec<(f64, String)> = index
-            .lines()
-            .skip(1)
-            .filter_map(|l| {
-                let f: Vec<&str> = l.split(',').collect();
-                Some((f.get(1)?.parse().ok()?, f.get(2)?.to_string()))
-            })
-            .collect();
-        let mut out = Vec::new();
-        for &t in &self.times {
-            let Some((_, file)) = snaps.iter().find(|(ts, _)| (ts - t).abs() <= TIME_TOLERANCE_S) else {
-                anyhow::bail!("{} has no snapshot at t = {} ps", index_path.display(), t * 1e12);
-            };
-            let path = run_dir.join("snapshots").join(file);
-            let points = read_x0_sxx(&path)?;
-            let pts: Vec<(f64, f64)> = points.iter().map(|&(x0, s)| (map.x_ref(x0), s)).collect();
-            let reference = self.profile.at(t).expect("times checked in load");
-            out.push(eq_7_12(reference, &pts, REFERENCE_WALL_M).with_context(|| format!("eq. 7.12 of {} against {}", path.display(), self.path.display()))?);
-        }
-        Ok(out)
+        Ok(score_run(&self.profile, "sxx", &self.times, map, run_dir)?.into_iter().map(|s| (s.error, s.points)).collect())
+    }
+
+    /// The `--set` overrides that make a scene's runs score themselves against this reference.
+    pub fn overrides(&self) -> Vec<String> {
+        let path = self.path.canonicalize().unwrap_or_else(|_| self.path.clone());
+        let times: Vec<String> = self.times_ps.iter().map(|t| format!("{t:?}")).collect();
+        vec![
+            "reference.solution=\"direct-md\"".to_string(),
+            format!("reference.profile={}", serde_json::Value::from(path.display().to_string())),
+            format!("reference.times_ps=[{}]", times.join(", ")),
+            "reference.component=\"sxx\"".to_string(),
+        ]
     }
 }
 
@@ -537,18 +671,18 @@ fn gcd(a: u64, b: u64) -> u64 {
     if b == 0 { a } else { gcd(b, a % b) }
 }
 
-/// (x0, sxx) of every material point in a particle CSV.
-fn read_x0_sxx(path: &Path) -> Result<Vec<(f64, f64)>> {
+/// (x0, stress `component`) of every material point in a particle CSV.
+fn read_x0_component(path: &Path, component: &str) -> Result<Vec<(f64, f64)>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     let mut lines = text.lines();
     let cols: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
     let col = |n: &str| cols.iter().position(|c| *c == n).ok_or_else(|| anyhow::anyhow!("{}: no column `{n}`", path.display()));
-    let (cx, cs) = (col("x0")?, col("sxx")?);
+    let (cx, cs) = (col("x0")?, col(component)?);
     lines
         .enumerate()
         .map(|(k, l)| {
             let f: Vec<&str> = l.split(',').collect();
-            let get = |c: usize| f.get(c).and_then(|v| v.parse::<f64>().ok()).ok_or_else(|| anyhow::anyhow!("{} line {}: unreadable x0 or sxx", path.display(), k + 2));
+            let get = |c: usize| f.get(c).and_then(|v| v.parse::<f64>().ok()).ok_or_else(|| anyhow::anyhow!("{} line {}: unreadable x0 or {component}", path.display(), k + 2));
             Ok((get(cx)?, get(cs)?))
         })
         .collect()
@@ -653,9 +787,12 @@ mod tests {
         assert!(e.contains("at least two slabs"), "{e}");
     }
 
+    /// The elastic twin as these tests were written for (60 cells, 0.25 ps, the interface at
+    /// 51.11 nm), then `sets`.
     fn elastic_bar(sets: &[&str]) -> scene::LoadedScene {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/cu-shock-1d-elastic.toml");
-        scene::load(&path, &sets.iter().map(|s| s.to_string()).collect::<Vec<_>>()).expect("scene")
+        let pinned = ["domain.cells=[60]", "scheme.timestep=0.25e-12", "scheme.integrator=dhakal", "bodies.compressed.max=[51.11e-9]", "bodies.relaxed.min=[51.11e-9]"];
+        scene::load(&path, &pinned.iter().chain(sets).map(|s| s.to_string()).collect::<Vec<_>>()).expect("scene")
     }
 
     #[test]
@@ -687,7 +824,8 @@ mod tests {
         assert_eq!(spec.snapshots(&elastic_bar(&["scheme.timestep=0.05e-12"])).expect("snapshots"), 2);
         let e = spec.snapshots(&elastic_bar(&["scheme.timestep=0.3e-12"])).unwrap_err().to_string();
         assert!(e.contains("not a whole number of continuum steps"), "{e}");
-        let e = spec.snapshots(&elastic_bar(&["scheme.end_time=8e-12"])).unwrap_err().to_string();
+        // (The scene's own reference scores at 5 ps only here, so the scene is valid.)
+        let e = spec.snapshots(&elastic_bar(&["scheme.end_time=8e-12", "reference.times_ps=[5.0]"])).unwrap_err().to_string();
         assert!(e.contains("after the end time"), "{e}");
         let e = ReferenceSpec::load(&csv, &[7.0]).unwrap_err().to_string();
         assert!(e.contains("no rows at t = 7 ps") && e.contains("0, 5, 10"), "{e}");

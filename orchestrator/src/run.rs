@@ -5,7 +5,7 @@
 //! final state, bit for bit, as a run never stopped (see [`crate::checkpoint`]).
 
 use crate::output::{self, Series};
-use crate::scene::{LoadedScene, Material, Scene};
+use crate::scene::{LoadedScene, Material, Reference, Scene};
 use crate::{checkpoint, setup};
 use anyhow::{Context, Result};
 use continuum::exact::{IsothermalRiemann, PressureErrors, State};
@@ -145,7 +145,7 @@ pub fn run(loaded: &LoadedScene, opts: &RunOptions) -> Result<Outcome> {
 
 /// The exact solution a scene names, if any, as (solution, pressure jump in Pa).
 fn reference(scene: &Scene) -> Option<(IsothermalRiemann, f64)> {
-    let r = scene.reference.as_ref()?;
+    let Some(Reference::IsothermalRiemann(r)) = scene.reference.as_ref() else { return None };
     let state = |name: &str| {
         let b = scene.bodies.get(name)?;
         let Material::IdealGasIsothermal(g) = &b.material else { return None };
@@ -251,6 +251,12 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     tracing::info!(points = sim.points.len(), nodes = sim.grid.node_count(), steps = loaded.steps, dt = sim.dt, "running {}", scene.name);
 
     let every = (loaded.steps / scene.output.snapshots.max(1) as u64).max(1);
+    // A direct-MD reference is scored from the snapshots: one lands on the step nearest to each
+    // of its times.
+    let reference_steps: Vec<u64> = match &scene.reference {
+        Some(Reference::DirectMd(r)) => r.times_ps.iter().map(|t| ((t * 1e-12 / loaded.dt).round().max(0.0) as u64).min(loaded.steps)).collect(),
+        _ => Vec::new(),
+    };
     let checkpoint_every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { scene.output.checkpoint_every_steps };
     let mut snaps = Snapshots { index: "step,time,file\n".into(), pvd: Vec::new() };
     let mut output_s = before.output_s;
@@ -319,7 +325,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         let totals = sim.totals();
         max_kinetic = max_kinetic.max(totals.kinetic);
         max_abs_momentum = max_abs_momentum.max(momentum_scale(&sim));
-        if sim.step % every == 0 && sim.step < loaded.steps {
+        if (sim.step % every == 0 || reference_steps.contains(&sim.step)) && sim.step < loaded.steps {
             let t = Instant::now();
             write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
             output_s += t.elapsed().as_secs_f64();
@@ -354,15 +360,23 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     }
     let reference = reference(scene);
     let errors = reference.as_ref().map(|(rp, jump)| pressure_errors(&sim, rp, *jump));
+    let direct = direct_md_errors(scene, dir, sim.time + 0.5 * sim.dt);
     if D == 1 && scene.output.plots {
         plot_profiles(&sim, reference.as_ref().map(|r| &r.0), dir)?;
     }
     output_s += t.elapsed().as_secs_f64();
 
     let times = SummaryTimes { wall: before.wall_s + wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s };
-    let summary = summary(loaded, opts, &sim, times, max_kinetic, max_abs_momentum, errors, failure.as_deref(), md.as_ref())?;
+    let direct_json = direct.as_ref().map(|d| d.json.clone());
+    let summary = summary(loaded, opts, &sim, times, max_kinetic, max_abs_momentum, errors, direct_json, failure.as_deref(), md.as_ref())?;
     output::write_atomic(&dir.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
     report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, true);
+    // The run's last log line: its error against the direct MD.
+    match direct.map(|d| d.line) {
+        Some(Ok(line)) => tracing::info!("{line}"),
+        Some(Err(why)) => tracing::warn!("{why}"),
+        None => {}
+    }
     Ok(match failure {
         None => Outcome::Completed(summary),
         Some(e) => Outcome::Failed(summary, e),
@@ -432,6 +446,39 @@ fn plot_profiles<const D: usize>(sim: &Simulation<D>, exact: Option<&IsothermalR
     Ok(())
 }
 
+/// A run's score against its scene's direct-MD reference: summary.json `errors`, and the log
+/// line (or why it could not be scored).
+struct DirectScore {
+    json: Value,
+    line: Result<String, String>,
+}
+
+/// eq. 7.12 of the run in `dir` against the scene's direct-MD reference at each of its times
+/// up to `reached` (s; a failed run leaves the later ones out), from the snapshots written.
+fn direct_md_errors(scene: &Scene, dir: &Path, reached: f64) -> Option<DirectScore> {
+    let Some(Reference::DirectMd(r)) = &scene.reference else { return None };
+    let times: Vec<f64> = r.times_ps.iter().map(|t| t * 1e-12).filter(|t| *t <= reached).collect();
+    let scored = (|| {
+        let profile = crate::report::DirectProfile::read_component(&r.profile, &r.component)?;
+        let map = crate::report::ReferenceMap::of(scene)?;
+        crate::report::score_run(&profile, &r.component, &times, &map, dir)
+    })();
+    Some(match scored {
+        Ok(scores) => {
+            let mut json = crate::report::direct_md_errors_json(&r.profile, &r.component, &scores);
+            if times.len() < r.times_ps.len() {
+                json["not_reached_ps"] = json!(r.times_ps.iter().filter(|t| **t * 1e-12 > reached).collect::<Vec<_>>());
+            }
+            let line = if scores.is_empty() { Err(format!("the run ended at t = {reached:e} s, before every time of its direct-MD reference: not scored")) } else { Ok(crate::report::direct_md_log_line(&r.component, &scores)) };
+            DirectScore { json, line }
+        }
+        Err(e) => {
+            let why = format!("cannot score the run against its direct-MD reference {}: {e:#}", r.profile.display());
+            DirectScore { json: json!({"reference": "direct-md", "profile": r.profile.display().to_string(), "component": r.component, "failure": why}), line: Err(why) }
+        }
+    })
+}
+
 struct SummaryTimes {
     wall: f64,
     setup: f64,
@@ -452,6 +499,7 @@ fn summary<const D: usize>(
     max_kinetic: f64,
     momentum_scale: f64,
     errors: Option<PressureErrors>,
+    direct_errors: Option<Value>,
     failure: Option<&str>,
     md: Option<&Arc<Mutex<MdShared>>>,
 ) -> Result<Value> {
@@ -507,7 +555,7 @@ fn summary<const D: usize>(
             "pressure_l1": finite_or_null(e.l1),
             "pressure_l2": finite_or_null(e.l2),
             "pressure_spike": finite_or_null(e.spike),
-        })),
+        })).or(direct_errors),
         "provenance": {
             "program": "mscale",
             "version": env!("CARGO_PKG_VERSION"),

@@ -387,17 +387,49 @@ impl Default for Output {
     }
 }
 
-/// A known exact solution to measure the error against.
+/// What a run's error is measured against (`[reference] solution = ...`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "solution", rename_all = "kebab-case")]
+pub enum Reference {
+    /// The exact solution of the isothermal Riemann problem of two ideal-gas bodies.
+    IsothermalRiemann(RiemannReference),
+    /// A direct-MD solution of the same problem, scored by the seed's eq. (7.12).
+    DirectMd(DirectMdReference),
+}
+
+/// `solution = "isothermal-riemann"`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
-pub struct Reference {
-    /// `isothermal-riemann`.
-    pub solution: String,
+pub struct RiemannReference {
     /// Body on the left of the jump.
     pub left: String,
     /// Body on the right of the jump.
     pub right: String,
 }
+
+/// `solution = "direct-md"`: every run writes the eq. (7.12) error of `component` against the
+/// profile at each of `times_ps` into summary.json `errors` (see [`crate::report::score_run`]).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct DirectMdReference {
+    /// The binned CSV output of `md-worker direct --slab` (1D: `time_ps,slab_center_nm,
+    /// sxx_gpa,...` in slabs of the reference coordinate), relative to the scene file.
+    pub profile: PathBuf,
+    /// Times (ps) to score at: each one a time of the profile and at most the end time. The
+    /// run writes a snapshot at the step nearest to each.
+    pub times_ps: Vec<f64>,
+    /// Stress component scored: `sxx` (the shock direction of a 1D bar), `syy` or `szz`.
+    #[serde(default = "default_component")]
+    pub component: String,
+}
+
+fn default_component() -> String {
+    "sxx".into()
+}
+
+/// Stress components a direct-MD reference can score (columns `<c>` of the particle files and
+/// `<c>_gpa` of the profile).
+pub const REFERENCE_COMPONENTS: [&str; 3] = ["sxx", "syy", "szz"];
 
 /// A scene read from a file, with where every value came from.
 #[derive(Debug, Clone)]
@@ -585,9 +617,7 @@ impl Scene {
         if let Some(md_step) = self.md_step(loc)? {
             (dt, steps) = self.fit_to_md_step(loc, dt, md_step, user_timestep, max_speed)?;
         }
-        if let Some(r) = &self.reference {
-            self.validate_reference(loc, r)?;
-        }
+        files.extend(self.validate_reference(loc, base)?);
         self.validate_dump_points(loc)?;
         Ok((dt, steps, files))
     }
@@ -870,10 +900,62 @@ impl Scene {
         Ok((dt, steps as u64))
     }
 
-    fn validate_reference(&self, loc: &Locator<'_>, r: &Reference) -> Result<(), SceneError> {
-        if r.solution != "isothermal-riemann" {
-            return Err(loc.err("reference.solution", format!("{:?}", r.solution), "allowed: \"isothermal-riemann\""));
+    /// Returns the file a direct-MD reference names (made absolute in the scene).
+    fn validate_reference(&mut self, loc: &Locator<'_>, base: &Path) -> Result<Option<PathBuf>, SceneError> {
+        match self.reference.clone() {
+            None => Ok(None),
+            Some(Reference::IsothermalRiemann(r)) => self.validate_riemann(loc, &r).map(|_| None),
+            Some(Reference::DirectMd(r)) => {
+                let file = self.validate_direct_md(loc, &r, base)?;
+                self.reference = Some(Reference::DirectMd(DirectMdReference { profile: file.clone(), ..r }));
+                Ok(Some(file))
+            }
         }
+    }
+
+    /// A direct-MD profile: readable, with the component's column, a frame at every time (each
+    /// within the profile's range and the run), a 1D scene whose bodies map onto one bar, and
+    /// particle snapshots to score. Returns the profile's absolute path.
+    fn validate_direct_md(&self, loc: &Locator<'_>, r: &DirectMdReference, base: &Path) -> Result<PathBuf, SceneError> {
+        if self.domain.dimension != 1 {
+            return Err(loc.err(
+                "reference.solution",
+                "\"direct-md\"",
+                format!("scores 1D scenes only (the slabs of a 1D `md-worker direct --slab` run); this scene has dimension {}: the 2D form (Eulerian bins) is not implemented yet", self.domain.dimension),
+            ));
+        }
+        if !REFERENCE_COMPONENTS.contains(&r.component.as_str()) {
+            return Err(loc.err("reference.component", format!("{:?}", r.component), format!("allowed: {} (sxx: the shock direction of a 1D bar)", REFERENCE_COMPONENTS.iter().map(|c| format!("\"{c}\"")).collect::<Vec<_>>().join(", "))));
+        }
+        let file = base.join(&r.profile);
+        let profile = crate::report::DirectProfile::read_component(&file, &r.component)
+            .map_err(|e| loc.err("reference.profile", format!("{:?}", r.profile), format!("{e:#}; the profile is the CSV of `md-worker direct --slab`, its path relative to the scene file")))?;
+        if r.times_ps.is_empty() {
+            return Err(loc.err("reference.times_ps", "[]", "give at least one time (ps) to score at, e.g. [5.0, 10.0]"));
+        }
+        let (first, last) = profile.time_range();
+        for (k, &t) in r.times_ps.iter().enumerate() {
+            let key = format!("reference.times_ps[{k}]");
+            if !t.is_finite() || t * 1e-12 < first - crate::report::TIME_TOLERANCE_S || t * 1e-12 > last + crate::report::TIME_TOLERANCE_S {
+                return Err(loc.err(&key, t, format!("outside the profile's range {} to {} ps ({})", (first * 1e15).round() / 1e3, (last * 1e15).round() / 1e3, file.display())));
+            }
+            if profile.at(t * 1e-12).is_none() {
+                return Err(loc.err(&key, t, format!("the profile has no frame at t = {t} ps (it has {} ps)", profile.times_ps())));
+            }
+            if t * 1e-12 > self.scheme.end_time * (1.0 + 1e-9) {
+                return Err(loc.err(&key, t, format!("after the end time {} ps of the run", self.scheme.end_time * 1e12)));
+            }
+        }
+        if !self.output.particles {
+            return Err(loc.err("output.particles", "false", "a direct-md reference scores the particle snapshots: needs output.particles = true"));
+        }
+        if let Err(e) = crate::report::ReferenceMap::of(self) {
+            return Err(loc.err("reference.solution", "\"direct-md\"", format!("{e:#}")));
+        }
+        Ok(file.canonicalize().unwrap_or(file))
+    }
+
+    fn validate_riemann(&self, loc: &Locator<'_>, r: &RiemannReference) -> Result<(), SceneError> {
         if self.domain.dimension != 1 {
             return Err(loc.err("reference.solution", "\"isothermal-riemann\"", "needs a 1D scene"));
         }

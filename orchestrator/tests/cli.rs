@@ -198,7 +198,9 @@ fn report_scores_against_a_direct_md_reference() {
     let reference = repo().join("tests/golden/cu-shock-1d/direct-bar.csv");
     let (scene, reference) = (scene.to_str().expect("utf8"), reference.to_str().expect("utf8"));
     let args = |extra: &[&str], dir: &str| -> Vec<String> {
-        let mut a: Vec<String> = ["report", "error-vs-time", scene, "--set", "scheme.timestep=0.05e-12", "--sweep", "domain.cells=[60]"].iter().map(|s| s.to_string()).collect();
+        // The twin as this test was written for: dhakal, the interface at 51.11 nm.
+        let pinned = ["--set", "scheme.integrator=dhakal", "--set", "bodies.compressed.max=[51.11e-9]", "--set", "bodies.relaxed.min=[51.11e-9]"];
+        let mut a: Vec<String> = ["report", "error-vs-time", scene, "--set", "scheme.timestep=0.05e-12", "--sweep", "domain.cells=[60]"].iter().chain(&pinned).map(|s| s.to_string()).collect();
         a.extend(extra.iter().map(|s| s.to_string()));
         a.extend(["--out".to_string(), out.join(dir).to_str().expect("utf8").to_string()]);
         a
@@ -234,4 +236,58 @@ fn report_scores_against_a_direct_md_reference() {
         assert!(text(&o.stderr).contains(needle), "{extra:?}: {}", text(&o.stderr));
         assert!(!out.join("bad").exists());
     }
+}
+
+#[test]
+fn a_run_with_a_direct_md_reference_scores_itself() {
+    // The elastic twin at the settings of `report_scores_against_a_direct_md_reference` (60
+    // cells, dhakal, 0.05 ps, the interface at 51.11 nm): `mscale run` writes the same eq. 7.12
+    // errors into summary.json (one implementation) and prints them in its last log line.
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let scene = repo().join("scenes/cu-shock-1d-elastic.toml");
+    let sets = [
+        "domain.cells=[60]",
+        "scheme.timestep=0.05e-12",
+        "scheme.integrator=dhakal",
+        "bodies.compressed.max=[51.11e-9]",
+        "bodies.relaxed.min=[51.11e-9]",
+        // Snapshots every 66 steps: 5 and 10 ps (steps 100 and 200) are not among them, the run
+        // adds them.
+        "output.snapshots=3",
+        "output.vtk=false",
+        "output.plots=false",
+    ];
+    let mut args: Vec<String> = vec!["run".into(), scene.to_str().expect("utf8").into(), "--out".into(), out.to_str().expect("utf8").into()];
+    for s in sets {
+        args.extend(["--set".to_string(), s.to_string()]);
+    }
+    let o = Command::new(env!("CARGO_BIN_EXE_mscale")).args(&args).current_dir(repo()).env("RUST_LOG", "info").output().expect("run mscale");
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", text(&o.stderr));
+    let s = summary(&out);
+    let e = &s["errors"];
+    assert_eq!(e["reference"], "direct-md", "{e}");
+    assert_eq!(e["component"], "sxx");
+    assert!(e["profile"].as_str().expect("profile").ends_with("tests/golden/cu-shock-1d/direct-bar.csv"), "{e}");
+    let (e5, e10) = (e["sxx_error_5ps"].as_f64().expect("5 ps"), e["sxx_error_10ps"].as_f64().expect("10 ps"));
+    assert!((e5 - 0.1499).abs() < 2e-3 && (e10 - 0.1920).abs() < 2e-3, "{e5} {e10}");
+    let times = e["times"].as_array().expect("times");
+    assert_eq!(times.len(), 2);
+    for (t, step) in [(5.0, 100), (10.0, 200)] {
+        let row = times.iter().find(|r| r["time_ps"] == t).unwrap_or_else(|| panic!("no score at {t} ps: {e}"));
+        assert_eq!(row["snapshot_step"], step, "{row}");
+        assert_eq!(row["snapshot_time_ps"], t, "{row}");
+        assert_eq!(row["points"], 58, "{row}");
+    }
+    let index = std::fs::read_to_string(out.join("snapshots/index.csv")).expect("index");
+    let steps: Vec<&str> = index.lines().skip(1).map(|l| l.split(',').next().expect("step")).collect();
+    assert_eq!(steps, ["0", "66", "100", "132", "198", "200"], "{index}");
+    // The last log line carries the errors.
+    let log = text(&o.stderr);
+    let last = log.lines().last().expect("a log line");
+    assert!(last.contains("eq. 7.12 error of sxx against direct MD") && last.contains(&format!("{:.2} % at 5 ps", 100.0 * e5)) && last.contains(&format!("{:.2} % at 10 ps", 100.0 * e10)), "{last}");
+    // The resolved scene reads back with its reference (the profile made absolute).
+    let o = mscale(&["check", out.join("scene.resolved.toml").to_str().expect("utf8")]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o.stderr));
+    assert!(text(&o.stdout).contains("solution = \"direct-md\""), "{}", text(&o.stdout));
 }

@@ -47,7 +47,7 @@ fn run_uncached(scene_file: &str, sets: &[&str]) -> Outcome {
             break;
         }
     }
-    let r = sc.reference.as_ref().expect("reference");
+    let Some(orchestrator::scene::Reference::IsothermalRiemann(r)) = sc.reference.as_ref() else { panic!("the scene names no isothermal-riemann reference") };
     let state = |name: &str| {
         let b = &sc.bodies[name];
         let Material::IdealGasIsothermal(g) = &b.material else { panic!("gas") };
