@@ -282,6 +282,7 @@ fn a_run_with_a_direct_md_reference_scores_itself() {
     let index = std::fs::read_to_string(out.join("snapshots/index.csv")).expect("index");
     let steps: Vec<&str> = index.lines().skip(1).map(|l| l.split(',').next().expect("step")).collect();
     assert_eq!(steps, ["0", "66", "100", "132", "198", "200"], "{index}");
+    assert!(!text(&o.stdout).contains("NaN") && !text(&o.stdout).contains("pressure error"), "{}", text(&o.stdout));
     // The last log line carries the errors.
     let log = text(&o.stderr);
     let last = log.lines().last().expect("a log line");
