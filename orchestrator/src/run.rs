@@ -458,11 +458,9 @@ struct DirectScore {
 fn direct_md_errors(scene: &Scene, dir: &Path, reached: f64) -> Option<DirectScore> {
     let Some(Reference::DirectMd(r)) = &scene.reference else { return None };
     let times: Vec<f64> = r.times_ps.iter().map(|t| t * 1e-12).filter(|t| *t <= reached).collect();
-    let scored = (|| {
-        let profile = crate::report::DirectProfile::read_component(&r.profile, &r.component)?;
-        let map = crate::report::ReferenceMap::of(scene)?;
-        crate::report::score_run(&profile, &r.component, &times, &map, dir)
-    })();
+    let scored = crate::report::DirectProfile::read_component(&r.profile, &r.component)
+        .and_then(|profile| Ok((profile, crate::report::ReferenceMap::of(scene)?)))
+        .and_then(|(profile, map)| crate::report::score_run(&profile, &r.component, &times, &map, dir));
     Some(match scored {
         Ok(scores) => {
             let mut json = crate::report::direct_md_errors_json(&r.profile, &r.component, &scores);
