@@ -327,11 +327,7 @@ impl RunWriter {
                 p.file.sync_all().with_context(|| format!("cannot write {}", p.tmp.display()))?;
                 let on_disk = hex::encode(Sha256::digest(std::fs::read(&p.tmp).with_context(|| format!("cannot read back {}", p.tmp.display()))?));
                 anyhow::ensure!(on_disk == c.sha256, "{} reads back with SHA-256 {on_disk}, not {}", p.tmp.display(), c.sha256);
-                std::fs::rename(&p.tmp, &p.dest).with_context(|| format!("cannot rename {} to {}", p.tmp.display(), p.dest.display()))?;
-                if let Some(dir) = p.dest.parent() {
-                    std::fs::File::open(dir).and_then(|d| d.sync_all()).with_context(|| format!("cannot sync {}", dir.display()))?;
-                }
-                Ok(())
+                crate::atomic::commit(&p.tmp, &p.dest)
             })();
             if result.is_err() {
                 let _ = std::fs::remove_file(&p.tmp);
@@ -494,14 +490,13 @@ pub fn serve(state: PathBuf, listen: String, token_file: Option<PathBuf>, checkp
 
 /// The token in `<state>/token`, generated (256 bits from the OS, mode 0600) when missing.
 fn generated_token(state: &Path) -> Result<String> {
-    use std::io::Read;
     let path = state.join("token");
     if path.exists() {
         return crate::service::read_token(&path);
     }
     std::fs::create_dir_all(state).with_context(|| format!("cannot create {}", state.display()))?;
     let mut bytes = [0u8; 32];
-    std::fs::File::open("/dev/urandom").and_then(|mut f| f.read_exact(&mut bytes)).context("cannot read /dev/urandom for a token")?;
+    getrandom::fill(&mut bytes).map_err(|e| anyhow::anyhow!("cannot get random bytes from the operating system for a token: {e}"))?;
     let token = hex::encode(bytes);
     {
         use std::io::Write;
@@ -684,7 +679,7 @@ pub fn fetch(server: &str, token_file: Option<&Path>, job: &str, file: Option<&s
         return Ok(crate::exit::OK);
     };
     let bytes = c.fetch(job, file)?;
-    crate::output::write_atomic(out, &bytes)?;
+    crate::atomic::write(out, &bytes)?;
     println!("{} bytes into {}", bytes.len(), out.display());
     Ok(crate::exit::OK)
 }

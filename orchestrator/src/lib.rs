@@ -4,6 +4,7 @@
 //! constitutive-law scene builds no MD engine). The `mscale` binary is a thin layer over this
 //! library, so tests drive the same code users do.
 
+pub mod atomic;
 pub mod checkpoint;
 pub mod client;
 pub mod md;

@@ -84,12 +84,10 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
-/// Compares two byte strings in time that depends only on their lengths.
+/// Compares two byte strings in time that depends only on their lengths (`subtle`).
 pub fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    if a.len() != b.len() {
-        return false;
-    }
-    a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+    use subtle::ConstantTimeEq;
+    a.ct_eq(b).into()
 }
 
 /// Reads a token file (surrounding whitespace ignored); refuses an empty one.
@@ -702,7 +700,7 @@ fn prepare_inputs(dir: &Path, req: &pb::SubmitJobRequest) -> Result<scene::Loade
             return Err(Status::invalid_argument(format!("file {:?}: its content hashes to {actual}, not the SHA-256 {} it was sent with", f.name, f.sha256)));
         }
         let name = format!("files/{}", stored_name(f));
-        crate::output::write_atomic(&input.join(&name), &f.content).map_err(|e| Status::internal(format!("{e:#}")))?;
+        crate::atomic::write(&input.join(&name), &f.content).map_err(|e| Status::internal(format!("{e:#}")))?;
         renames.insert(f.name.clone(), name);
     }
     let mut doc: toml_edit::DocumentMut = match req.scene_text.parse() {
@@ -723,7 +721,7 @@ fn prepare_inputs(dir: &Path, req: &pb::SubmitJobRequest) -> Result<scene::Loade
         doc.to_string()
     };
     let scene_path = input.join("scene.toml");
-    crate::output::write_atomic(&scene_path, text.as_bytes()).map_err(|e| Status::internal(format!("{e:#}")))?;
+    crate::atomic::write(&scene_path, text.as_bytes()).map_err(|e| Status::internal(format!("{e:#}")))?;
     scene::load(&scene_path, &req.overrides).map_err(|mut e| {
         if !req.scene_file.is_empty() {
             e.file = req.scene_file.clone();
@@ -950,17 +948,10 @@ impl Orchestrator for JobService {
 
     async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
         let pb::WatchJobRequest { job_id: id, after_sequence } = req.into_inner();
-        let job = self.core.get(&id)?;
+        self.core.get(&id)?;
         let (rx, newest) = self.core.subscribe(&id)?;
         let (tx, out) = tokio::sync::mpsc::channel(16);
-        if newest == 0 && job.state.is_final() {
-            // A job of a store older than event numbers: its final state, unnumbered.
-            drop(rx);
-            self.core.unsubscribe(&id);
-            let mut ev = event_of(&EventRecord { job_id: id.clone(), seq: 0, kind: EventKind::State, at: job.finished, state: job.state, step: job.step, steps: job.steps, sim_time: job.sim_time, message: job.error.clone(), detail: Vec::new() });
-            ev.kind = pb::JobEventKind::Unspecified as i32;
-            let _ = tx.send(Ok(ev)).await;
-        } else if after_sequence > newest {
+        if after_sequence > newest {
             drop(rx);
             self.core.unsubscribe(&id);
             return Err(Status::out_of_range(format!(

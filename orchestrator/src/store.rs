@@ -17,8 +17,9 @@ use anyhow::{Context, Result};
 use rusqlite::{Connection, OptionalExtension, params};
 use std::path::Path;
 
-/// Where a job is in its life.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Where a job is in its life (stored as its lowercase name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, strum::IntoStaticStr, strum::EnumString)]
+#[strum(serialize_all = "lowercase")]
 pub enum JobState {
     Queued,
     Running,
@@ -29,24 +30,11 @@ pub enum JobState {
 
 impl JobState {
     pub fn as_str(self) -> &'static str {
-        match self {
-            JobState::Queued => "queued",
-            JobState::Running => "running",
-            JobState::Completed => "completed",
-            JobState::Failed => "failed",
-            JobState::Cancelled => "cancelled",
-        }
+        self.into()
     }
 
     pub fn parse(s: &str) -> Result<Self> {
-        Ok(match s {
-            "queued" => JobState::Queued,
-            "running" => JobState::Running,
-            "completed" => JobState::Completed,
-            "failed" => JobState::Failed,
-            "cancelled" => JobState::Cancelled,
-            other => anyhow::bail!("unknown job state {other:?} in the store"),
-        })
+        s.parse().map_err(|_| anyhow::anyhow!("unknown job state {s:?} in the store"))
     }
 
     pub fn is_final(self) -> bool {
@@ -54,8 +42,9 @@ impl JobState {
     }
 }
 
-/// Where a worker is in its life.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Where a worker is in its life (stored as its lowercase name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, strum::IntoStaticStr, strum::EnumString)]
+#[strum(serialize_all = "lowercase")]
 pub enum WorkerState {
     Live,
     Draining,
@@ -64,20 +53,11 @@ pub enum WorkerState {
 
 impl WorkerState {
     pub fn as_str(self) -> &'static str {
-        match self {
-            WorkerState::Live => "live",
-            WorkerState::Draining => "draining",
-            WorkerState::Lost => "lost",
-        }
+        self.into()
     }
 
     pub fn parse(s: &str) -> Result<Self> {
-        Ok(match s {
-            "live" => WorkerState::Live,
-            "draining" => WorkerState::Draining,
-            "lost" => WorkerState::Lost,
-            other => anyhow::bail!("unknown worker state {other:?} in the store"),
-        })
+        s.parse().map_err(|_| anyhow::anyhow!("unknown worker state {s:?} in the store"))
     }
 }
 
@@ -141,8 +121,9 @@ pub struct JobRecord {
     pub resumes: u32,
 }
 
-/// What a job event reports.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// What a job event reports (stored as its lowercase name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, strum::IntoStaticStr, strum::EnumString)]
+#[strum(serialize_all = "lowercase")]
 pub enum EventKind {
     /// The job's state changed.
     State,
@@ -155,22 +136,11 @@ pub enum EventKind {
 
 impl EventKind {
     pub fn as_str(self) -> &'static str {
-        match self {
-            EventKind::State => "state",
-            EventKind::Progress => "progress",
-            EventKind::Checkpoint => "checkpoint",
-            EventKind::Workers => "workers",
-        }
+        self.into()
     }
 
     pub fn parse(s: &str) -> Result<Self> {
-        Ok(match s {
-            "state" => EventKind::State,
-            "progress" => EventKind::Progress,
-            "checkpoint" => EventKind::Checkpoint,
-            "workers" => EventKind::Workers,
-            other => anyhow::bail!("unknown event kind {other:?} in the store"),
-        })
+        s.parse().map_err(|_| anyhow::anyhow!("unknown event kind {s:?} in the store"))
     }
 }
 
@@ -237,75 +207,92 @@ fn finish_record((mut j, state): (JobRecord, String)) -> Result<JobRecord> {
     Ok(j)
 }
 
+/// The schema version [`Store::open`] brings a store to (`PRAGMA user_version`).
+pub const SCHEMA_VERSION: usize = 2;
+
+/// Version 1: the tables. Stores written before the schema was versioned are at version 0
+/// with some or all of these tables (`events` came last); `IF NOT EXISTS` keeps what they hold.
+const SCHEMA_1: &str = "
+    CREATE TABLE IF NOT EXISTS jobs (
+        seq INTEGER PRIMARY KEY AUTOINCREMENT,
+        id TEXT NOT NULL UNIQUE,
+        scene TEXT NOT NULL,
+        state TEXT NOT NULL,
+        priority INTEGER NOT NULL,
+        overrides TEXT NOT NULL,
+        checkpoint_every INTEGER NOT NULL,
+        step INTEGER NOT NULL DEFAULT 0,
+        steps INTEGER NOT NULL DEFAULT 0,
+        sim_time REAL NOT NULL DEFAULT 0,
+        error TEXT NOT NULL DEFAULT '',
+        state_digest TEXT NOT NULL DEFAULT '',
+        submitted INTEGER NOT NULL,
+        started INTEGER NOT NULL DEFAULT 0,
+        finished INTEGER NOT NULL DEFAULT 0,
+        resumes INTEGER NOT NULL DEFAULT 0
+    );
+    CREATE TABLE IF NOT EXISTS history (
+        job_id TEXT NOT NULL,
+        at INTEGER NOT NULL,
+        state TEXT NOT NULL,
+        note TEXT NOT NULL
+    );
+    CREATE TABLE IF NOT EXISTS workers (
+        epoch INTEGER PRIMARY KEY AUTOINCREMENT,
+        address TEXT NOT NULL,
+        device TEXT NOT NULL,
+        backend TEXT NOT NULL,
+        precision TEXT NOT NULL,
+        cores INTEGER NOT NULL,
+        memory_bytes INTEGER NOT NULL,
+        atom_steps_per_s REAL NOT NULL,
+        throughput_source TEXT NOT NULL,
+        protocol_version INTEGER NOT NULL,
+        state TEXT NOT NULL,
+        registered INTEGER NOT NULL,
+        note TEXT NOT NULL DEFAULT ''
+    );
+    CREATE TABLE IF NOT EXISTS events (
+        job_id TEXT NOT NULL,
+        seq INTEGER NOT NULL,
+        kind TEXT NOT NULL,
+        at INTEGER NOT NULL,
+        state TEXT NOT NULL,
+        step INTEGER NOT NULL,
+        steps INTEGER NOT NULL,
+        sim_time REAL NOT NULL,
+        message TEXT NOT NULL,
+        detail BLOB NOT NULL,
+        PRIMARY KEY (job_id, seq)
+    ) WITHOUT ROWID;
+    CREATE TABLE IF NOT EXISTS worker_history (
+        epoch INTEGER NOT NULL,
+        at INTEGER NOT NULL,
+        state TEXT NOT NULL,
+        note TEXT NOT NULL
+    );";
+
+/// Version 2: every job has numbered events. A job stored before events were numbered gets
+/// one state event (number 1) with its state, step and error as stored, so a watcher replays
+/// it like any other; the job's next event is number 2.
+const SCHEMA_2: &str = "
+    INSERT INTO events (job_id, seq, kind, at, state, step, steps, sim_time, message, detail)
+    SELECT id, 1, 'state', CASE WHEN finished > 0 THEN finished ELSE submitted END, state, step, steps, sim_time, error, X''
+    FROM jobs WHERE id NOT IN (SELECT job_id FROM events);";
+
+fn migrations() -> rusqlite_migration::Migrations<'static> {
+    use rusqlite_migration::M;
+    rusqlite_migration::Migrations::new(vec![M::up(SCHEMA_1), M::up(SCHEMA_2)])
+}
+
 impl Store {
     /// Opens (creating if needed) the store in `state_dir`.
     pub fn open(state_dir: &Path) -> Result<Self> {
         std::fs::create_dir_all(state_dir).with_context(|| format!("cannot create the state directory {}", state_dir.display()))?;
         let path = state_dir.join("jobs.sqlite");
-        let db = Connection::open(&path).with_context(|| format!("cannot open the job store {}", path.display()))?;
-        db.execute_batch(
-            "PRAGMA journal_mode = WAL;
-             PRAGMA synchronous = FULL;
-             CREATE TABLE IF NOT EXISTS jobs (
-                 seq INTEGER PRIMARY KEY AUTOINCREMENT,
-                 id TEXT NOT NULL UNIQUE,
-                 scene TEXT NOT NULL,
-                 state TEXT NOT NULL,
-                 priority INTEGER NOT NULL,
-                 overrides TEXT NOT NULL,
-                 checkpoint_every INTEGER NOT NULL,
-                 step INTEGER NOT NULL DEFAULT 0,
-                 steps INTEGER NOT NULL DEFAULT 0,
-                 sim_time REAL NOT NULL DEFAULT 0,
-                 error TEXT NOT NULL DEFAULT '',
-                 state_digest TEXT NOT NULL DEFAULT '',
-                 submitted INTEGER NOT NULL,
-                 started INTEGER NOT NULL DEFAULT 0,
-                 finished INTEGER NOT NULL DEFAULT 0,
-                 resumes INTEGER NOT NULL DEFAULT 0
-             );
-             CREATE TABLE IF NOT EXISTS history (
-                 job_id TEXT NOT NULL,
-                 at INTEGER NOT NULL,
-                 state TEXT NOT NULL,
-                 note TEXT NOT NULL
-             );
-             CREATE TABLE IF NOT EXISTS workers (
-                 epoch INTEGER PRIMARY KEY AUTOINCREMENT,
-                 address TEXT NOT NULL,
-                 device TEXT NOT NULL,
-                 backend TEXT NOT NULL,
-                 precision TEXT NOT NULL,
-                 cores INTEGER NOT NULL,
-                 memory_bytes INTEGER NOT NULL,
-                 atom_steps_per_s REAL NOT NULL,
-                 throughput_source TEXT NOT NULL,
-                 protocol_version INTEGER NOT NULL,
-                 state TEXT NOT NULL,
-                 registered INTEGER NOT NULL,
-                 note TEXT NOT NULL DEFAULT ''
-             );
-             CREATE TABLE IF NOT EXISTS events (
-                 job_id TEXT NOT NULL,
-                 seq INTEGER NOT NULL,
-                 kind TEXT NOT NULL,
-                 at INTEGER NOT NULL,
-                 state TEXT NOT NULL,
-                 step INTEGER NOT NULL,
-                 steps INTEGER NOT NULL,
-                 sim_time REAL NOT NULL,
-                 message TEXT NOT NULL,
-                 detail BLOB NOT NULL,
-                 PRIMARY KEY (job_id, seq)
-             ) WITHOUT ROWID;
-             CREATE TABLE IF NOT EXISTS worker_history (
-                 epoch INTEGER NOT NULL,
-                 at INTEGER NOT NULL,
-                 state TEXT NOT NULL,
-                 note TEXT NOT NULL
-             );",
-        )
-        .with_context(|| format!("cannot set up the job store {}", path.display()))?;
+        let mut db = Connection::open(&path).with_context(|| format!("cannot open the job store {}", path.display()))?;
+        db.execute_batch("PRAGMA journal_mode = WAL; PRAGMA synchronous = FULL;").with_context(|| format!("cannot set up the job store {}", path.display()))?;
+        migrations().to_latest(&mut db).with_context(|| format!("cannot bring the job store {} to schema version {SCHEMA_VERSION}", path.display()))?;
         Ok(Store { db, retained_progress: RETAINED_PROGRESS_EVENTS })
     }
 
@@ -651,6 +638,68 @@ mod tests {
         assert_eq!(s.events_after("a", 604, 10).unwrap().len(), 0);
         let states: Vec<(JobState, String)> = all.iter().filter(|e| e.kind == EventKind::State).map(|e| (e.state, e.message.clone())).collect();
         assert_eq!(states.iter().map(|s| s.0).collect::<Vec<_>>(), vec![JobState::Queued, JobState::Running, JobState::Queued, JobState::Cancelled]);
+    }
+
+    /// A raw connection to the store file in `dir`, as an older orchestrator left it.
+    fn raw(dir: &Path) -> Connection {
+        Connection::open(dir.join("jobs.sqlite")).unwrap()
+    }
+
+    fn user_version(dir: &Path) -> i64 {
+        raw(dir).query_row("PRAGMA user_version", [], |r| r.get(0)).unwrap()
+    }
+
+    #[test]
+    fn a_store_of_the_unversioned_schema_opens_with_its_jobs_and_events() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            // What `Store::open` made before the schema had versions: every table, version 0.
+            let db = raw(dir.path());
+            db.execute_batch(SCHEMA_1).unwrap();
+            db.execute("INSERT INTO jobs (id, scene, state, priority, overrides, checkpoint_every, steps, submitted) VALUES ('a', 's', 'running', 3, '[\"k=1\"]', 10, 100, 5)", []).unwrap();
+            db.execute("INSERT INTO events VALUES ('a', 1, 'state', 5, 'queued', 0, 100, 0.0, 'submitted', X'')", []).unwrap();
+            db.execute("INSERT INTO events VALUES ('a', 2, 'state', 6, 'running', 0, 100, 0.0, 'started', X'')", []).unwrap();
+            db.execute("INSERT INTO workers (address, device, backend, precision, cores, memory_bytes, atom_steps_per_s, throughput_source, protocol_version, state, registered) VALUES ('127.0.0.1:1', 'cpu', 'cpu', 'double', 2, 0, 1e6, 'measured', 1, 'live', 5)", []).unwrap();
+        }
+        assert_eq!(user_version(dir.path()), 0);
+        let mut s = Store::open(dir.path()).unwrap();
+        assert_eq!(user_version(dir.path()), SCHEMA_VERSION as i64);
+        let a = s.get("a").unwrap().unwrap();
+        assert_eq!((a.state, a.priority, a.overrides.clone(), a.checkpoint_every), (JobState::Running, 3, vec!["k=1".to_string()], 10));
+        // Its events are kept as they were (none added), and the numbering goes on.
+        assert_eq!(s.events_after("a", 0, 10).unwrap().iter().map(|e| (e.seq, e.message.clone())).collect::<Vec<_>>(), vec![(1, "submitted".to_string()), (2, "started".to_string())]);
+        assert_eq!(s.requeue_interrupted().unwrap(), vec!["a".to_string()]);
+        assert_eq!(s.last_sequence("a").unwrap(), 3);
+        assert_eq!(s.workers().unwrap().iter().map(|w| (w.id.clone(), w.state)).collect::<Vec<_>>(), vec![("w1".to_string(), WorkerState::Live)]);
+        drop(s);
+        // Opening again changes nothing.
+        let s = Store::open(dir.path()).unwrap();
+        assert_eq!(s.last_sequence("a").unwrap(), 3);
+    }
+
+    #[test]
+    fn a_job_stored_before_events_were_numbered_gets_its_state_as_event_1() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            // A store older than numbered events: jobs and history only.
+            let db = raw(dir.path());
+            db.execute_batch(&SCHEMA_1[..SCHEMA_1.find("CREATE TABLE IF NOT EXISTS workers").unwrap()]).unwrap();
+            db.execute("INSERT INTO jobs (id, scene, state, priority, overrides, checkpoint_every, step, steps, submitted, finished, error) VALUES ('old', 's', 'failed', 0, '[]', 0, 40, 100, 5, 9, 'it broke')", []).unwrap();
+        }
+        let mut s = Store::open(dir.path()).unwrap();
+        let ev = s.events_after("old", 0, 10).unwrap();
+        assert_eq!(ev.len(), 1);
+        assert_eq!((ev[0].seq, ev[0].kind, ev[0].state, ev[0].step, ev[0].at, ev[0].message.as_str()), (1, EventKind::State, JobState::Failed, 40, 9, "it broke"));
+        assert_eq!(s.note_event("old", EventKind::Workers, "later", &[]).unwrap().seq, 2);
+    }
+
+    #[test]
+    fn a_store_of_a_newer_schema_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        drop(Store::open(dir.path()).unwrap());
+        raw(dir.path()).execute_batch(&format!("PRAGMA user_version = {}", SCHEMA_VERSION + 1)).unwrap();
+        let e = Store::open(dir.path()).err().expect("a newer store opened");
+        assert!(format!("{e:#}").contains("schema version"), "{e:#}");
     }
 
     #[test]
