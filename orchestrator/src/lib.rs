@@ -7,6 +7,7 @@
 pub mod atomic;
 pub mod checkpoint;
 pub mod client;
+pub mod exit;
 pub mod md;
 pub mod output;
 pub mod report;
@@ -14,18 +15,6 @@ pub mod run;
 pub mod scene;
 pub mod service;
 pub mod setup;
-pub mod store;
-pub mod workers;
 
 /// Cargo features this binary was built with (reported in provenance).
 pub const FEATURES: &[&str] = &[];
-
-/// Exit codes of `mscale`.
-pub mod exit {
-    /// The run completed.
-    pub const OK: i32 = 0;
-    /// A run that failed: instability, lost worker, cancelled.
-    pub const RUN_FAILED: i32 = 1;
-    /// Bad usage or bad input.
-    pub const BAD_INPUT: i32 = 2;
-}
