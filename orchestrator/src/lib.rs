@@ -16,5 +16,6 @@ pub mod scene;
 pub mod service;
 pub mod setup;
 
-/// Cargo features this binary was built with (reported in provenance).
-pub const FEATURES: &[&str] = &[];
+/// Cargo features this binary was built with (reported in provenance): orchestrator has none
+/// of its own; those of the MD engine it runs in-process (`cuda`, `mpi`).
+pub const FEATURES: &[&str] = md_worker::FEATURES;

@@ -461,6 +461,16 @@ fn summary<const D: usize>(
         Some(m) => format!("md: {} on {}", m.pool.kinds().join(", "), m.pool.endpoint_names().join(", ")),
         None => "none (constitutive laws only)".into(),
     };
+    // The continuum is f64 throughout; MD boxes in the precision their back ends report.
+    let precision = match &md {
+        Some(m) => {
+            let mut md_precisions: Vec<String> = m.pool.kinds().iter().map(|k| k.rsplit('/').next().unwrap_or(k).to_string()).collect();
+            md_precisions.sort();
+            md_precisions.dedup();
+            format!("continuum f64, md {}", md_precisions.join(", "))
+        }
+        None => "f64".into(),
+    };
     let scene = &loaded.scene;
     let (init, now) = (sim.initial, sim.totals());
     let energy_scale = init.energy().abs().max(max_kinetic).max(f64::MIN_POSITIVE);
@@ -514,7 +524,7 @@ fn summary<const D: usize>(
             "commit": option_env!("MSCALE_COMMIT").unwrap_or("unknown"),
             "features": crate::FEATURES,
             "backend": backend,
-            "precision": "f64",
+            "precision": precision,
             "inputs": inputs,
         },
         "command_line": opts.command_line,
