@@ -116,23 +116,8 @@ fn md_shared(loaded: &LoadedScene, opts: &RunOptions) -> Result<Option<Arc<Mutex
 
 /// Default run directory: `runs/<scene>-<UTC timestamp>`.
 pub fn default_out_dir(scene: &Scene) -> PathBuf {
-    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
-    let (days, rem) = (secs / 86400, secs % 86400);
-    let (y, m, d) = civil_from_days(days as i64);
-    PathBuf::from("runs").join(format!("{}-{y:04}{m:02}{d:02}T{:02}{:02}{:02}Z", scene.name, rem / 3600, rem % 3600 / 60, rem % 60))
-}
-
-/// Gregorian date of a day count since 1970-01-01 (H. Hinnant's algorithm).
-fn civil_from_days(z: i64) -> (i64, u32, u32) {
-    let z = z + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
-    (yoe + era * 400 + i64::from(m <= 2), m, d)
+    let t = time::OffsetDateTime::now_utc();
+    PathBuf::from("runs").join(format!("{}-{:04}{:02}{:02}T{:02}{:02}{:02}Z", scene.name, t.year(), u8::from(t.month()), t.day(), t.hour(), t.minute(), t.second()))
 }
 
 pub fn run(loaded: &LoadedScene, opts: &RunOptions) -> Result<Outcome> {
