@@ -35,6 +35,14 @@ pub use backend::{
     StressSampling, backend_by_name,
 };
 pub use error::MdError;
+
+/// Cargo features this build was compiled with (programs report them in their provenance).
+pub const FEATURES: &[&str] = &[
+    #[cfg(feature = "cuda")]
+    "cuda",
+    #[cfg(feature = "mpi")]
+    "mpi",
+];
 pub use kernel::DeformMode;
 pub use lattice::{LatticeKind, Orientation};
 pub use potential::{EamFormat, LjCut, Potential};

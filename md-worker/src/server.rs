@@ -216,25 +216,14 @@ impl MdWorker for WorkerService {
 
 /// Serves on an already bound listener until `shutdown` resolves.
 pub async fn serve(listener: tokio::net::TcpListener, opts: ServeOptions, shutdown: impl std::future::Future<Output = ()>) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
-    let (mut health, health_service) = tonic_health::server::health_reporter();
-    health.set_not_serving::<MdWorkerServer<WorkerService>>().await;
-    let reflection = tonic_reflection::server::Builder::configure().register_encoded_file_descriptor_set(mscale_proto::FILE_DESCRIPTOR_SET).build_v1()?;
     let service = MdWorkerServer::new(WorkerService::new(opts)).max_decoding_message_size(wire::MAX_MESSAGE).max_encoding_message_size(wire::MAX_MESSAGE);
-    health.set_serving::<MdWorkerServer<WorkerService>>().await;
-    // The builder's tcp_nodelay covers only listeners tonic binds itself: accepted sockets of
-    // a given listener are set here. Without it, Nagle's algorithm and delayed ACKs held back
-    // a reply's last segment by ~40 ms on every other step.
-    let incoming = tonic::transport::server::TcpIncoming::from_listener(listener, true, None)?;
-    tonic::transport::Server::builder()
-        .tcp_nodelay(true)
-        .initial_stream_window_size(wire::HTTP2_STREAM_WINDOW)
-        .initial_connection_window_size(wire::HTTP2_CONNECTION_WINDOW)
-        .max_frame_size(wire::HTTP2_MAX_FRAME)
-        .http2_keepalive_interval(Some(std::time::Duration::from_secs(30)))
-        .add_service(health_service)
-        .add_service(reflection)
-        .add_service(service)
-        .serve_with_incoming_shutdown(incoming, shutdown)
-        .await?;
+    let settings = mscale_proto::server::Settings {
+        timeout: None,
+        stream_window: Some(wire::HTTP2_STREAM_WINDOW),
+        connection_window: Some(wire::HTTP2_CONNECTION_WINDOW),
+        max_frame: Some(wire::HTTP2_MAX_FRAME),
+    };
+    let router = mscale_proto::server::router(&mut mscale_proto::server::builder(&settings), service).await?;
+    router.serve_with_incoming_shutdown(mscale_proto::server::incoming(listener)?, shutdown).await?;
     Ok(())
 }

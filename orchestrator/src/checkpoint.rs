@@ -22,7 +22,6 @@ use continuum::{Particles, Simulation};
 use md_worker::{BoxResult, BoxState};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// Version of the checkpoint format; a file of another version is refused.
@@ -340,14 +339,9 @@ pub fn write(run_dir: &Path, ck: &Checkpoint) -> Result<PathBuf> {
     let dir = dir_of(run_dir);
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let path = dir.join(file_name(ck.step));
-    let tmp = dir.join(format!(".{}.tmp{}", file_name(ck.step), std::process::id()));
-    let bytes = encode(ck)?;
-    let mut f = std::fs::File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?;
-    f.write_all(&bytes).and_then(|_| f.sync_all()).with_context(|| format!("cannot write {}", tmp.display()))?;
-    drop(f);
-    std::fs::rename(&tmp, &path).with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))?;
-    // The rename itself must reach the disk before older checkpoints are removed.
-    std::fs::File::open(&dir).and_then(|d| d.sync_all()).with_context(|| format!("cannot sync {}", dir.display()))?;
+    let tmp = crate::atomic::temp_path(&path);
+    // The rename reaches the disk (the directory is synced) before older checkpoints are removed.
+    crate::atomic::write(&path, &encode(ck)?)?;
     // Temporary files of writers that died (a killed orchestrator) are removed too.
     for e in std::fs::read_dir(&dir).with_context(|| format!("cannot list {}", dir.display()))?.flatten() {
         let name = e.file_name().to_string_lossy().into_owned();

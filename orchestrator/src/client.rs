@@ -2,7 +2,8 @@
 //! cancel, fetch, health. Each call blocks on a small tokio runtime; the token for mutating
 //! calls comes from `--token-file` or `MSCALE_TOKEN`.
 
-use crate::service::{MAX_MESSAGE, for_each_string};
+use crate::service::store::{JobState, WorkerState};
+use crate::service::{MAX_MESSAGE, for_each_string, read_token};
 use anyhow::{Context, Result, bail};
 use mscale_proto::orchestrator::v1 as pb;
 use pb::orchestrator_client::OrchestratorClient;
@@ -25,14 +26,16 @@ pub struct Client {
 /// The token from `--token-file` or, without one, `MSCALE_TOKEN`.
 pub fn token(token_file: Option<&Path>) -> Result<Option<String>> {
     if let Some(f) = token_file {
-        return crate::service::read_token(f).map(Some);
+        return read_token(f).map(Some);
     }
     Ok(std::env::var("MSCALE_TOKEN").ok().map(|t| t.trim().to_string()).filter(|t| !t.is_empty()))
 }
 
-fn status_text(s: &tonic::Status) -> String {
-    format!("{} ({:?})", s.message(), s.code())
-}
+/// A call the orchestrator refused, or that failed on the way: its status, kept whole so that
+/// [`crate::exit::code_of`] can tell bad input from other failures.
+#[derive(Debug, thiserror::Error)]
+#[error("{} ({:?})", .0.message(), .0.code())]
+pub struct Refused(pub tonic::Status);
 
 impl Client {
     /// Plain HTTP/2 (for loopback).
@@ -95,23 +98,23 @@ impl Client {
             scene_file: scene_path.display().to_string(),
         };
         let req = self.authorized(req)?;
-        let r = self.rt.block_on(self.inner.submit_job(req)).map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?;
+        let r = self.rt.block_on(self.inner.submit_job(req)).map_err(Refused)?;
         Ok(r.into_inner().job_id)
     }
 
     pub fn get(&mut self, id: &str) -> Result<pb::Job> {
-        let r = self.rt.block_on(self.inner.get_job(pb::GetJobRequest { job_id: id.into() })).map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?;
+        let r = self.rt.block_on(self.inner.get_job(pb::GetJobRequest { job_id: id.into() })).map_err(Refused)?;
         Ok(r.into_inner())
     }
 
     pub fn list(&mut self) -> Result<Vec<pb::Job>> {
-        let r = self.rt.block_on(self.inner.list_jobs(pb::ListJobsRequest {})).map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?;
+        let r = self.rt.block_on(self.inner.list_jobs(pb::ListJobsRequest {})).map_err(Refused)?;
         Ok(r.into_inner().jobs)
     }
 
     pub fn cancel(&mut self, id: &str) -> Result<pb::Job> {
         let req = self.authorized(pb::CancelJobRequest { job_id: id.into() })?;
-        let r = self.rt.block_on(self.inner.cancel_job(req)).map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?;
+        let r = self.rt.block_on(self.inner.cancel_job(req)).map_err(Refused)?;
         Ok(r.into_inner())
     }
 
@@ -138,16 +141,16 @@ impl Client {
             let mut pause = Duration::from_millis(100);
             loop {
                 let why = match inner.watch_job(pb::WatchJobRequest { job_id: id.into(), after_sequence: after }).await {
-                    Err(s) if !retryable(&s) => bail!("{}", status_text(&s)),
-                    Err(s) => status_text(&s),
+                    Err(s) if !retryable(&s) => return Err(Refused(s).into()),
+                    Err(s) => Refused(s).to_string(),
                     Ok(r) => {
                         let mut stream = r.into_inner();
                         loop {
                             let ev = match stream.message().await {
                                 Ok(Some(ev)) => ev,
                                 Ok(None) => break "the stream ended before the job did".to_string(),
-                                Err(s) if !retryable(&s) => bail!("{}", status_text(&s)),
-                                Err(s) => break status_text(&s),
+                                Err(s) if !retryable(&s) => return Err(Refused(s).into()),
+                                Err(s) => break Refused(s).to_string(),
                             };
                             // An orchestrator that numbers no events (older, or a job stored
                             // before numbering): nothing to check.
@@ -194,8 +197,8 @@ impl Client {
         let mut writer = RunWriter::new(out)?;
         let mut inner = self.inner.clone();
         self.rt.block_on(async move {
-            let mut stream = inner.fetch_run(pb::FetchRunRequest { job_id: id.into(), chunk_bytes: 0 }).await.map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?.into_inner();
-            while let Some(c) = stream.message().await.map_err(|s| anyhow::anyhow!("fetch of job {id}: {}", status_text(&s)))? {
+            let mut stream = inner.fetch_run(pb::FetchRunRequest { job_id: id.into(), chunk_bytes: 0 }).await.map_err(Refused)?.into_inner();
+            while let Some(c) = stream.message().await.map_err(Refused).with_context(|| format!("fetch of job {id}"))? {
                 writer.chunk(&c)?;
             }
             writer.finish()
@@ -203,7 +206,7 @@ impl Client {
     }
 
     pub fn fetch(&mut self, id: &str, file: &str) -> Result<Vec<u8>> {
-        let r = self.rt.block_on(self.inner.fetch_result(pb::FetchResultRequest { job_id: id.into(), path: file.into() })).map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?.into_inner();
+        let r = self.rt.block_on(self.inner.fetch_result(pb::FetchResultRequest { job_id: id.into(), path: file.into() })).map_err(Refused)?.into_inner();
         let actual = hex::encode(Sha256::digest(&r.content));
         anyhow::ensure!(actual == r.sha256, "{file} arrived damaged: SHA-256 {actual}, sent as {}", r.sha256);
         Ok(r.content)
@@ -211,14 +214,14 @@ impl Client {
 
     /// Registered workers, oldest registration first.
     pub fn workers(&mut self) -> Result<Vec<pb::Worker>> {
-        let r = self.rt.block_on(self.inner.list_workers(pb::ListWorkersRequest {})).map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?;
+        let r = self.rt.block_on(self.inner.list_workers(pb::ListWorkersRequest {})).map_err(Refused)?;
         Ok(r.into_inner().workers)
     }
 
     /// The worker gets no new jobs.
     pub fn drain(&mut self, worker: &str) -> Result<pb::Worker> {
         let req = self.authorized(pb::DrainWorkerRequest { worker_id: worker.into() })?;
-        let r = self.rt.block_on(self.inner.drain_worker(req)).map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?;
+        let r = self.rt.block_on(self.inner.drain_worker(req)).map_err(Refused)?;
         Ok(r.into_inner())
     }
 
@@ -240,7 +243,7 @@ impl Client {
         let r = self
             .rt
             .block_on(h.check(tonic_health::pb::HealthCheckRequest { service: "mscale.orchestrator.v1.Orchestrator".into() }))
-            .map_err(|s| anyhow::anyhow!("{}", status_text(&s)))?
+            .map_err(Refused)?
             .into_inner();
         Ok(format!("{:?}", tonic_health::pb::health_check_response::ServingStatus::try_from(r.status).unwrap_or_default()).to_uppercase())
     }
@@ -327,11 +330,7 @@ impl RunWriter {
                 p.file.sync_all().with_context(|| format!("cannot write {}", p.tmp.display()))?;
                 let on_disk = hex::encode(Sha256::digest(std::fs::read(&p.tmp).with_context(|| format!("cannot read back {}", p.tmp.display()))?));
                 anyhow::ensure!(on_disk == c.sha256, "{} reads back with SHA-256 {on_disk}, not {}", p.tmp.display(), c.sha256);
-                std::fs::rename(&p.tmp, &p.dest).with_context(|| format!("cannot rename {} to {}", p.tmp.display(), p.dest.display()))?;
-                if let Some(dir) = p.dest.parent() {
-                    std::fs::File::open(dir).and_then(|d| d.sync_all()).with_context(|| format!("cannot sync {}", dir.display()))?;
-                }
-                Ok(())
+                crate::atomic::commit(&p.tmp, &p.dest)
             })();
             if result.is_err() {
                 let _ = std::fs::remove_file(&p.tmp);
@@ -376,15 +375,9 @@ impl Drop for RunWriter {
     }
 }
 
+/// A job state's name (`queued`, ...; the job store's), `unknown` for none.
 pub fn state_name(state: i32) -> &'static str {
-    match pb::JobState::try_from(state) {
-        Ok(pb::JobState::Queued) => "queued",
-        Ok(pb::JobState::Running) => "running",
-        Ok(pb::JobState::Completed) => "completed",
-        Ok(pb::JobState::Failed) => "failed",
-        Ok(pb::JobState::Cancelled) => "cancelled",
-        _ => "unknown",
-    }
+    pb::JobState::try_from(state).ok().and_then(|s| JobState::try_from(s).ok()).map_or("unknown", JobState::as_str)
 }
 
 pub fn is_final(ev: &pb::JobEvent) -> bool {
@@ -450,70 +443,6 @@ mod tests {
 
 // ---- the verbs, as `mscale` runs them (each returns its exit code) ----
 
-/// The worker pool options of `mscale serve`.
-#[derive(Debug, Clone, Copy)]
-pub struct PoolOptions {
-    /// `md-worker serve` processes to start here.
-    pub local_workers: usize,
-    /// Seconds without a heartbeat after which a worker is declared lost.
-    pub worker_timeout_s: f64,
-    /// Bound on each call to a worker (`--step-deadline`).
-    pub step_deadline: md_worker::recovery::StepDeadline,
-}
-
-/// `mscale serve`.
-pub fn serve(state: PathBuf, listen: String, token_file: Option<PathBuf>, checkpoint_every: u64, tls: Option<(PathBuf, PathBuf)>, pool: PoolOptions) -> Result<i32> {
-    anyhow::ensure!(pool.worker_timeout_s.is_finite() && pool.worker_timeout_s > 0.0, "--worker-timeout {} must be a positive number of seconds", pool.worker_timeout_s);
-    let token = match &token_file {
-        Some(f) => crate::service::read_token(f)?,
-        None => generated_token(&state)?,
-    };
-    let token_file = token_file.unwrap_or_else(|| state.join("token"));
-    let local_ca = tls.as_ref().map(|t| t.0.clone());
-    let tls = match tls {
-        Some((cert, key)) => {
-            let read = |p: &Path| std::fs::read(p).with_context(|| format!("cannot read {}", p.display()));
-            Some((read(&cert)?, read(&key)?))
-        }
-        None => None,
-    };
-    crate::service::serve(crate::service::ServeOptions {
-        state_dir: state,
-        listen,
-        token,
-        checkpoint_every,
-        tls,
-        local_workers: pool.local_workers,
-        token_file,
-        local_ca,
-        worker_timeout: std::time::Duration::from_secs_f64(pool.worker_timeout_s),
-        step_deadline: pool.step_deadline,
-    })?;
-    Ok(crate::exit::OK)
-}
-
-/// The token in `<state>/token`, generated (256 bits from the OS, mode 0600) when missing.
-fn generated_token(state: &Path) -> Result<String> {
-    use std::io::Read;
-    let path = state.join("token");
-    if path.exists() {
-        return crate::service::read_token(&path);
-    }
-    std::fs::create_dir_all(state).with_context(|| format!("cannot create {}", state.display()))?;
-    let mut bytes = [0u8; 32];
-    std::fs::File::open("/dev/urandom").and_then(|mut f| f.read_exact(&mut bytes)).context("cannot read /dev/urandom for a token")?;
-    let token = hex::encode(bytes);
-    {
-        use std::io::Write;
-        use std::os::unix::fs::OpenOptionsExt;
-        let mut f = std::fs::OpenOptions::new().write(true).create_new(true).mode(0o600).open(&path).with_context(|| format!("cannot create {}", path.display()))?;
-        f.write_all(token.as_bytes())?;
-        f.sync_all()?;
-    }
-    tracing::info!("generated a bearer token in {} (pass it with --token-file)", path.display());
-    Ok(token)
-}
-
 static CA_FILE: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
 
 /// Makes the client verbs connect over TLS, trusting this PEM certificate authority
@@ -529,17 +458,8 @@ fn ca_file() -> Option<PathBuf> {
 /// `mscale submit`.
 pub fn submit(server: &str, token_file: Option<&Path>, scene: &Path, sets: &[String], priority: i32, checkpoint_every: u64) -> Result<i32> {
     let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
-    match c.submit(scene, sets, priority, checkpoint_every) {
-        Ok(id) => {
-            println!("{id}");
-            Ok(crate::exit::OK)
-        }
-        Err(e) if e.to_string().contains("InvalidArgument") => {
-            eprintln!("mscale: {e:#}");
-            Ok(crate::exit::BAD_INPUT)
-        }
-        Err(e) => Err(e),
-    }
+    println!("{}", c.submit(scene, sets, priority, checkpoint_every)?);
+    Ok(crate::exit::OK)
 }
 
 fn line(j: &pb::Job) -> String {
@@ -548,13 +468,9 @@ fn line(j: &pb::Job) -> String {
     format!("{}  {:<9} {:<20} step {}/{}  t = {:.4e} s  priority {}{}{digest}{error}", j.id, state_name(j.state), j.scene, j.step, j.steps, j.sim_time_s, j.priority, if j.resumes > 0 { format!("  resumed {}x", j.resumes) } else { String::new() })
 }
 
+/// A worker state's name (`live`, `draining`, `lost`), `unknown` for none.
 pub fn worker_state_name(state: i32) -> &'static str {
-    match pb::WorkerState::try_from(state) {
-        Ok(pb::WorkerState::Live) => "live",
-        Ok(pb::WorkerState::Draining) => "draining",
-        Ok(pb::WorkerState::Lost) => "lost",
-        _ => "unknown",
-    }
+    pb::WorkerState::try_from(state).ok().and_then(|s| WorkerState::try_from(s).ok()).map_or("unknown", WorkerState::as_str)
 }
 
 fn worker_line(w: &pb::Worker) -> String {
@@ -684,7 +600,7 @@ pub fn fetch(server: &str, token_file: Option<&Path>, job: &str, file: Option<&s
         return Ok(crate::exit::OK);
     };
     let bytes = c.fetch(job, file)?;
-    crate::output::write_atomic(out, &bytes)?;
+    crate::atomic::write(out, &bytes)?;
     println!("{} bytes into {}", bytes.len(), out.display());
     Ok(crate::exit::OK)
 }

@@ -4,8 +4,10 @@
 //! constitutive-law scene builds no MD engine). The `mscale` binary is a thin layer over this
 //! library, so tests drive the same code users do.
 
+pub mod atomic;
 pub mod checkpoint;
 pub mod client;
+pub mod exit;
 pub mod md;
 pub mod output;
 pub mod report;
@@ -13,18 +15,7 @@ pub mod run;
 pub mod scene;
 pub mod service;
 pub mod setup;
-pub mod store;
-pub mod workers;
 
-/// Cargo features this binary was built with (reported in provenance).
-pub const FEATURES: &[&str] = &[];
-
-/// Exit codes of `mscale`.
-pub mod exit {
-    /// The run completed.
-    pub const OK: i32 = 0;
-    /// A run that failed: instability, lost worker, cancelled.
-    pub const RUN_FAILED: i32 = 1;
-    /// Bad usage or bad input.
-    pub const BAD_INPUT: i32 = 2;
-}
+/// Cargo features this binary was built with (reported in provenance): orchestrator has none
+/// of its own; those of the MD engine it runs in-process (`cuda`, `mpi`).
+pub const FEATURES: &[&str] = md_worker::FEATURES;

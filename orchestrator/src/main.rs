@@ -46,7 +46,7 @@ enum Command {
         /// State directory: the job store (jobs.sqlite), job inputs and run directories.
         #[arg(long = "state", visible_alias = "state-dir", value_name = "DIR")]
         state: PathBuf,
-        /// Address to listen on (loopback only: this build has no TLS).
+        /// Address to listen on: a loopback address, or any with --tls-cert and --tls-key.
         #[arg(long, default_value = orchestrator::client::DEFAULT_SERVER)]
         listen: String,
         /// File holding the bearer token of mutating calls (default: one is generated into <state>/token).
@@ -66,7 +66,7 @@ enum Command {
         #[arg(long, value_name = "N", default_value_t = 0)]
         local_workers: usize,
         /// Declare a worker lost after this many seconds without a heartbeat.
-        #[arg(long, value_name = "SECONDS", default_value_t = orchestrator::workers::DEFAULT_TIMEOUT_S)]
+        #[arg(long, value_name = "SECONDS", default_value_t = orchestrator::service::workers::DEFAULT_TIMEOUT_S)]
         worker_timeout: f64,
         /// Bound on each call to a worker: `auto` (max(60 s, 10x the call's expected time at the
         /// worker's measured throughput)) or SECONDS. A worker past it is lost and its boxes are
@@ -226,8 +226,8 @@ fn main() -> ExitCode {
 fn dispatch(cli: Cli) -> i32 {
     match cli.command {
         Command::Serve { state, listen, token_file, checkpoint_every, tls_cert, tls_key, local_workers, worker_timeout, step_deadline } => {
-            let pool = orchestrator::client::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline };
-            report(orchestrator::client::serve(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key), pool))
+            let pool = orchestrator::service::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline };
+            report(orchestrator::service::serve_command(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key), pool))
         }
         Command::Workers { conn } => report(conn.ca().and_then(|_| orchestrator::client::workers(&conn.server, conn.token_file.as_deref()))),
         Command::Drain { worker, conn } => report(conn.ca().and_then(|_| orchestrator::client::drain(&conn.server, conn.token_file.as_deref(), &worker))),
@@ -335,20 +335,17 @@ fn dispatch(cli: Cli) -> i32 {
                     eprintln!("mscale: the run failed: {why}\n(outputs so far are in {})", out.display());
                     exit::RUN_FAILED
                 }
-                Err(e) => {
-                    let bad_input = e.downcast_ref::<orchestrator::setup::SetupError>().is_some_and(|s| matches!(s, orchestrator::setup::SetupError::EmptyBody(_) | orchestrator::setup::SetupError::MdUnavailable(_)));
-                    eprintln!("mscale: {e:#}");
-                    if bad_input { exit::BAD_INPUT } else { exit::RUN_FAILED }
-                }
+                Err(e) => report(Err(e)),
             }
         }
     }
 }
 
-/// Exit code of a client verb: its own, or 1 with the error chain printed once.
+/// Exit code of a verb: its own, or with the error chain printed once, [`exit::code_of`] the
+/// error (2 for bad input, 1 otherwise).
 fn report(r: anyhow::Result<i32>) -> i32 {
     r.unwrap_or_else(|e| {
         eprintln!("mscale: {e:#}");
-        exit::RUN_FAILED
+        exit::code_of(&e)
     })
 }

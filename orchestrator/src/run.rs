@@ -116,23 +116,8 @@ fn md_shared(loaded: &LoadedScene, opts: &RunOptions) -> Result<Option<Arc<Mutex
 
 /// Default run directory: `runs/<scene>-<UTC timestamp>`.
 pub fn default_out_dir(scene: &Scene) -> PathBuf {
-    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
-    let (days, rem) = (secs / 86400, secs % 86400);
-    let (y, m, d) = civil_from_days(days as i64);
-    PathBuf::from("runs").join(format!("{}-{y:04}{m:02}{d:02}T{:02}{:02}{:02}Z", scene.name, rem / 3600, rem % 3600 / 60, rem % 60))
-}
-
-/// Gregorian date of a day count since 1970-01-01 (H. Hinnant's algorithm).
-fn civil_from_days(z: i64) -> (i64, u32, u32) {
-    let z = z + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
-    (yoe + era * 400 + i64::from(m <= 2), m, d)
+    let t = time::OffsetDateTime::now_utc();
+    PathBuf::from("runs").join(format!("{}-{:04}{:02}{:02}T{:02}{:02}{:02}Z", scene.name, t.year(), u8::from(t.month()), t.day(), t.hour(), t.minute(), t.second()))
 }
 
 pub fn run(loaded: &LoadedScene, opts: &RunOptions) -> Result<Outcome> {
@@ -507,6 +492,16 @@ fn summary<const D: usize>(
         Some(m) => format!("md: {} on {}", m.pool.kinds().join(", "), m.pool.endpoint_names().join(", ")),
         None => "none (constitutive laws only)".into(),
     };
+    // The continuum is f64 throughout; MD boxes in the precision their back ends report.
+    let precision = match &md {
+        Some(m) => {
+            let mut md_precisions: Vec<String> = m.pool.kinds().iter().map(|k| k.rsplit('/').next().unwrap_or(k).to_string()).collect();
+            md_precisions.sort();
+            md_precisions.dedup();
+            format!("continuum f64, md {}", md_precisions.join(", "))
+        }
+        None => "f64".into(),
+    };
     let scene = &loaded.scene;
     let (init, now) = (sim.initial, sim.totals());
     let energy_scale = init.energy().abs().max(max_kinetic).max(f64::MIN_POSITIVE);
@@ -560,7 +555,7 @@ fn summary<const D: usize>(
             "commit": option_env!("MSCALE_COMMIT").unwrap_or("unknown"),
             "features": crate::FEATURES,
             "backend": backend,
-            "precision": "f64",
+            "precision": precision,
             "inputs": inputs,
         },
         "command_line": opts.command_line,

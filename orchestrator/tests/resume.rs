@@ -57,7 +57,8 @@ fn same_state(a: &Value, b: &Value) {
 /// Runs `scene` once straight through and once with checkpoints; resumes a copy of the
 /// checkpointed run from its newest checkpoint and another copy from the previous one (the
 /// newest cut in half); all three end in the same state.
-fn resume_matches(scene: &str, sets: &[&str], every: &str) {
+/// Returns the summary of the uninterrupted run.
+fn resume_matches(scene: &str, sets: &[&str], every: &str) -> Value {
     let tmp = tempfile::tempdir().unwrap();
     let straight = tmp.path().join("straight");
     let with_sets = |mut a: Vec<String>| {
@@ -99,18 +100,27 @@ fn resume_matches(scene: &str, sets: &[&str], every: &str) {
     let log = String::from_utf8_lossy(&out.stderr);
     assert!(log.contains("damaged") && log.contains("previous checkpoint"), "the fallback is not logged: {log}");
     same_state(&reference, &summary(&fallback));
+    reference
+}
+
+/// The provenance names the precision used and the cargo features compiled in.
+fn provenance_is_truthful(s: &Value, precision: &str) {
+    assert_eq!(s["provenance"]["precision"], precision, "{}", s["provenance"]);
+    assert_eq!(s["provenance"]["features"], serde_json::json!(md_worker::FEATURES), "{}", s["provenance"]);
 }
 
 #[test]
 fn constitutive_run_resumes_to_the_same_digest() {
     // 25 steps; checkpoints after steps 15 and 20 are kept.
-    resume_matches(SMALL, &[], "5");
+    let s = resume_matches(SMALL, &[], "5");
+    provenance_is_truthful(&s, "f64");
 }
 
 #[test]
 fn md_run_resumes_to_the_same_digest() {
     // 5 steps of 6 boxes; checkpoints after steps 2 and 4.
-    resume_matches(MD_SMALL, &[], "2");
+    let s = resume_matches(MD_SMALL, &[], "2");
+    provenance_is_truthful(&s, "continuum f64, md double");
 }
 
 #[test]

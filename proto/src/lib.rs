@@ -14,6 +14,9 @@ pub mod coupling {
 /// Hand-written codecs of the `Step` messages (the coupling's hot path).
 pub mod fast;
 
+/// The gRPC server set-up both servers share.
+pub mod server;
+
 /// The job service of `mscale serve`.
 pub mod orchestrator {
     pub mod v1 {

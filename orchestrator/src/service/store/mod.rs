@@ -15,10 +15,15 @@
 
 use anyhow::{Context, Result};
 use rusqlite::{Connection, OptionalExtension, params};
+pub use schema::SCHEMA_VERSION;
+use schema::migrations;
 use std::path::Path;
 
-/// Where a job is in its life.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+mod schema;
+
+/// Where a job is in its life (stored as its lowercase name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, strum::IntoStaticStr, strum::EnumString)]
+#[strum(serialize_all = "lowercase")]
 pub enum JobState {
     Queued,
     Running,
@@ -29,24 +34,11 @@ pub enum JobState {
 
 impl JobState {
     pub fn as_str(self) -> &'static str {
-        match self {
-            JobState::Queued => "queued",
-            JobState::Running => "running",
-            JobState::Completed => "completed",
-            JobState::Failed => "failed",
-            JobState::Cancelled => "cancelled",
-        }
+        self.into()
     }
 
     pub fn parse(s: &str) -> Result<Self> {
-        Ok(match s {
-            "queued" => JobState::Queued,
-            "running" => JobState::Running,
-            "completed" => JobState::Completed,
-            "failed" => JobState::Failed,
-            "cancelled" => JobState::Cancelled,
-            other => anyhow::bail!("unknown job state {other:?} in the store"),
-        })
+        s.parse().map_err(|_| anyhow::anyhow!("unknown job state {s:?} in the store"))
     }
 
     pub fn is_final(self) -> bool {
@@ -54,8 +46,9 @@ impl JobState {
     }
 }
 
-/// Where a worker is in its life.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Where a worker is in its life (stored as its lowercase name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, strum::IntoStaticStr, strum::EnumString)]
+#[strum(serialize_all = "lowercase")]
 pub enum WorkerState {
     Live,
     Draining,
@@ -64,20 +57,11 @@ pub enum WorkerState {
 
 impl WorkerState {
     pub fn as_str(self) -> &'static str {
-        match self {
-            WorkerState::Live => "live",
-            WorkerState::Draining => "draining",
-            WorkerState::Lost => "lost",
-        }
+        self.into()
     }
 
     pub fn parse(s: &str) -> Result<Self> {
-        Ok(match s {
-            "live" => WorkerState::Live,
-            "draining" => WorkerState::Draining,
-            "lost" => WorkerState::Lost,
-            other => anyhow::bail!("unknown worker state {other:?} in the store"),
-        })
+        s.parse().map_err(|_| anyhow::anyhow!("unknown worker state {s:?} in the store"))
     }
 }
 
@@ -141,8 +125,9 @@ pub struct JobRecord {
     pub resumes: u32,
 }
 
-/// What a job event reports.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// What a job event reports (stored as its lowercase name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, strum::IntoStaticStr, strum::EnumString)]
+#[strum(serialize_all = "lowercase")]
 pub enum EventKind {
     /// The job's state changed.
     State,
@@ -155,22 +140,11 @@ pub enum EventKind {
 
 impl EventKind {
     pub fn as_str(self) -> &'static str {
-        match self {
-            EventKind::State => "state",
-            EventKind::Progress => "progress",
-            EventKind::Checkpoint => "checkpoint",
-            EventKind::Workers => "workers",
-        }
+        self.into()
     }
 
     pub fn parse(s: &str) -> Result<Self> {
-        Ok(match s {
-            "state" => EventKind::State,
-            "progress" => EventKind::Progress,
-            "checkpoint" => EventKind::Checkpoint,
-            "workers" => EventKind::Workers,
-            other => anyhow::bail!("unknown event kind {other:?} in the store"),
-        })
+        s.parse().map_err(|_| anyhow::anyhow!("unknown event kind {s:?} in the store"))
     }
 }
 
@@ -242,70 +216,9 @@ impl Store {
     pub fn open(state_dir: &Path) -> Result<Self> {
         std::fs::create_dir_all(state_dir).with_context(|| format!("cannot create the state directory {}", state_dir.display()))?;
         let path = state_dir.join("jobs.sqlite");
-        let db = Connection::open(&path).with_context(|| format!("cannot open the job store {}", path.display()))?;
-        db.execute_batch(
-            "PRAGMA journal_mode = WAL;
-             PRAGMA synchronous = FULL;
-             CREATE TABLE IF NOT EXISTS jobs (
-                 seq INTEGER PRIMARY KEY AUTOINCREMENT,
-                 id TEXT NOT NULL UNIQUE,
-                 scene TEXT NOT NULL,
-                 state TEXT NOT NULL,
-                 priority INTEGER NOT NULL,
-                 overrides TEXT NOT NULL,
-                 checkpoint_every INTEGER NOT NULL,
-                 step INTEGER NOT NULL DEFAULT 0,
-                 steps INTEGER NOT NULL DEFAULT 0,
-                 sim_time REAL NOT NULL DEFAULT 0,
-                 error TEXT NOT NULL DEFAULT '',
-                 state_digest TEXT NOT NULL DEFAULT '',
-                 submitted INTEGER NOT NULL,
-                 started INTEGER NOT NULL DEFAULT 0,
-                 finished INTEGER NOT NULL DEFAULT 0,
-                 resumes INTEGER NOT NULL DEFAULT 0
-             );
-             CREATE TABLE IF NOT EXISTS history (
-                 job_id TEXT NOT NULL,
-                 at INTEGER NOT NULL,
-                 state TEXT NOT NULL,
-                 note TEXT NOT NULL
-             );
-             CREATE TABLE IF NOT EXISTS workers (
-                 epoch INTEGER PRIMARY KEY AUTOINCREMENT,
-                 address TEXT NOT NULL,
-                 device TEXT NOT NULL,
-                 backend TEXT NOT NULL,
-                 precision TEXT NOT NULL,
-                 cores INTEGER NOT NULL,
-                 memory_bytes INTEGER NOT NULL,
-                 atom_steps_per_s REAL NOT NULL,
-                 throughput_source TEXT NOT NULL,
-                 protocol_version INTEGER NOT NULL,
-                 state TEXT NOT NULL,
-                 registered INTEGER NOT NULL,
-                 note TEXT NOT NULL DEFAULT ''
-             );
-             CREATE TABLE IF NOT EXISTS events (
-                 job_id TEXT NOT NULL,
-                 seq INTEGER NOT NULL,
-                 kind TEXT NOT NULL,
-                 at INTEGER NOT NULL,
-                 state TEXT NOT NULL,
-                 step INTEGER NOT NULL,
-                 steps INTEGER NOT NULL,
-                 sim_time REAL NOT NULL,
-                 message TEXT NOT NULL,
-                 detail BLOB NOT NULL,
-                 PRIMARY KEY (job_id, seq)
-             ) WITHOUT ROWID;
-             CREATE TABLE IF NOT EXISTS worker_history (
-                 epoch INTEGER NOT NULL,
-                 at INTEGER NOT NULL,
-                 state TEXT NOT NULL,
-                 note TEXT NOT NULL
-             );",
-        )
-        .with_context(|| format!("cannot set up the job store {}", path.display()))?;
+        let mut db = Connection::open(&path).with_context(|| format!("cannot open the job store {}", path.display()))?;
+        db.execute_batch("PRAGMA journal_mode = WAL; PRAGMA synchronous = FULL;").with_context(|| format!("cannot set up the job store {}", path.display()))?;
+        migrations().to_latest(&mut db).with_context(|| format!("cannot bring the job store {} to schema version {SCHEMA_VERSION}", path.display()))?;
         Ok(Store { db, retained_progress: RETAINED_PROGRESS_EVENTS })
     }
 
@@ -571,108 +484,27 @@ fn append_event(tx: &rusqlite::Transaction<'_>, id: &str, kind: EventKind, messa
     Ok(EventRecord { job_id: id.to_string(), seq: seq as u64, kind, at, state, step: step as u64, steps: steps as u64, sim_time, message: message.to_string(), detail: detail.to_vec() })
 }
 
+/// A job as the store's tests and the service's tests insert it.
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn job(id: &str, priority: i32) -> JobRecord {
-        JobRecord {
-            id: id.into(),
-            scene: "s".into(),
-            state: JobState::Queued,
-            priority,
-            overrides: vec!["a.b=1".into()],
-            checkpoint_every: 10,
-            step: 0,
-            steps: 100,
-            sim_time: 0.0,
-            error: String::new(),
-            state_digest: String::new(),
-            submitted: now_unix(),
-            started: 0,
-            finished: 0,
-            resumes: 0,
-        }
-    }
-
-    #[test]
-    fn priority_order_restart_and_history() {
-        let dir = tempfile::tempdir().unwrap();
-        {
-            let mut s = Store::open(dir.path()).unwrap();
-            s.insert(&job("a", 0)).unwrap();
-            s.insert(&job("b", 5)).unwrap();
-            s.insert(&job("c", 5)).unwrap();
-            assert_eq!(s.next_queued().unwrap().unwrap().id, "b");
-            assert!(s.transition("b", JobState::Running, "", "").unwrap());
-            assert_eq!(s.next_queued().unwrap().unwrap().id, "c");
-            assert!(s.transition("a", JobState::Cancelled, "cancelled by a user", "").unwrap());
-            assert!(!s.transition("a", JobState::Running, "", "").unwrap(), "a final state is final");
-        }
-        // Reopened as after a crash: the running job is queued again, with a resume counted.
-        let mut s = Store::open(dir.path()).unwrap();
-        assert_eq!(s.requeue_interrupted().unwrap(), vec!["b".to_string()]);
-        let b = s.get("b").unwrap().unwrap();
-        assert_eq!((b.state, b.resumes, b.overrides.clone()), (JobState::Queued, 1, vec!["a.b=1".to_string()]));
-        assert_eq!(s.get("a").unwrap().unwrap().state, JobState::Cancelled);
-        let states: Vec<String> = s.history("b").unwrap().into_iter().map(|h| h.1).collect();
-        assert_eq!(states, vec!["queued", "running", "queued"]);
-    }
-
-    #[test]
-    fn events_are_numbered_without_gaps_across_a_restart_and_old_progress_is_pruned() {
-        let dir = tempfile::tempdir().unwrap();
-        {
-            let mut s = Store::open(dir.path()).unwrap();
-            s.set_progress_retention(300);
-            s.insert(&job("a", 0)).unwrap();
-            assert!(s.transition("a", JobState::Running, "started", "").unwrap());
-            for k in 1..=600 {
-                let kind = if k % 100 == 0 { EventKind::Checkpoint } else { EventKind::Progress };
-                let e = s.progress_event("a", kind, k, 1000, k as f64, "", b"d").unwrap();
-                assert_eq!((e.seq, e.step, e.state), (k + 2, k, JobState::Running));
-            }
-        }
-        // Reopened as after a crash: the numbering goes on after the newest event.
-        let mut s = Store::open(dir.path()).unwrap();
-        s.requeue_interrupted().unwrap();
-        assert_eq!(s.last_sequence("a").unwrap(), 603);
-        let e = s.transition_event("a", JobState::Cancelled, "cancelled", "", b"x").unwrap().unwrap();
-        assert_eq!((e.seq, e.state, e.detail.as_slice()), (604, JobState::Cancelled, &b"x"[..]));
-        let all = s.events_after("a", 0, 10_000).unwrap();
-        let seqs: Vec<u64> = all.iter().map(|e| e.seq).collect();
-        // Pruned at seq 512: progress events up to 512 - 300 = 212 are gone, the others kept.
-        assert_eq!(&seqs[..2], &[1, 2]);
-        assert!(all.iter().filter(|e| e.seq <= 212).all(|e| e.kind != EventKind::Progress), "old progress kept");
-        assert!(seqs.contains(&102) && seqs.contains(&202), "checkpoint events are never pruned: {:?}", &seqs[..5]);
-        assert!(seqs.windows(2).filter(|w| w[0] >= 212).all(|w| w[1] == w[0] + 1), "recent events have a hole");
-        assert_eq!(all.last().map(|e| (e.seq, e.kind)), Some((604, EventKind::State)));
-        assert_eq!(s.events_after("a", 600, 2).unwrap().iter().map(|e| e.seq).collect::<Vec<_>>(), vec![601, 602]);
-        assert_eq!(s.events_after("a", 604, 10).unwrap().len(), 0);
-        let states: Vec<(JobState, String)> = all.iter().filter(|e| e.kind == EventKind::State).map(|e| (e.state, e.message.clone())).collect();
-        assert_eq!(states.iter().map(|s| s.0).collect::<Vec<_>>(), vec![JobState::Queued, JobState::Running, JobState::Queued, JobState::Cancelled]);
-    }
-
-    #[test]
-    fn workers_get_a_new_epoch_per_registration_and_lost_is_final() {
-        let dir = tempfile::tempdir().unwrap();
-        let ad = |addr: &str| WorkerAd { address: addr.into(), backend: "cpu".into(), precision: "double".into(), atom_steps_per_s: 1e6, protocol_version: 1, ..Default::default() };
-        let mut s = Store::open(dir.path()).unwrap();
-        let (a, replaced) = s.register_worker(&ad("127.0.0.1:1")).unwrap();
-        assert!(replaced.is_empty());
-        let (b, _) = s.register_worker(&ad("127.0.0.1:2")).unwrap();
-        assert!(b.epoch > a.epoch && a.id != b.id);
-        assert!(s.set_worker_state(a.epoch, WorkerState::Draining, "drained by a user").unwrap());
-        // The same address again: a new worker; the old registration is lost for good.
-        let (c, replaced) = s.register_worker(&ad("127.0.0.1:1")).unwrap();
-        assert_eq!(replaced, vec![a.id.clone()]);
-        assert!(c.epoch > b.epoch);
-        assert!(!s.set_worker_state(a.epoch, WorkerState::Live, "").unwrap(), "lost is final");
-        drop(s);
-        let s = Store::open(dir.path()).unwrap();
-        let states: Vec<(String, WorkerState)> = s.workers().unwrap().into_iter().map(|w| (w.id, w.state)).collect();
-        assert_eq!(states, vec![(a.id.clone(), WorkerState::Lost), (b.id, WorkerState::Live), (c.id, WorkerState::Live)]);
-        let h: Vec<String> = s.worker_history(a.epoch).unwrap().into_iter().map(|h| h.1).collect();
-        assert_eq!(h, vec!["live", "draining", "lost"]);
+pub(crate) fn test_job(id: &str, priority: i32) -> JobRecord {
+    JobRecord {
+        id: id.into(),
+        scene: "s".into(),
+        state: JobState::Queued,
+        priority,
+        overrides: vec!["a.b=1".into()],
+        checkpoint_every: 10,
+        step: 0,
+        steps: 100,
+        sim_time: 0.0,
+        error: String::new(),
+        state_digest: String::new(),
+        submitted: now_unix(),
+        started: 0,
+        finished: 0,
+        resumes: 0,
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -12,11 +12,15 @@
 //! state change); heartbeats only touch memory. After an orchestrator restart, registrations
 //! that were live get one timeout's grace to heartbeat again.
 
-use crate::store::{Store, WorkerAd, WorkerRecord, WorkerState, now_unix};
+use super::error::JobError;
+use super::shared::{Core, lock};
+use super::store::{Store, WorkerAd, WorkerRecord, WorkerState, now_unix};
 use anyhow::{Context, Result};
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 /// Default time without a heartbeat after which a worker is declared lost (s).
@@ -34,7 +38,7 @@ pub enum WorkerError {
     #[error("{0}")]
     NotFound(String),
     /// INTERNAL.
-    #[error("{0:#}")]
+    #[error(transparent)]
     Store(#[from] anyhow::Error),
 }
 
@@ -305,6 +309,56 @@ fn die_with_parent(cmd: &mut Command) {
 
 #[cfg(not(target_os = "linux"))]
 fn die_with_parent(_: &mut Command) {}
+
+/// Declares silent workers lost, every fraction of the timeout, until the orchestrator stops;
+/// a call in flight on one is aborted (its boxes are replayed on the others), or where the job
+/// has no abort handle for it, the job checkpoints and moves off it.
+pub(crate) fn monitor(core: Arc<Core>) {
+    let period = (lock(&core.workers).timeout() / 4).clamp(Duration::from_millis(50), Duration::from_millis(500));
+    while !core.stopping.load(Ordering::SeqCst) {
+        std::thread::sleep(period);
+        let mut reg = lock(&core.workers);
+        for (epoch, silent) in reg.expired() {
+            let why = format!("no heartbeat for {:.1} s (the worker timeout is {:.1} s)", silent.as_secs_f64(), reg.timeout().as_secs_f64());
+            match reg.declare_lost(&mut lock(&core.store), epoch, &why) {
+                Ok(true) => {
+                    let abort = reg.get(epoch).and_then(|w| lock(&core.aborts).get(&w.ad.address).cloned());
+                    if let Some(h) = abort {
+                        tracing::warn!("aborting the MD calls on the lost worker w{epoch}: its boxes are replayed on the job's other workers");
+                        h.abort(&why);
+                    } else if let Some(run) = lock(&core.running).as_ref().filter(|r| r.workers.contains(&epoch)) {
+                        tracing::warn!("job {}: moves off the lost worker w{epoch} (checkpoint after this step)", run.id);
+                        run.reassign.store(true, Ordering::SeqCst);
+                        run.stop.store(true, Ordering::SeqCst);
+                    }
+                }
+                Ok(false) => {}
+                Err(e) => tracing::error!("cannot record worker w{epoch} as lost: {e:#}"),
+            }
+        }
+    }
+}
+
+impl Core {
+    /// Registers a worker; returns its record and the heartbeat timeout it must keep.
+    pub(crate) fn register_worker(&self, ad: WorkerAd) -> Result<(WorkerRecord, Duration), JobError> {
+        let (w, timeout) = {
+            let mut reg = lock(&self.workers);
+            let w = reg.register(&mut lock(&self.store), ad)?;
+            (w, reg.timeout())
+        };
+        tracing::info!("worker {} registered: {} ({}, {}/{}), {:.3e} atom-steps/s ({})", w.id, w.ad.address, w.ad.device, w.ad.backend, w.ad.precision, w.ad.atom_steps_per_s, w.ad.throughput_source);
+        self.wake_runner();
+        Ok((w, timeout))
+    }
+
+    /// Drains a worker: it gets no new jobs.
+    pub(crate) fn drain_worker(&self, id: &str) -> Result<WorkerView, JobError> {
+        let mut reg = lock(&self.workers);
+        let w = reg.drain(&mut lock(&self.store), id)?;
+        Ok(reg.list().into_iter().find(|v| v.record.epoch == w.epoch).ok_or_else(|| anyhow::anyhow!("drained worker vanished"))?)
+    }
+}
 
 #[cfg(test)]
 mod tests {

@@ -1,0 +1,169 @@
+//! The gRPC edge of the service: decodes a call, runs it on the domain core ([`Core`]), encodes
+//! the answer, and turns a [`JobError`] into a `tonic::Status` (here only).
+
+use super::convert::{job_to_pb, worker_to_pb};
+use super::error::JobError;
+use super::fetch::{FETCH_CHUNK, send_run};
+use super::shared::{Core, lock};
+use super::store::WorkerAd;
+use super::workers::WorkerError;
+use mscale_proto::orchestrator::v1 as pb;
+use pb::orchestrator_server::Orchestrator;
+use std::pin::Pin;
+use std::sync::Arc;
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Code, Request, Response, Status};
+
+impl From<JobError> for Status {
+    fn from(e: JobError) -> Status {
+        let code = match &e {
+            JobError::NotFound(_) | JobError::NoRunDir(_) | JobError::Unreadable { .. } => Code::NotFound,
+            JobError::Ended { .. } => Code::FailedPrecondition,
+            JobError::BadScene(_) | JobError::BadFile { .. } | JobError::NotInRun(_) => Code::InvalidArgument,
+            JobError::BeyondEvents { .. } => Code::OutOfRange,
+            JobError::TooLarge { .. } => Code::ResourceExhausted,
+            JobError::NoToken { .. } | JobError::WrongToken { .. } => Code::Unauthenticated,
+            JobError::Stopping => Code::Unavailable,
+            JobError::Worker(WorkerError::Version { .. }) => Code::FailedPrecondition,
+            JobError::Worker(WorkerError::Invalid(_)) => Code::InvalidArgument,
+            JobError::Worker(WorkerError::NotFound(_)) => Code::NotFound,
+            JobError::Worker(WorkerError::Store(_)) | JobError::Internal(_) | JobError::Io { .. } | JobError::Task(_) => Code::Internal,
+        };
+        Status::new(code, e.chain())
+    }
+}
+
+/// The service: decodes, calls the core, encodes.
+pub struct JobService {
+    core: Arc<Core>,
+}
+
+impl JobService {
+    pub(crate) fn new(core: Arc<Core>) -> Self {
+        JobService { core }
+    }
+
+    /// Checks the bearer token of a mutating call.
+    fn authorize<T>(&self, req: &Request<T>, call: &str) -> Result<(), JobError> {
+        let given = req.metadata().get("authorization").and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer ")).unwrap_or("");
+        self.core.authorize(given, call)
+    }
+}
+
+/// Runs `f` on the blocking pool (it takes the store's lock or touches files).
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, JobError> + Send + 'static) -> Result<T, JobError> {
+    tokio::task::spawn_blocking(f).await?
+}
+
+/// A watch stream's item as sent (tonic's stream items carry a `Status`).
+#[allow(clippy::result_large_err)]
+fn event_or_status(r: Result<pb::JobEvent, JobError>) -> Result<pb::JobEvent, Status> {
+    r.map_err(Status::from)
+}
+
+type EventStream = Pin<Box<dyn Stream<Item = Result<pb::JobEvent, Status>> + Send>>;
+type ChunkStream = Pin<Box<dyn Stream<Item = Result<pb::FetchRunChunk, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl Orchestrator for JobService {
+    async fn submit_job(&self, req: Request<pb::SubmitJobRequest>) -> Result<Response<pb::SubmitJobResponse>, Status> {
+        self.authorize(&req, "SubmitJob")?;
+        let sub = req.into_inner().into();
+        let core = self.core.clone();
+        let job_id = blocking(move || core.submit(&sub)).await?;
+        Ok(Response::new(pb::SubmitJobResponse { job_id }))
+    }
+
+    async fn list_jobs(&self, _: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let jobs = lock(&self.core.store).list().map_err(JobError::from)?;
+        Ok(Response::new(pb::ListJobsResponse { jobs: jobs.iter().map(job_to_pb).collect() }))
+    }
+
+    async fn get_job(&self, req: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
+        Ok(Response::new(job_to_pb(&self.core.get(&req.get_ref().job_id)?)))
+    }
+
+    type WatchJobStream = EventStream;
+
+    async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
+        let pb::WatchJobRequest { job_id, after_sequence } = req.into_inner();
+        let events = self.core.watch(&job_id, after_sequence)?;
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(events).map(event_or_status))))
+    }
+
+    async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
+        self.authorize(&req, "CancelJob")?;
+        Ok(Response::new(job_to_pb(&self.core.cancel(&req.into_inner().job_id)?)))
+    }
+
+    async fn fetch_result(&self, req: Request<pb::FetchResultRequest>) -> Result<Response<pb::FetchResultResponse>, Status> {
+        let req = req.into_inner();
+        let (content, sha256) = self.core.fetch_result(&req.job_id, &req.path)?;
+        Ok(Response::new(pb::FetchResultResponse { content, sha256 }))
+    }
+
+    type FetchRunStream = ChunkStream;
+
+    async fn fetch_run(&self, req: Request<pb::FetchRunRequest>) -> Result<Response<ChunkStream>, Status> {
+        let req = req.into_inner();
+        let root = self.core.run_root(&req.job_id)?;
+        let chunk = if req.chunk_bytes == 0 { FETCH_CHUNK } else { (req.chunk_bytes as usize).min(FETCH_CHUNK) };
+        let (tx, out) = tokio::sync::mpsc::channel(4);
+        tokio::task::spawn_blocking(move || {
+            if let Err(e) = send_run(&root, chunk, |c| tx.blocking_send(Ok(c.into())).is_ok()) {
+                let _ = tx.blocking_send(Err(e.into()));
+            }
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(out))))
+    }
+
+    async fn register_worker(&self, req: Request<pb::RegisterWorkerRequest>) -> Result<Response<pb::RegisterWorkerResponse>, Status> {
+        self.authorize(&req, "RegisterWorker")?;
+        let ad = WorkerAd::from(req.into_inner());
+        let core = self.core.clone();
+        let (w, timeout) = blocking(move || core.register_worker(ad)).await?;
+        Ok(Response::new(pb::RegisterWorkerResponse { worker_id: w.id, epoch: w.epoch, timeout_s: timeout.as_secs_f64() }))
+    }
+
+    async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Result<Response<pb::HeartbeatResponse>, Status> {
+        self.authorize(&req, "Heartbeat")?;
+        let r = req.into_inner();
+        let drain = lock(&self.core.workers).heartbeat(&r.worker_id, r.epoch, r.protocol_version).map_err(JobError::from)?;
+        Ok(Response::new(pb::HeartbeatResponse { drain }))
+    }
+
+    async fn drain_worker(&self, req: Request<pb::DrainWorkerRequest>) -> Result<Response<pb::Worker>, Status> {
+        self.authorize(&req, "DrainWorker")?;
+        let id = req.into_inner().worker_id;
+        let core = self.core.clone();
+        let view = blocking(move || core.drain_worker(&id)).await?;
+        Ok(Response::new(worker_to_pb(&view)))
+    }
+
+    async fn list_workers(&self, _: Request<pb::ListWorkersRequest>) -> Result<Response<pb::ListWorkersResponse>, Status> {
+        let workers = lock(&self.core.workers).list().iter().map(worker_to_pb).collect();
+        Ok(Response::new(pb::ListWorkersResponse { workers }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn errors_become_statuses_with_their_whole_message() {
+        let s = Status::from(JobError::NotFound("j1".into()));
+        assert_eq!((s.code(), s.message()), (Code::NotFound, "no job \"j1\""));
+        let scene = crate::scene::SceneError { file: "s.toml".into(), location: "line 3".into(), key: "scheme.cfl".into(), value: "3".into(), problem: "must be at most 1".into() };
+        let text = scene.to_string();
+        let s = Status::from(JobError::BadScene(scene));
+        assert_eq!((s.code(), s.message()), (Code::InvalidArgument, text.as_str()));
+        let s = Status::from(JobError::from(anyhow::anyhow!("disk full").context("cannot record the job")));
+        assert_eq!((s.code(), s.message()), (Code::Internal, "cannot record the job: disk full"));
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "gone");
+        let s = Status::from(JobError::Unreadable { path: "summary.json".into(), source: io });
+        assert_eq!((s.code(), s.message()), (Code::NotFound, "summary.json: gone"));
+        let s = Status::from(JobError::Worker(WorkerError::Version { theirs: 2, ours: 1 }));
+        assert_eq!(s.code(), Code::FailedPrecondition);
+    }
+}

@@ -1,0 +1,309 @@
+//! The life of a job: the runner thread takes queued jobs one at a time, by priority, and runs
+//! each with the run driver of `mscale run` on the usable workers (in this process when there
+//! are none), moving it off workers that are lost on the way; CancelJob stops it.
+
+use super::convert::pb_worker_state;
+use super::error::JobError;
+use super::shared::{Core, RunningJob, lock};
+use super::store::{EventKind, JobRecord, JobState, WorkerRecord, WorkerState};
+use super::workers;
+use crate::run::{self, Outcome, Progress, RunOptions};
+use crate::scene;
+use anyhow::Result;
+use continuum::coupling::MdShared;
+use mscale_proto::orchestrator::v1 as pb;
+use prost::Message;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// Times a job moves off lost workers before it fails.
+const MAX_ROLLBACKS: u32 = 16;
+
+/// Runs queued jobs one at a time until the orchestrator stops.
+pub(crate) fn runner(core: Arc<Core>) {
+    loop {
+        if core.stopping.load(Ordering::SeqCst) {
+            return;
+        }
+        let next = if core.waiting_for_local_workers() {
+            None
+        } else {
+            match lock(&core.store).next_queued() {
+                Ok(n) => n,
+                Err(e) => {
+                    tracing::error!("job store: {e:#}");
+                    None
+                }
+            }
+        };
+        match next {
+            Some(job) => run_job(&core, job),
+            None => {
+                let mut woken = lock(&core.wake.0);
+                if !*woken {
+                    woken = core.wake.1.wait_timeout(woken, Duration::from_millis(500)).map(|r| r.0).unwrap_or_else(|p| p.into_inner().0);
+                }
+                *woken = false;
+            }
+        }
+    }
+}
+
+/// How one attempt of a job on a set of workers ended.
+enum Attempt {
+    Done(Outcome),
+    Error(anyhow::Error),
+}
+
+fn run_job(core: &Arc<Core>, job: JobRecord) {
+    let id = job.id.clone();
+    let flags = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)));
+    *lock(&core.running) = Some(RunningJob { id: id.clone(), stop: flags.0.clone(), user_cancel: flags.1.clone(), reassign: flags.2.clone(), workers: Vec::new() });
+    // A job cancelled between being picked and starting stays cancelled and is not run.
+    match lock(&core.store).transition(&id, JobState::Running, if job.resumes > 0 { "resumed" } else { "started" }, "") {
+        Ok(true) => {}
+        Ok(false) => {
+            *lock(&core.running) = None;
+            return;
+        }
+        Err(e) => {
+            tracing::error!("job {id}: cannot record running: {e:#}");
+            *lock(&core.running) = None;
+            // Not in a tight loop while the store fails.
+            std::thread::sleep(Duration::from_secs(1));
+            return;
+        }
+    }
+    core.publish_stored(&id);
+    let outcome = run_on_workers(core, &job, &flags.0, &flags.2);
+    *lock(&core.running) = None;
+    let stopping = core.stopping.load(Ordering::SeqCst);
+    match outcome {
+        Attempt::Done(Outcome::Completed(summary)) => {
+            let digest = summary["state_digest"].as_str().unwrap_or_default().to_string();
+            tracing::info!("job {id} completed, state_digest {digest}");
+            core.transition(&id, JobState::Completed, "", &digest);
+        }
+        Attempt::Done(Outcome::Failed(_, why)) => {
+            tracing::error!("job {id} failed: {why}");
+            core.transition(&id, JobState::Failed, &why, "")
+        }
+        Attempt::Done(Outcome::Cancelled { checkpoint, step }) if stopping && !flags.1.load(Ordering::SeqCst) => {
+            tracing::info!("job {id}: checkpointed at step {step} ({}) as the orchestrator stops", checkpoint.display());
+            core.note_event(&id, EventKind::Checkpoint, &format!("checkpoint at step {step} as the orchestrator stops"));
+            core.transition(&id, JobState::Queued, "the orchestrator stopped; resumes from its last checkpoint", "");
+        }
+        Attempt::Done(Outcome::Cancelled { step, .. }) => {
+            core.note_event(&id, EventKind::Checkpoint, &format!("checkpoint at step {step} as the job is cancelled"));
+            core.transition(&id, JobState::Cancelled, &format!("cancelled by a user after step {step}"), "")
+        }
+        Attempt::Error(e) => {
+            tracing::error!("job {id} failed: {e:#}");
+            core.transition(&id, JobState::Failed, &format!("{e:#}"), "")
+        }
+    }
+}
+
+/// Runs a job on the usable workers (in-process when there are none), moving it off workers
+/// that are lost on the way: the run rolls back to its last checkpoint (from the start when
+/// it has none) onto the surviving workers of the same back end and precision.
+fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, reassign: &Arc<AtomicBool>) -> Attempt {
+    let id = &job.id;
+    let run_dir = core.job_dir(id).join("run");
+    let loaded = match scene::load(&core.job_dir(id).join("input/scene.toml"), &job.overrides) {
+        Ok(l) => l,
+        Err(e) => return Attempt::Error(anyhow::anyhow!("{e}")),
+    };
+    // Once boxes lived on workers of one kind, they only move to workers of that kind.
+    let mut kind: Option<String> = None;
+    let mut rollbacks = 0;
+    loop {
+        let assigned = workers::choose(&lock(&core.workers).usable(), kind.as_deref());
+        if let (Some(k), true) = (&kind, assigned.is_empty()) {
+            return Attempt::Done(Outcome::Failed(serde_json::Value::Null, format!("no live worker of back end {k} is left to take the job's boxes")));
+        }
+        let epochs: Vec<u64> = assigned.iter().map(|w| w.epoch).collect();
+        lock(&core.workers).set_busy(&epochs, id);
+        if let Some(r) = lock(&core.running).as_mut() {
+            r.workers = epochs.clone();
+        }
+        let last_step = Arc::new(AtomicU64::new(0));
+        let result = match attempt(core, job, &loaded, &run_dir, &assigned, stop, &last_step) {
+            Ok(o) => Attempt::Done(o),
+            Err(e) => Attempt::Error(e),
+        };
+        lock(&core.workers).set_busy(&epochs, "");
+        let step = last_step.load(Ordering::SeqCst);
+        let why = match &result {
+            Attempt::Done(Outcome::Cancelled { step, .. }) if reassign.load(Ordering::SeqCst) && !core.stopping.load(Ordering::SeqCst) && !is_user_cancel(core, id) => {
+                reassign.store(false, Ordering::SeqCst);
+                stop.store(false, Ordering::SeqCst);
+                kind = assigned.first().map(WorkerRecord::kind);
+                core.note(id, &format!("a worker was declared lost; checkpointed after step {step} and continues on the live workers"));
+                continue;
+            }
+            Attempt::Done(Outcome::Failed(_, why)) if !assigned.is_empty() => why.clone(),
+            Attempt::Error(e) if !assigned.is_empty() => format!("{e:#}"),
+            _ => return result,
+        };
+        // Did it fail because workers are gone? (Not: an error of a worker that still answers.)
+        let lost: Vec<&WorkerRecord> = assigned
+            .iter()
+            .filter(|w| {
+                let gone = lock(&core.workers).get(w.epoch).is_none_or(|r| r.state == WorkerState::Lost);
+                gone || !workers::answers(&w.ad.address, Duration::from_secs(3))
+            })
+            .collect();
+        if lost.is_empty() {
+            return result;
+        }
+        let at = step + 1;
+        let names = lost.iter().map(|w| format!("{} at {}", w.id, w.ad.address)).collect::<Vec<_>>().join(", ");
+        {
+            let mut reg = lock(&core.workers);
+            for w in &lost {
+                if let Err(e) = reg.declare_lost(&mut lock(&core.store), w.epoch, &format!("stopped answering during step {at} of job {id}")) {
+                    tracing::error!("cannot record worker {} as lost: {e:#}", w.id);
+                }
+            }
+        }
+        let k = assigned[0].kind();
+        let survivors = workers::choose(&lock(&core.workers).usable(), Some(&k));
+        if survivors.is_empty() {
+            return Attempt::Done(Outcome::Failed(
+                serde_json::Value::Null,
+                format!("worker {names} was lost at step {at} ({why}); no live worker of back end {k} is left to restore its boxes onto"),
+            ));
+        }
+        rollbacks += 1;
+        if rollbacks > MAX_ROLLBACKS {
+            return Attempt::Done(Outcome::Failed(serde_json::Value::Null, format!("worker {names} was lost at step {at}; the job lost workers {rollbacks} times and gives up")));
+        }
+        let from = crate::checkpoint::list(&run_dir).ok().and_then(|l| l.first().map(|c| c.0));
+        let from = from.map_or("the start (no checkpoint yet)".to_string(), |s| format!("its checkpoint of step {s}"));
+        let onto = survivors.iter().map(|w| w.id.as_str()).collect::<Vec<_>>().join(", ");
+        core.note(id, &format!("worker {names} was lost at step {at}; rolled back to {from} onto {onto}"));
+        tracing::warn!("job {id}: worker {names} was lost at step {at} ({why}); its boxes could not be replayed alone, so the whole job is rolling back to {from} onto {onto}");
+        kind = Some(k);
+    }
+}
+
+fn is_user_cancel(core: &Core, id: &str) -> bool {
+    lock(&core.running).as_ref().is_some_and(|r| r.id == id && r.user_cancel.load(Ordering::SeqCst))
+}
+
+/// The job's workers as a watch event shows them, with their load in this attempt.
+fn job_workers(core: &Core, assigned: &[WorkerRecord], md: Option<&Arc<Mutex<MdShared>>>) -> Vec<pb::JobWorker> {
+    let load = md.and_then(|m| m.try_lock().ok().map(|m| m.pool.endpoint_load())).unwrap_or_default();
+    let reg = lock(&core.workers);
+    assigned
+        .iter()
+        .enumerate()
+        .map(|(k, w)| {
+            let l = load.get(k).cloned().unwrap_or_default();
+            pb::JobWorker {
+                worker_id: w.id.clone(),
+                address: w.ad.address.clone(),
+                state: pb_worker_state(reg.get(w.epoch).map_or(WorkerState::Lost, |r| r.state)) as i32,
+                boxes: l.boxes as u32,
+                advertised_atom_steps_per_s: w.ad.atom_steps_per_s,
+                measured_atom_steps_per_s: if l.step_seconds > 0.0 { l.atom_steps / l.step_seconds } else { 0.0 },
+            }
+        })
+        .collect()
+}
+
+/// One run of a job on `assigned` (in-process when empty), from its newest checkpoint if any.
+fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_dir: &Path, assigned: &[WorkerRecord], stop: &Arc<AtomicBool>, last_step: &Arc<AtomicU64>) -> Result<Outcome> {
+    let id = job.id.clone();
+    let mut opts = RunOptions::new(run_dir.to_path_buf(), vec!["mscale".into(), "serve".into(), format!("job {id}")]);
+    opts.progress_bar = false;
+    opts.checkpoint_every = if job.checkpoint_every > 0 { job.checkpoint_every } else { core.checkpoint_every };
+    opts.resume = !crate::checkpoint::list(run_dir)?.is_empty();
+    opts.cancel = Some(stop.clone());
+    opts.workers = assigned.iter().map(|w| w.ad.address.clone()).collect();
+    opts.worker_weights = assigned.iter().map(|w| w.ad.atom_steps_per_s).collect();
+    let md_slot: Arc<Mutex<Option<Arc<Mutex<MdShared>>>>> = Arc::default();
+    let slot = md_slot.clone();
+    let core3 = core.clone();
+    opts.md_hook = Some(Arc::new(move |m: &Arc<Mutex<MdShared>>| {
+        *lock(&slot) = Some(m.clone());
+        *lock(&core3.aborts) = lock(m).pool.abort_handles().into_iter().collect();
+    }));
+    opts.step_deadline = core.step_deadline;
+    let (core4, id4, assigned4) = (core.clone(), id.clone(), assigned.to_vec());
+    opts.on_worker_lost = Some(Arc::new(move |r: &md_worker::recovery::Recovery| {
+        if let Some(w) = assigned4.iter().find(|w| w.ad.address == r.worker) {
+            let mut reg = lock(&core4.workers);
+            if let Err(e) = reg.declare_lost(&mut lock(&core4.store), w.epoch, &format!("stopped answering during step {} of job {id4}: {}", r.step, r.why)) {
+                tracing::error!("cannot record worker {} as lost: {e:#}", w.id);
+            }
+        }
+        core4.note(&id4, &r.to_string());
+    }));
+    // The run writes a checkpoint after these steps (before it reports their progress).
+    let every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { loaded.scene.output.checkpoint_every_steps };
+    let (core2, id2, assigned2, last_step) = (core.clone(), id.clone(), assigned.to_vec(), last_step.clone());
+    let last = Mutex::new(Instant::now() - Duration::from_secs(1));
+    opts.progress = Some(Arc::new(move |p: &Progress| {
+        last_step.store(p.step, Ordering::SeqCst);
+        let checkpoint = !p.done && every > 0 && p.step % every == 0 && p.step < p.steps;
+        let mut last = lock(&last);
+        let now = Instant::now();
+        // Progress is sampled (at most one event per 100 ms); checkpoints and the last step
+        // always get their event.
+        if !p.done && !checkpoint && now.duration_since(*last) < Duration::from_millis(100) {
+            return;
+        }
+        *last = now;
+        let rate = p.session_steps as f64 / p.elapsed_s.max(1e-9);
+        let workers = if assigned2.is_empty() { Vec::new() } else { job_workers(&core2, &assigned2, lock(&md_slot).as_ref()) };
+        let detail = pb::JobEvent {
+            end_time_s: p.end_time,
+            eta_s: if p.session_steps > 0 { (p.steps - p.step.min(p.steps)) as f64 / rate } else { -1.0 },
+            energy_drift: p.energy_drift,
+            workers,
+            ..Default::default()
+        }
+        .encode_to_vec();
+        lock(&core2.details).insert(id2.clone(), detail.clone());
+        let (kind, message) = if checkpoint { (EventKind::Checkpoint, format!("checkpoint at step {}", p.step)) } else { (EventKind::Progress, String::new()) };
+        if let Err(e) = lock(&core2.store).progress_event(&id2, kind, p.step, p.steps, p.time, &message, &detail) {
+            tracing::warn!("job {id2}: cannot record progress: {e:#}");
+        }
+        core2.publish_stored(&id2);
+    }));
+    if opts.resume {
+        tracing::info!("job {id}: resuming from its last checkpoint");
+    }
+    if assigned.is_empty() {
+        tracing::info!("job {id}: no live workers; MD (if any) runs in this process");
+    } else {
+        let shares = assigned.iter().map(|w| format!("{} at {} ({:.3e} atom-steps/s)", w.id, w.ad.address, w.ad.atom_steps_per_s)).collect::<Vec<_>>().join(", ");
+        tracing::info!("job {id}: on workers {shares}");
+    }
+    let outcome = run::run(loaded, &opts);
+    lock(&core.aborts).clear();
+    outcome
+}
+
+impl Core {
+    /// Cancels a job: a queued one at once, a running one after its current step (with a
+    /// checkpoint). Returns the job as it is now.
+    pub(crate) fn cancel(&self, id: &str) -> Result<JobRecord, JobError> {
+        let job = self.get(id)?;
+        match job.state {
+            JobState::Queued => self.transition(id, JobState::Cancelled, "cancelled by a user before it started", ""),
+            JobState::Running => {
+                if let Some(run) = lock(&self.running).as_ref().filter(|r| r.id == id) {
+                    run.user_cancel.store(true, Ordering::SeqCst);
+                    run.stop.store(true, Ordering::SeqCst);
+                }
+            }
+            state => return Err(JobError::Ended { id: id.to_string(), state }),
+        }
+        self.get(id)
+    }
+}

@@ -1,0 +1,191 @@
+//! `mscale serve`: the job service (`mscale.orchestrator.v1`).
+//!
+//! Jobs are scenes submitted with the files they name; they are validated at submit with the
+//! messages of `mscale check`, kept in the SQLite [`store::Store`] under the state directory, and run
+//! one at a time, by priority, on a dedicated thread with the same run driver as `mscale run`
+//! (so a job ends with the digest `mscale run` gives). Jobs checkpoint at an interval; a job
+//! that was running when the orchestrator died is resumed from its last checkpoint on restart.
+//!
+//! Layout of the state directory: `jobs.sqlite`, `token` (generated when no token file is
+//! given), and `jobs/<id>/input/` (the scene and its files) and `jobs/<id>/run/` (the run
+//! directory: outputs, checkpoints, summary.json).
+//!
+//! Workers (`md-worker serve --orchestrator URL`, or `--local-workers N` started here) register
+//! and heartbeat ([`workers`]). A job's MD boxes are spread over the live workers of one
+//! back end and precision in proportion to their throughput, or run in this process when there
+//! are none. A worker that stops answering mid-job (killed, or past `--step-deadline`) is
+//! declared lost and only its boxes are rebuilt on the job's surviving workers of the same back
+//! end and precision: restored from the last checkpoint and sent again every input logged since
+//! (`md_worker::recovery`), so the job ends with the digest of an uninterrupted run; with no
+//! survivor the job fails naming the worker and the step. A worker silent for longer than the
+//! worker timeout is declared lost and a call in flight on it is aborted, with the same
+//! recovery. Where replay is impossible (the input log outgrew its bound) the whole job rolls
+//! back to its last checkpoint onto the survivors instead.
+//!
+//! Watch events: every event of a job has a sequence number (1, 2, 3, ... with no gaps), given
+//! in the store transaction that records it (the store keeps state changes, checkpoints and
+//! worker changes for good and recent progress). Watchers replay what they missed from the
+//! store and then follow a broadcast channel; one that lags is caught up from the store again,
+//! so an event is never skipped. Progress is published at most every 100 ms.
+//!
+//! Security: mutating calls (SubmitJob, CancelJob, RegisterWorker, Heartbeat, DrainWorker)
+//! need `authorization: Bearer <token>`,
+//! compared in constant time; requests are bounded in size; FetchResult cannot leave the job's
+//! run directory; nothing runs through a shell. TLS (rustls) is served with `--tls-cert` and
+//! `--tls-key`, and required to listen on anything but a loopback address.
+
+//! The module's parts: [`api`] is the gRPC edge (decoding, encoding, [`JobError`] to
+//! `tonic::Status`), `convert` the proto conversions; the domain core is `shared` (what the
+//! calls, the runner and the monitor share), `jobs` (the runner and a job's life), `events`
+//! (numbered events and watchers), `inputs` (submitted files), `fetch` (reads of run
+//! directories), `auth` (tokens), [`store`] (SQLite) and [`workers`] (the worker pool).
+
+pub mod api;
+mod auth;
+mod convert;
+mod error;
+mod events;
+mod fetch;
+mod inputs;
+mod jobs;
+mod shared;
+pub mod store;
+pub mod workers;
+
+pub use auth::read_token;
+pub use error::JobError;
+pub use fetch::{FETCH_CHUNK, contained, run_files};
+pub use inputs::for_each_string;
+
+use anyhow::{Context, Result, bail};
+use mscale_proto::orchestrator::v1::orchestrator_server::OrchestratorServer;
+use shared::Core;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use store::Store;
+use workers::Registry;
+
+/// Largest request or response message (bytes): scenes plus potential files, fetched files.
+pub const MAX_MESSAGE: usize = 64 << 20;
+/// Default checkpoint interval (steps) of jobs that name none.
+pub const DEFAULT_CHECKPOINT_EVERY: u64 = 100;
+
+pub struct ServeOptions {
+    pub state_dir: PathBuf,
+    pub listen: String,
+    /// The bearer token mutating calls must carry.
+    pub token: String,
+    pub checkpoint_every: u64,
+    /// PEM certificate chain and private key: serve over TLS (rustls).
+    pub tls: Option<(Vec<u8>, Vec<u8>)>,
+    /// `md-worker serve` processes to start on this machine (`--local-workers`).
+    pub local_workers: usize,
+    /// The token file local workers authenticate with.
+    pub token_file: PathBuf,
+    /// What local workers trust to reach a TLS orchestrator (the certificate file).
+    pub local_ca: Option<PathBuf>,
+    /// A worker without a heartbeat for this long is declared lost.
+    pub worker_timeout: Duration,
+    /// Bound on each call to a worker.
+    pub step_deadline: md_worker::recovery::StepDeadline,
+}
+
+/// The worker pool options of `mscale serve`.
+#[derive(Debug, Clone, Copy)]
+pub struct PoolOptions {
+    /// `md-worker serve` processes to start here.
+    pub local_workers: usize,
+    /// Seconds without a heartbeat after which a worker is declared lost.
+    pub worker_timeout_s: f64,
+    /// Bound on each call to a worker (`--step-deadline`).
+    pub step_deadline: md_worker::recovery::StepDeadline,
+}
+
+/// `mscale serve`: reads the token (generating one into the state directory when no file is
+/// given) and the TLS files, then serves until SIGINT/SIGTERM.
+pub fn serve_command(state: PathBuf, listen: String, token_file: Option<PathBuf>, checkpoint_every: u64, tls: Option<(PathBuf, PathBuf)>, pool: PoolOptions) -> Result<i32> {
+    anyhow::ensure!(pool.worker_timeout_s.is_finite() && pool.worker_timeout_s > 0.0, "--worker-timeout {} must be a positive number of seconds", pool.worker_timeout_s);
+    let token = match &token_file {
+        Some(f) => read_token(f)?,
+        None => auth::generated_token(&state)?,
+    };
+    let token_file = token_file.unwrap_or_else(|| state.join("token"));
+    let local_ca = tls.as_ref().map(|t| t.0.clone());
+    let tls = match tls {
+        Some((cert, key)) => {
+            let read = |p: &Path| std::fs::read(p).with_context(|| format!("cannot read {}", p.display()));
+            Some((read(&cert)?, read(&key)?))
+        }
+        None => None,
+    };
+    serve(ServeOptions {
+        state_dir: state,
+        listen,
+        token,
+        checkpoint_every,
+        tls,
+        local_workers: pool.local_workers,
+        token_file,
+        local_ca,
+        worker_timeout: Duration::from_secs_f64(pool.worker_timeout_s),
+        step_deadline: pool.step_deadline,
+    })?;
+    Ok(crate::exit::OK)
+}
+
+/// Runs the orchestrator until SIGINT/SIGTERM. Prints `mscale serve: listening on ADDR` on
+/// stdout once it answers calls.
+pub fn serve(opts: ServeOptions) -> Result<()> {
+    let addr: SocketAddr = opts.listen.parse().with_context(|| format!("--listen {:?} is not an address like 127.0.0.1:50100", opts.listen))?;
+    if !addr.ip().is_loopback() && opts.tls.is_none() {
+        bail!("refusing to listen on {addr} without TLS: tokens must not cross a network in clear text; pass --tls-cert and --tls-key, or listen on a loopback address (127.0.0.1 or [::1])");
+    }
+    let mut store = Store::open(&opts.state_dir)?;
+    for id in store.requeue_interrupted()? {
+        tracing::info!("job {id} was running when the orchestrator stopped: queued again, resumes from its last checkpoint");
+    }
+    let registry = Registry::load(&store, opts.worker_timeout)?;
+    let core = Core::new(store, registry, opts.state_dir.clone(), opts.token, opts.checkpoint_every, opts.local_workers, opts.step_deadline);
+    let listener = std::net::TcpListener::bind(addr).with_context(|| format!("cannot listen on {addr}"))?;
+    listener.set_nonblocking(true)?;
+    let bound = listener.local_addr()?;
+    // Started from this (the main) thread: they die with the process (see LocalWorkers), and
+    // are killed when `_local` is dropped, after the runner stopped.
+    let scheme = if opts.tls.is_some() { "https" } else { "http" };
+    let _local = workers::LocalWorkers::start(opts.local_workers, &format!("{scheme}://{bound}"), &opts.token_file, opts.local_ca.as_deref(), &opts.state_dir.join("workers"))?;
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("cannot start the gRPC runtime")?;
+    let runner_core = core.clone();
+    let runner_thread = std::thread::Builder::new().name("job-runner".into()).spawn(move || jobs::runner(runner_core)).context("cannot start the job runner")?;
+    let monitor_core = core.clone();
+    let monitor_thread = std::thread::Builder::new().name("worker-monitor".into()).spawn(move || workers::monitor(monitor_core)).context("cannot start the worker monitor")?;
+    let result = rt.block_on(async {
+        let listener = tokio::net::TcpListener::from_std(listener)?;
+        let settings = mscale_proto::server::Settings { timeout: Some(Duration::from_secs(60)), ..Default::default() };
+        let mut builder = mscale_proto::server::builder(&settings);
+        if let Some((cert, key)) = &opts.tls {
+            builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key))).context("bad TLS certificate or key")?;
+        }
+        let service = OrchestratorServer::new(api::JobService::new(core.clone())).max_decoding_message_size(MAX_MESSAGE).max_encoding_message_size(MAX_MESSAGE);
+        let router = mscale_proto::server::router(&mut builder, service).await.map_err(|e| anyhow::anyhow!("cannot set up the gRPC services: {e}"))?;
+        let incoming = mscale_proto::server::incoming(listener).map_err(|e| anyhow::anyhow!("listening: {e}"))?;
+        println!("mscale serve: listening on {bound}");
+        use std::io::Write;
+        let _ = std::io::stdout().flush();
+        tracing::info!("state in {}", opts.state_dir.display());
+        let shutdown = async {
+            let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).ok();
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = async { match term.as_mut() { Some(t) => { t.recv().await; } None => std::future::pending::<()>().await } } => {}
+            }
+            tracing::info!("stopping: the running job checkpoints and resumes on the next start");
+            core.stop();
+        };
+        router.serve_with_incoming_shutdown(incoming, shutdown).await.context("serving")
+    });
+    core.stop();
+    let _ = runner_thread.join();
+    let _ = monitor_thread.join();
+    result
+}
