@@ -13,8 +13,10 @@
 //! the workspace before it runs any test; the tests of one package alone need the binary
 //! built first with the command the panic message names, e.g.
 //! `cargo build --profile test -p orchestrator --bin mscale`. A binary older than one of its
-//! source files (by cargo's dep-info file next to it, `mscale.d`) is refused the same way, so
-//! a stale binary never runs.
+//! source files (by cargo's dep-info file next to it, `mscale.d`, which that command writes)
+//! is refused the same way. A binary that cargo built only for another package's tests has no
+//! such file (cargo writes none then) and is taken as it is: build it with that command, or
+//! run `cargo test --workspace`, which rebuilds whatever is stale before any test runs.
 
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
