@@ -1,7 +1,7 @@
 //! The coupled run across real processes: in-process MD and MD on `md-worker serve` processes
 //! on loopback give bitwise the same result; a lost worker stops the run naming it.
 
-use mscale_tests::{Worker, binary, repo};
+use mscale_tests::{binary, repo, worker};
 use std::path::Path;
 use std::process::Command;
 
@@ -10,9 +10,7 @@ fn mscale(args: &[&str]) -> std::process::Output {
 }
 
 fn digest(dir: &Path) -> String {
-    let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).expect("summary")).expect("json");
-    assert_eq!(s["status"], "completed", "{s}");
-    s["state_digest"].as_str().expect("digest").to_string()
+    mscale_tests::state_digest(dir)
 }
 
 #[test]
@@ -33,7 +31,7 @@ fn in_process_and_remote_workers_give_the_same_digest() {
         out
     };
     let local = run("local", None);
-    let (a, b) = (Worker::start(1), Worker::start(2));
+    let (a, b) = (worker(1), worker(2));
     let one = run("one", Some(a.addr.clone()));
     let two = run("two", Some(format!("{},{}", a.addr, b.addr)));
     assert_eq!(digest(&local), digest(&one), "in-process vs one remote worker");
@@ -46,7 +44,7 @@ fn in_process_and_remote_workers_give_the_same_digest() {
 
 #[test]
 fn an_unreachable_worker_is_named_and_the_run_fails() {
-    let w = Worker::start(1);
+    let w = worker(1);
     let addr = w.addr.clone();
     drop(w);
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -59,7 +57,7 @@ fn an_unreachable_worker_is_named_and_the_run_fails() {
 
 #[test]
 fn a_worker_killed_mid_run_stops_the_run_naming_it_and_the_step() {
-    let mut w = Worker::start(1);
+    let mut w = worker(1);
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("x");
     let scene = repo().join("tests/data/md-small.toml");
@@ -72,7 +70,7 @@ fn a_worker_killed_mid_run_stops_the_run_naming_it_and_the_step() {
         .spawn()
         .expect("start mscale");
     std::thread::sleep(std::time::Duration::from_millis(1500));
-    w.child.kill().expect("kill the worker");
+    w.proc.child.kill().expect("kill the worker");
     let o = child.wait_with_output().expect("wait");
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);
@@ -101,7 +99,7 @@ fn average_stress_sampling_runs_and_gives_the_same_digest_in_process_and_remote(
     let tmp = tempfile::tempdir().expect("tempdir");
     let avg = ["bodies.left.material.stress_sampling=average", "bodies.right.material.stress_sampling=average"];
     let local = run_small(&tmp.path().join("local"), &avg, None);
-    let (a, b) = (Worker::start(1), Worker::start(2));
+    let (a, b) = (worker(1), worker(2));
     let two = run_small(&tmp.path().join("two"), &avg, Some(&format!("{},{}", a.addr, b.addr)));
     assert_eq!(digest(&local), digest(&two), "average sampling: in-process vs two remote workers");
     let resolved = std::fs::read_to_string(local.join("scene.resolved.toml")).expect("resolved scene");
@@ -142,7 +140,7 @@ fn chosen_boxes_are_dumped_for_ovito_at_every_snapshot_in_process_and_remote() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let sets = ["output.dump_points=[4, 1]"];
     let local = run_small(&tmp.path().join("local"), &sets, None);
-    let w = Worker::start(1);
+    let w = worker(1);
     let remote = run_small(&tmp.path().join("remote"), &sets, Some(&w.addr));
     let index = std::fs::read_to_string(local.join("snapshots/index.csv")).expect("index");
     let steps: Vec<u64> = index.lines().skip(1).map(|l| l.split(',').next().expect("step").parse().expect("step")).collect();

@@ -10,15 +10,9 @@ use md_worker::cuda::{Precision, ShimBackend, nvrtc_compile, nvrtc_present};
 use md_worker::{BoxResult, BoxSpec, BoxWork, DeformMode, LatticeKind, MdBackend, ReferenceBackend};
 
 #[test]
+#[cfg_attr(not(require_nvrtc), ignore = "needs NVRTC (libnvrtc.so): bash deploy/setup.sh nvrtc, export what it prints; runs with MSCALE_REQUIRE_NVRTC=1 (CI) or -- --ignored")]
 fn kernels_compile_with_nvrtc_for_sm80_and_sm90_without_warnings() {
-    if !nvrtc_present() {
-        let why = "NVRTC (libnvrtc.so) not found: run `bash deploy/setup.sh nvrtc` and export the LD_LIBRARY_PATH it prints";
-        if std::env::var("MSCALE_REQUIRE_NVRTC").as_deref() == Ok("1") {
-            panic!("MSCALE_REQUIRE_NVRTC=1 but {why}");
-        }
-        eprintln!("SKIPPED kernels_compile_with_nvrtc: {why}");
-        return;
-    }
+    assert!(nvrtc_present(), "NVRTC (libnvrtc.so) not found: run `bash deploy/setup.sh nvrtc` and export the LD_LIBRARY_PATH it prints");
     for arch in ["sm_80", "sm_90"] {
         let out = nvrtc_compile(arch, false).unwrap_or_else(|e| panic!("{e}"));
         assert!(out.log.trim().is_empty(), "NVRTC warnings for {arch}:\n{}", out.log);

@@ -137,7 +137,7 @@ fn a_hot_box_relaxed_at_temperature_has_near_zero_mean_stress() {
 /// ~10 s in the test profile, so ignored by default; README records the measured figures
 /// (`cargo test -p md-worker --release --test validation -- --ignored --nocapture`).
 #[test]
-#[ignore]
+#[ignore = "about 10 s in the test profile: run with --ignored (figures in md-worker/README.md)"]
 fn nve_10k_steps_energy_drift_and_momentum() {
     let mut b = make_backend("cpu", mishin());
     let mut s = BoxSpec::lattice(1, LatticeKind::Fcc, 3.615, [5; 3]);

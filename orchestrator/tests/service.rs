@@ -6,6 +6,7 @@
 //! orchestrator (`mscale watch` reconnects); `mscale fetch JOB --out DIR` copies the whole run
 //! directory and nothing outside it.
 
+use mscale_testkit::{Listening, Proc, text};
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
@@ -20,9 +21,8 @@ fn bin() -> &'static str {
 }
 
 struct Server {
-    child: Child,
+    proc: Proc,
     addr: String,
-    log: PathBuf,
 }
 
 impl Server {
@@ -31,22 +31,14 @@ impl Server {
     }
 
     fn start_on(state: &Path, token_file: &Path, log: &Path, listen: &str) -> Server {
-        let err = std::fs::File::create(log).unwrap();
-        let mut child = Command::new(bin())
-            .args(["serve", "--state", state.to_str().unwrap(), "--listen", listen, "--token-file", token_file.to_str().unwrap(), "--checkpoint-every", "100"])
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::piped())
-            .stderr(err)
-            .spawn()
-            .expect("cannot start mscale serve");
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-        let addr = line.trim().strip_prefix("mscale serve: listening on ").unwrap_or_else(|| panic!("unexpected first line {line:?}; log: {}", std::fs::read_to_string(log).unwrap_or_default())).to_string();
-        Server { child, addr, log: log.to_path_buf() }
+        let mut cmd = Command::new(bin());
+        cmd.args(["serve", "--state", state.to_str().unwrap(), "--listen", listen, "--token-file", token_file.to_str().unwrap(), "--checkpoint-every", "100"]).env("RUST_LOG", "info");
+        let Listening { proc, addr } = Listening::start(&mut cmd, "mscale serve: listening on ", Some(log));
+        Server { proc, addr }
     }
 
     fn log(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
+        self.proc.log()
     }
 
     /// Runs a client verb against this server.
@@ -55,22 +47,8 @@ impl Server {
     }
 }
 
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn text(o: &Output) -> String {
-    format!("stdout: {}\nstderr: {}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
-}
-
 fn setup() -> (tempfile::TempDir, PathBuf) {
-    let tmp = tempfile::tempdir().unwrap();
-    let token = tmp.path().join("token");
-    std::fs::write(&token, format!("{TOKEN}\n")).unwrap();
-    (tmp, token)
+    mscale_testkit::token_dir(TOKEN)
 }
 
 /// The digest `mscale run` gives for a scene with overrides.
@@ -81,8 +59,7 @@ fn run_digest(dir: &Path, scene: &str, sets: &[&str]) -> String {
     }
     let o = Command::new(bin()).args(&args).env("RUST_LOG", "warn").output().unwrap();
     assert!(o.status.success(), "{}", text(&o));
-    let s: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("summary.json")).unwrap()).unwrap();
-    s["state_digest"].as_str().unwrap().to_string()
+    mscale_testkit::state_digest(dir)
 }
 
 fn submit(server: &Server, token: &Path, scene: &str, sets: &[&str]) -> String {
@@ -264,8 +241,8 @@ fn a_job_survives_the_orchestrator_killed_mid_run() {
     let mut server = Server::start(&state, &token, &tmp.path().join("serve1.log"));
     let job = submit(&server, &token, SMALL, &LONG);
     wait_for_checkpoint(&state, &job);
-    server.child.kill().unwrap(); // SIGKILL
-    server.child.wait().unwrap();
+    server.proc.child.kill().unwrap(); // SIGKILL
+    server.proc.child.wait().unwrap();
     assert!(!state.join("jobs").join(&job).join("run/summary.json").exists(), "the job ended before the kill; make it longer");
 
     let server = Server::start(&state, &token, &tmp.path().join("serve2.log"));
@@ -368,10 +345,10 @@ fn sigterm_stops_the_orchestrator_with_a_checkpoint_and_the_job_resumes() {
     // only 0.3 s gives up.
     let watcher = Watcher::start(&server, &job, &[]);
     let quitter = Watcher::start(&server, &job, &["--reconnect-for", "0.3"]);
-    assert!(Command::new("kill").args(["-TERM", &server.child.id().to_string()]).status().unwrap().success());
+    server.proc.signal("-TERM");
     let start = Instant::now();
     let status = loop {
-        if let Some(s) = server.child.try_wait().unwrap() {
+        if let Some(s) = server.proc.child.try_wait().unwrap() {
             break s;
         }
         assert!(start.elapsed() < Duration::from_secs(30), "mscale serve did not stop within 30 s of SIGTERM:\n{}", server.log());
@@ -425,17 +402,11 @@ fn tls_serves_clients_that_trust_its_authority() {
     let (tmp, token) = setup();
     let (ca, cert, key) = certificates(tmp.path());
     let log = tmp.path().join("serve.log");
-    let mut child = Command::new(bin())
-        .args(["serve", "--state", tmp.path().join("state").to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token.to_str().unwrap()])
-        .args(["--tls-cert", cert.to_str().unwrap(), "--tls-key", key.to_str().unwrap()])
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(&log).unwrap())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let addr = line.trim().strip_prefix("mscale serve: listening on ").unwrap_or_else(|| panic!("{line:?} {}", std::fs::read_to_string(&log).unwrap_or_default())).to_string();
-    let server = Server { child, addr, log };
+    let mut cmd = Command::new(bin());
+    cmd.args(["serve", "--state", tmp.path().join("state").to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token.to_str().unwrap()])
+        .args(["--tls-cert", cert.to_str().unwrap(), "--tls-key", key.to_str().unwrap()]);
+    let Listening { proc, addr } = Listening::start(&mut cmd, "mscale serve: listening on ", Some(&log));
+    let server = Server { proc, addr };
     let with_ca = |args: &[&str]| server.client(&[args, &["--ca-file", ca.to_str().unwrap()]].concat());
     let h = with_ca(&["health"]);
     assert!(h.status.success() && String::from_utf8_lossy(&h.stdout).contains("SERVING"), "{}", text(&h));

@@ -7,14 +7,14 @@
 //! replayed; with no survivor the job fails naming the worker and the step. Another protocol version and a missing token are refused; a silent
 //! worker is declared lost and comes back as a new worker; a drained worker takes no sessions.
 //!
-//! The md-worker program is built next to `mscale` (`cargo build -p md-worker`) on first use.
+//! The md-worker program is the prebuilt one next to `mscale` (mscale_testkit::prebuilt: `cargo
+//! test --workspace` builds it; alone, `cargo build --profile test -p md-worker --bin md-worker`).
 
 use mscale_proto::orchestrator::v1 as pb;
+use mscale_testkit::{Listening, Proc, plain, text};
 use orchestrator::client::Client;
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
-use std::sync::OnceLock;
+use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 const MD_SMALL: &str = "../tests/data/md-small.toml";
@@ -26,43 +26,11 @@ fn bin() -> &'static str {
     env!("CARGO_BIN_EXE_mscale")
 }
 
-/// The md-worker program next to `mscale` (where `--local-workers` looks), built once.
-fn md_worker() -> &'static Path {
-    static BUILT: OnceLock<PathBuf> = OnceLock::new();
-    BUILT.get_or_init(|| {
-        let path = Path::new(bin()).with_file_name("md-worker");
-        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        // The dev profile writes to the directory of the test profile's mscale (target/debug).
-        let o = Command::new(cargo).args(["build", "--offline", "-p", "md-worker", "--bin", "md-worker"]).output();
-        match o {
-            Ok(o) if o.status.success() => {}
-            Ok(o) if path.is_file() => eprintln!("warning: cannot rebuild md-worker, using {}: {}", path.display(), String::from_utf8_lossy(&o.stderr)),
-            other => panic!("cannot build md-worker next to {}: {other:?}", bin()),
-        }
-        path
-    })
-}
-
-struct Proc {
-    child: Child,
-    log: PathBuf,
-}
-
-impl Proc {
-    fn log(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-
-    fn signal(&self, sig: &str) {
-        assert!(Command::new("kill").args([sig, &self.child.id().to_string()]).status().unwrap().success());
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
+/// The prebuilt md-worker program next to `mscale` (where `--local-workers` looks).
+fn md_worker() -> PathBuf {
+    let path = mscale_testkit::prebuilt("md-worker", "md-worker");
+    assert_eq!(path.parent(), Path::new(bin()).parent(), "md-worker must lie next to mscale for --local-workers");
+    path
 }
 
 struct Server {
@@ -72,18 +40,10 @@ struct Server {
 
 impl Server {
     fn start(state: &Path, token_file: &Path, log: &Path, extra: &[&str]) -> Server {
-        let mut child = Command::new(bin())
-            .args(["serve", "--state", state.to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token_file.to_str().unwrap()])
-            .args(extra)
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::piped())
-            .stderr(std::fs::File::create(log).unwrap())
-            .spawn()
-            .expect("cannot start mscale serve");
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-        let addr = line.trim().strip_prefix("mscale serve: listening on ").unwrap_or_else(|| panic!("unexpected first line {line:?}; log: {}", std::fs::read_to_string(log).unwrap_or_default())).to_string();
-        Server { proc: Proc { child, log: log.to_path_buf() }, addr }
+        let mut cmd = Command::new(bin());
+        cmd.args(["serve", "--state", state.to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token_file.to_str().unwrap()]).args(extra).env("RUST_LOG", "info");
+        let Listening { proc, addr } = Listening::start(&mut cmd, "mscale serve: listening on ", Some(log));
+        Server { proc, addr }
     }
 
     fn client(&self, token: bool) -> Client {
@@ -122,40 +82,16 @@ impl Server {
 
 /// Starts `md-worker serve` joining `server` (1 thread, heartbeats every `heartbeat` s).
 fn worker(server: &Server, token: &Path, log: &Path, heartbeat: &str) -> Proc {
-    let child = Command::new(md_worker())
-        .args(["serve", "--listen", "127.0.0.1:0", "--device", "cpu", "--threads", "1", "--heartbeat-every", heartbeat])
+    let mut cmd = Command::new(md_worker());
+    cmd.args(["serve", "--listen", "127.0.0.1:0", "--device", "cpu", "--threads", "1", "--heartbeat-every", heartbeat])
         .args(["--orchestrator", &format!("http://{}", server.addr), "--token-file", token.to_str().unwrap()])
         .env("RUST_LOG", "info")
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(log).unwrap())
-        .spawn()
-        .expect("cannot start md-worker serve");
-    Proc { child, log: log.to_path_buf() }
-}
-
-/// `s` without ANSI colour codes.
-fn plain(s: &str) -> String {
-    let mut out = String::with_capacity(s.len());
-    let mut chars = s.chars();
-    while let Some(c) = chars.next() {
-        if c == '\u{1b}' {
-            chars.by_ref().find(|c| c.is_ascii_alphabetic());
-        } else {
-            out.push(c);
-        }
-    }
-    out
-}
-
-fn text(o: &Output) -> String {
-    format!("stdout: {}\nstderr: {}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+        .stdout(Stdio::null());
+    Proc::spawn_logged(&mut cmd, log)
 }
 
 fn setup() -> (tempfile::TempDir, PathBuf) {
-    let tmp = tempfile::tempdir().unwrap();
-    let token = tmp.path().join("token");
-    std::fs::write(&token, format!("{TOKEN}\n")).unwrap();
-    (tmp, token)
+    mscale_testkit::token_dir(TOKEN)
 }
 
 /// The digest `mscale run` gives in one process.
@@ -166,8 +102,7 @@ fn run_digest(dir: &Path, sets: &[&str]) -> String {
     }
     let o = Command::new(bin()).args(&args).env("RUST_LOG", "warn").output().unwrap();
     assert!(o.status.success(), "{}", text(&o));
-    let s: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("summary.json")).unwrap()).unwrap();
-    s["state_digest"].as_str().unwrap().to_string()
+    mscale_testkit::state_digest(dir)
 }
 
 /// Follows a job to its end; returns every event.
@@ -179,12 +114,8 @@ fn watch(server: &Server, job: &str) -> Vec<pb::JobEvent> {
 
 fn wait_for_checkpoint(state: &Path, job: &str) {
     let dir = state.join("jobs").join(job).join("run/checkpoints");
-    let start = Instant::now();
     let done = || std::fs::read_dir(&dir).map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".ckpt")).count()).unwrap_or(0);
-    while done() == 0 {
-        assert!(start.elapsed() < Duration::from_secs(120), "no checkpoint of job {job} after 120 s");
-        std::thread::sleep(Duration::from_millis(10));
-    }
+    mscale_testkit::wait_until(&format!("a checkpoint of job {job}"), Duration::from_secs(120), || done() > 0);
 }
 
 fn answers(addr: &str) -> bool {

@@ -48,12 +48,15 @@ macro_rules! for_each_backend {
         // The CUDA kernels run on the CPU through their host C++ twin (feature `cuda`).
         #[cfg(feature = "cuda")]
         mod cuda_shim { $( #[test] fn $test() { super::$test("cuda-shim") } )* }
-        // On a GPU; a visible skip (with the reason) where there is none.
-        mod cuda { $( #[test] fn $test() {
-            match $crate::common::cuda_unavailable() {
-                Some(why) => eprintln!("SKIPPED cuda::{}: {why}", stringify!($test)),
-                None => super::$test("cuda"),
+        // On a GPU: ignored (with the reason) unless MSCALE_REQUIRE_GPU=1 at build time or
+        // `-- --ignored`; then a missing GPU or feature fails the test.
+        mod cuda { $( #[test]
+        #[cfg_attr(not(require_gpu), ignore = "needs a CUDA GPU and --features cuda: runs with MSCALE_REQUIRE_GPU=1 or -- --ignored")]
+        fn $test() {
+            if let Some(why) = $crate::common::cuda_unavailable() {
+                panic!("cuda::{}: the cuda back end cannot run here: {why}", stringify!($test));
             }
+            super::$test("cuda")
         } )* }
     };
 }
