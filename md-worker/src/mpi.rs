@@ -493,7 +493,7 @@ impl MdBackend for MpiBackend {
             if !seen.insert(w.id) {
                 return Err(MdError::invalid("box work", format!("point id {} appears twice in one step", w.id)));
             }
-            crate::backend::validate_work(w, mode)?;
+            crate::backend::validate_work(&self.pot, w, mode)?;
         }
         let owner = &self.owner;
         let (mut parts, slots) = self.split(work.to_vec(), |w| owner.get(&w.id).map_or(0, |o| o.0));
