@@ -103,7 +103,11 @@ impl DataFile {
             };
             k += 1;
             let mut got = 0;
-            let mut m = vec![0.0; ntypes as usize];
+            if head == "Masses" && rows > lines.len() - k {
+                // Before the table is allocated: "4294967295 atom types" is a broken header.
+                return Err(perr(file, lines.len() + 1, format!("unexpected end of file: section Masses expects {rows} lines, the file has {} more", lines.len() - k)));
+            }
+            let mut m = if head == "Masses" { vec![0.0; ntypes as usize] } else { Vec::new() };
             while got < rows {
                 if k >= lines.len() {
                     return Err(perr(file, k + 1, format!("unexpected end of file: section {head} expects {rows} lines, found {got}")));
@@ -201,7 +205,8 @@ impl DataFile {
     /// LAMMPS data-file text (%.17g, round-trips exactly).
     pub fn to_text(&self, title: &str) -> String {
         let mut s = String::new();
-        let ntypes = self.types.iter().copied().max().unwrap_or(1);
+        // As many types as masses are written (a type may have no atom; found by fuzzing).
+        let ntypes = self.types.iter().copied().max().unwrap_or(1).max(self.masses.as_ref().map_or(0, |m| m.len() as u32));
         let _ = writeln!(s, "{title}\n\n{} atoms\n{ntypes} atom types\n", self.x.len());
         for (d, ax) in ["x", "y", "z"].iter().enumerate() {
             let _ = writeln!(s, "{:e} {:e} {ax}lo {ax}hi", self.lo[d], self.lo[d] + self.lengths[d]);

@@ -158,6 +158,7 @@ impl std::fmt::Display for Vibration {
 fn fcc_shells(reach: f64) -> Vec<(f64, f64)> {
     // fcc sites are the integer vectors with an even coordinate sum (units of a0 / 2); the
     // nearest neighbour is at sqrt(2).
+    let reach = reach.clamp(1.0, 8.0); // shells beyond 8 neighbour distances add nothing here
     let nmax = (2.0 * reach * reach).floor() as i64;
     let m = (nmax as f64).sqrt().ceil() as i64;
     let mut count = std::collections::BTreeMap::<i64, f64>::new();
@@ -271,7 +272,9 @@ impl<'a> Reader<'a> {
     }
     /// `n` numbers, read from whole lines (extra numbers at the end of the last line ignored).
     fn values(&mut self, n: usize, what: &str) -> Result<Vec<f64>, MdError> {
-        let mut out = Vec::with_capacity(n);
+        // Capacity by what the file can hold, not by its header: a count of 1e11 in a broken
+        // header must be an "unexpected end of file", not an allocation of 800 GB.
+        let mut out = Vec::with_capacity(n.min(1 << 16));
         while out.len() < n {
             if self.next >= self.lines.len() {
                 return Err(self.err(
@@ -327,6 +330,9 @@ fn read_grid(r: &mut Reader) -> Result<Grid, MdError> {
     };
     if g.nrho < 5 || g.nr < 5 || !(g.drho > 0.0) || !(g.dr > 0.0) || !(g.cut > 0.0) {
         return Err(r.err(ln, "grid needs Nrho >= 5, Nr >= 5 and positive drho, dr, cutoff".into()));
+    }
+    if let Some((name, v)) = [("drho", g.drho), ("dr", g.dr), ("cutoff", g.cut)].into_iter().find(|(_, v)| !v.is_finite()) {
+        return Err(r.err(ln, format!("grid {name} = {v} is not a finite number")));
     }
     Ok(g)
 }
