@@ -334,6 +334,15 @@ fn read_grid(r: &mut Reader) -> Result<Grid, MdError> {
     if let Some((name, v)) = [("drho", g.drho), ("dr", g.dr), ("cutoff", g.cut)].into_iter().find(|(_, v)| !v.is_finite()) {
         return Err(r.err(ln, format!("grid {name} = {v} is not a finite number")));
     }
+    // The force kernel converts r / dr (r below the cut-off) to an i32 unchecked.
+    if !(g.cut / g.dr < (1u64 << 30) as f64) {
+        return Err(r.err(ln, format!("cutoff / dr = {:e} rows; at most 2^30", g.cut / g.dr)));
+    }
+    // The tables must span a finite range: (N - 1) d = inf made funcfl's resampled table
+    // length usize::MAX (found by fuzzing).
+    if !((g.nrho - 1) as f64 * g.drho).is_finite() || !((g.nr - 1) as f64 * g.dr).is_finite() {
+        return Err(r.err(ln, format!("grid spans (Nrho - 1) drho = {:e} and (Nr - 1) dr = {:e}: not finite", (g.nrho - 1) as f64 * g.drho, (g.nr - 1) as f64 * g.dr)));
+    }
     Ok(g)
 }
 

@@ -142,7 +142,7 @@ fn eval_wraps_an_atom_a_few_box_lengths_out_to_the_same_energy() {
     let text = std::fs::read_to_string(crate_dir().join("tests/golden/cu108_hot.data")).unwrap();
     let line = text.lines().find(|l| l.starts_with("1 1 ")).unwrap();
     let x: f64 = line.split_whitespace().nth(2).unwrap().parse().unwrap();
-    let data = data_with_atom1_x(dir.path(), &format!("{:e}", x + 3.0 * 10.800000000000001));
+    let data = data_with_atom1_x(dir.path(), &format!("{:e}", x + 3.0 * 10.8));
     let e = |data: &str| {
         let out = md_worker_within(60, &["eval", "--potential", "potentials/Cu_u3.eam", "--data", data]);
         assert!(out.status.success(), "{}", stderr_of(&out));

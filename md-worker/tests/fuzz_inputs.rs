@@ -243,8 +243,8 @@ fn a_potential_with_an_infinite_cutoff_is_refused_not_a_hang() {
     let text = text.replacen("0.03 5\n", "0.03 inf\n", 1);
     let e = Potential::from_text("inf.eam", &text).unwrap_err().to_string();
     assert!(e.contains("inf.eam:3") && e.contains("cutoff = inf is not a finite number"), "{e}");
-    // A huge finite one: the box is refused against the neighbour radius.
-    let text = text.replacen("0.03 inf\n", "0.03 1e300\n", 1);
+    // A large finite one: the box is refused against the neighbour radius.
+    let text = text.replacen("0.03 inf\n", "0.03 1000\n", 1);
     let mut b = ReferenceBackend::new(Arc::new(Potential::from_text("huge.eam", &text).unwrap()));
     let e = b.open(&[BoxSpec::lattice(1, LatticeKind::Fcc, 3.615, [1, 1, 1])]).unwrap_err().to_string();
     assert!(e.contains("point 1") && e.contains("neighbour radius"), "{e}");
@@ -259,4 +259,25 @@ fn written_data_of_a_file_with_an_atom_type_without_atoms_reads_back() {
     assert!(d.types.iter().all(|&t| t == 1));
     let again = DataFile::parse(&d.to_text("again"), "again").unwrap();
     assert_eq!((again.ids, again.types, again.x, again.v, again.masses), (d.ids, d.types, d.x, d.v, d.masses));
+}
+
+#[test]
+fn a_funcfl_grid_spacing_of_1e308_is_refused_not_an_overflow() {
+    // Found by fuzz_eam_potentials_of_the_three_formats (iteration 43832): dr = 1e308 made
+    // rmax = (Nr - 1) dr infinite and the resampled table length usize::MAX ("attempt to add
+    // with overflow" in resample).
+    let (_, text) = small_potentials().remove(0);
+    let text = text.replacen("60 0.05 200 0.03 5", "60 0.05 200 1e308 5", 1);
+    let e = Potential::from_text("dr.eam", &text).unwrap_err().to_string();
+    assert!(e.contains("dr.eam:3") && e.contains("not finite"), "{e}");
+}
+
+#[test]
+fn a_cutoff_of_2e30_table_rows_is_refused_before_the_unchecked_conversion() {
+    // The force kernel turns r / dr into an i32 without a check (r below the cut-off): a file
+    // with cutoff / dr beyond 2^31 would have made that undefined behaviour.
+    let (_, text) = small_potentials().remove(0);
+    let text = text.replacen("0.03 5\n", "0.03 1e10\n", 1);
+    let e = Potential::from_text("cut.eam", &text).unwrap_err().to_string();
+    assert!(e.contains("cut.eam:3") && e.contains("at most 2^30"), "{e}");
 }
