@@ -8,6 +8,9 @@ use crate::error::MdError;
 use std::path::Path;
 
 /// A pair of (element names, masses) plus the tables of one potential.
+// One potential per run, behind an Arc: the size of the EAM variant (its cached vibration
+// included) costs nothing, and boxing it would add an indirection to every table look-up.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone)]
 pub enum Potential {
     /// Embedded-atom method, any of the three LAMMPS file formats.
