@@ -198,3 +198,19 @@ fn run_of_a_runaway_atom_is_stopped_by_the_md_guard_with_exit_1() {
     assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(err.contains("point 0: MD diverged: at step 1: atom 4 (index from 0) has a kinetic energy of") && err.contains("energy blow-up"), "{err}");
 }
+
+#[test]
+fn eval_of_two_atoms_at_one_place_is_refused() {
+    // Atom 1 put on atom 2: an infinite energy, refused as input rather than printed.
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(crate_dir().join("tests/golden/cu108_hot.data")).unwrap();
+    let l1 = text.lines().find(|l| l.starts_with("1 1 ")).unwrap();
+    let l2 = text.lines().find(|l| l.starts_with("2 1 ")).unwrap();
+    let data = dir.path().join("overlap.data");
+    std::fs::write(&data, text.replacen(l1, &l2.replacen("2 1 ", "1 1 ", 1), 1)).unwrap();
+    let out = md_worker_within(60, &["eval", "--potential", "potentials/Cu_u3.eam", "--data", data.to_str().unwrap()]);
+    let err = stderr_of(&out);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("point 0") && err.contains("atoms overlap"), "{err}");
+    assert!(out.stdout.is_empty());
+}
