@@ -55,6 +55,9 @@ const CASES: &[(&str, &str, &str, &[&str], &[&str])] = &[
     ("oriented box too large", "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
         "material = { law = \"md\", potential = \"../md-worker/potentials/Cu_mishin1.eam.alloy\", lattice = \"fcc\", lattice_constant_angstrom = 3.615, cells_per_side = 40, orientation = [[1, 1, 1], [-1, 1, 0], [-1, -1, 2]] }\n\n[bodies.right]",
         &[], &["`bodies.left.material.cells_per_side` = 40", "1536000 atoms per box", "at most 256000"]),
+    ("absurd lattice constant", "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
+        "material = { law = \"md\", potential = \"../md-worker/potentials/Cu_mishin1.eam.alloy\", lattice = \"fcc\", lattice_constant_angstrom = 1e308, cells_per_side = 5 }\n\n[bodies.right]",
+        &[], &["line 15", "`bodies.left.material.lattice_constant_angstrom` = 1e308", "at most 100 A"]),
 ];
 
 #[test]

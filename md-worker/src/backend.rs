@@ -433,7 +433,7 @@ impl Engine {
             if !seen.insert(w.id) {
                 return Err(MdError::invalid("box work", format!("point id {} appears twice in one step", w.id)));
             }
-            validate_work(w, self.batch.meta[k].mode)?;
+            validate_work(&self.pot, w, self.batch.meta[k].mode)?;
             which.push(k);
         }
         let pot = &*self.pot;
@@ -444,8 +444,9 @@ impl Engine {
             let view = slots[k].take().ok_or(MdError::UnknownBox(w.id))?;
             jobs.push((view, w, o));
         }
-        spread.map(jobs, |(mut view, w, o)| *o = advance_box(pot, masses, &mut view, w));
-        Ok(())
+        // Every box runs; the first diverged box (in work order) is the call's error.
+        let done = spread.map(jobs, |(mut view, w, o)| advance_box(pot, masses, &mut view, w).map(|r| *o = r));
+        done.into_iter().collect()
     }
 
     fn snapshot(&self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError> {
@@ -471,16 +472,34 @@ fn finite3(v: &[f64]) -> bool {
     v.iter().all(|x| x.is_finite())
 }
 
+/// Positions of given atoms may lie at most this many box lengths outside the box (they are
+/// wrapped in); farther ones are refused as absurd. LAMMPS image flags unwrap positions by
+/// whole box lengths, so a data file of a long run can hold atoms a few lengths out.
+pub const MAX_BOX_LENGTHS_OUTSIDE: f64 = 100.0;
+
+/// Most atoms per cubic angstrom a box may hold (copper has 0.085; the densest solids 0.18).
+/// A denser box would have neighbour lists beyond any memory.
+pub const MAX_NUMBER_DENSITY: f64 = 1.0;
+
+/// Most engineering strain one MD step may apply along any component (`|L_ij| dt`).
+pub const MAX_STRAIN_PER_STEP: f64 = 0.05;
+
+/// Most a box may stretch or shrink in one step call: a factor of 2 either way per axis.
+pub const MAX_STRETCH_PER_CALL: f64 = 2.0;
+
 pub(crate) fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
     let bad = |msg: String| Err(MdError::invalid(format!("box spec of point {}", s.id), msg));
-    match &s.atoms {
-        InitialAtoms::Lattice { a0, cells, orient, .. } => {
+    // Box lengths before the strain, and atom count.
+    let (lengths0, natoms, source) = match &s.atoms {
+        InitialAtoms::Lattice { kind, a0, cells, orient } => {
             if !(a0.is_finite() && *a0 > 0.0) || cells.contains(&0) {
                 return bad(format!("lattice needs a0 > 0 and cells >= 1, got a0 = {a0}, cells = {cells:?}"));
             }
             orient.validate()?;
+            let n = kind.atoms_per_cell(orient) as f64 * cells.iter().map(|&c| c as f64).product::<f64>();
+            (std::array::from_fn::<f64, 3, _>(|k| cells[k] as f64 * a0 * orient.period(k)), n, format!("lattice constant {} A, {cells:?} cells", crate::error::show(*a0)))
         }
-        InitialAtoms::Explicit { lengths, types, x, v, .. } => {
+        InitialAtoms::Explicit { lo, lengths, types, x, v } => {
             if lengths.iter().any(|l| !(l.is_finite() && *l > 0.0)) {
                 return bad(format!("box lengths must be positive, got {lengths:?}"));
             }
@@ -490,33 +509,126 @@ pub(crate) fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError>
             if let Some(t) = types.iter().find(|&&t| t as usize >= pot.n_elements()) {
                 return bad(format!("element index {t}, but the potential has {} element(s)", pot.n_elements()));
             }
-            if !x.iter().chain(v.iter()).all(|p| finite3(p)) {
-                return bad("non-finite position or velocity".into());
+            if !finite3(lo) {
+                return bad(format!("box lower corner must be finite, got {lo:?}"));
             }
+            for (i, p) in x.iter().enumerate() {
+                for d in 0..3 {
+                    let (c, l) = (p[d], lengths[d]);
+                    let axis = ["x", "y", "z"][d];
+                    if !c.is_finite() {
+                        return bad(format!("atom {i} (0-based, in id order): {axis} = {c} is not a finite position"));
+                    }
+                    // Written so that it cannot overflow for any finite c.
+                    let outside = if c < lo[d] { (lo[d] - c) / l } else { (c - lo[d]) / l - 1.0 };
+                    if outside > MAX_BOX_LENGTHS_OUTSIDE {
+                        return bad(format!(
+                            "atom {i} (0-based, in id order): {axis} = {} A lies {outside:.3e} box lengths outside the box [{}, {}] along {axis}; \
+                             at most {MAX_BOX_LENGTHS_OUTSIDE} are wrapped in",
+                            crate::error::show(c),
+                            lo[d],
+                            lo[d] + l
+                        ));
+                    }
+                }
+            }
+            if let Some((i, u)) = v.iter().enumerate().find(|(_, u)| !finite3(&u[..])) {
+                return bad(format!("atom {i} (0-based, in id order): velocity {u:?} is not finite"));
+            }
+            (*lengths, x.len() as f64, format!("box lengths {lengths:?} A"))
         }
-    }
+    };
     if !finite3(&s.strain) || s.strain.iter().any(|e| *e <= -1.0) {
         return bad(format!("strain must be finite and > -1, got {:?}", s.strain));
-    }
-    if !(s.temperature_k >= 0.0 && s.temperature_k.is_finite()) {
-        return bad(format!("temperature must be >= 0 K, got {}", s.temperature_k));
     }
     if !(s.skin > 0.0 && s.skin.is_finite()) {
         return bad(format!("skin must be > 0 A, got {}", s.skin));
     }
+    let lengths: [f64; 3] = std::array::from_fn(|d| lengths0[d] * (1.0 + s.strain[d]));
+    let rs = pot.cutoff() + s.skin;
+    let min_side = crate::neighbor::min_box_side(rs);
+    if let Some(d) = (0..3).find(|&d| !(lengths[d].is_finite() && lengths[d] >= min_side)) {
+        return bad(format!(
+            "the strained box is {} A long along {} ({source}, strain {:?}); the neighbour radius {rs} A (cut-off + skin) needs at least {min_side} A",
+            crate::error::show(lengths[d]),
+            ["x", "y", "z"][d],
+            s.strain
+        ));
+    }
+    let density = natoms / (lengths[0] * lengths[1] * lengths[2]);
+    if !(density <= MAX_NUMBER_DENSITY) {
+        return bad(format!("{natoms} atoms in a {lengths:?} A box ({source}) are {density:.3e} atoms/A^3; at most {MAX_NUMBER_DENSITY} (copper has 0.085)"));
+    }
+    if !(s.temperature_k >= 0.0 && s.temperature_k.is_finite()) {
+        return bad(format!("temperature must be >= 0 K, got {}", s.temperature_k));
+    }
     if (s.relax_steps > 0 || s.relax_box_blocks > 0) && !(s.relax_dt_ps > 0.0 && s.relax_dt_ps.is_finite()) {
         return bad(format!("relaxation time step must be > 0 ps, got {}", s.relax_dt_ps));
+    }
+    if s.relax_steps > 0 || s.relax_box_blocks > 0 {
+        check_time_step(pot, s.relax_dt_ps).map_err(|m| MdError::invalid(format!("box spec of point {}", s.id), format!("relaxation {m}")))?;
     }
     Ok(())
 }
 
-pub(crate) fn validate_work(w: &BoxWork, mode: DeformMode) -> Result<(), MdError> {
+/// `Err(why)` when `dt` exceeds the potential's bound ([`Potential::max_time_step`]).
+fn check_time_step(pot: &Potential, dt: f64) -> Result<(), String> {
+    match pot.vibration() {
+        Some(vib) if dt > vib.max_dt_ps() => Err(format!("time step {} ps exceeds {:.6} ps, {vib}; use a smaller time step", crate::error::show(dt), vib.max_dt_ps())),
+        _ => Ok(()),
+    }
+}
+
+pub(crate) fn validate_work(pot: &Potential, w: &BoxWork, mode: DeformMode) -> Result<(), MdError> {
     let what = || format!("box work of point {}", w.id);
     if !(w.dt_ps > 0.0 && w.dt_ps.is_finite()) && w.steps > 0 {
         return Err(MdError::invalid(what(), format!("time step must be > 0 ps, got {}", w.dt_ps)));
     }
     if !w.velocity_gradient.iter().all(|r| finite3(r)) || !w.energy_to_add_ev.is_finite() {
         return Err(MdError::invalid(what(), "velocity gradient and energy must be finite"));
+    }
+    // Also for a call of zero steps (with a time step of zero nothing is refused): a caller
+    // that asks for the stress first (as `md-worker run` does) is told before any output.
+    {
+        check_time_step(pot, w.dt_ps).map_err(|m| MdError::invalid(what(), m))?;
+        let l = &w.velocity_gradient;
+        let name = |i: usize, j: usize| format!("{}{}", ["x", "y", "z"][i], ["x", "y", "z"][j]);
+        for i in 0..3 {
+            for j in 0..3 {
+                let per_step = (l[i][j] * w.dt_ps).abs();
+                if per_step > MAX_STRAIN_PER_STEP {
+                    return Err(MdError::invalid(
+                        what(),
+                        format!(
+                            "velocity gradient {} = {} 1/ps strains the box by {per_step:.3e} per step of {} ps; at most {MAX_STRAIN_PER_STEP} \
+                             (|L_ij| dt), or the box inverts and the neighbour list cannot follow",
+                            name(i, j),
+                            crate::error::show(l[i][j]),
+                            w.dt_ps
+                        ),
+                    ));
+                }
+            }
+            // Stretch of axis i over the call: exp(L_ii t) (affine) or (1 + L_ii dt)^steps (seed).
+            let ln_stretch = match mode {
+                DeformMode::Affine => l[i][i] * w.dt_ps * w.steps as f64,
+                DeformMode::Seed => (l[i][i] * w.dt_ps).ln_1p() * w.steps as f64,
+            };
+            if ln_stretch.abs() > MAX_STRETCH_PER_CALL.ln() {
+                return Err(MdError::invalid(
+                    what(),
+                    format!(
+                        "velocity gradient {} = {} 1/ps over {} steps of {} ps would scale the box by {:.3e}; \
+                         at most a factor {MAX_STRETCH_PER_CALL} either way per call (fewer steps per call or a smaller gradient)",
+                        name(i, i),
+                        crate::error::show(l[i][i]),
+                        w.steps,
+                        w.dt_ps,
+                        ln_stretch.exp()
+                    ),
+                ));
+            }
+        }
     }
     if mode == DeformMode::Affine {
         let l = &w.velocity_gradient;
@@ -533,6 +645,8 @@ pub(crate) fn validate_work(w: &BoxWork, mode: DeformMode) -> Result<(), MdError
 
 /// Build one box from its spec: atoms, strain, velocities, forces, relaxation.
 pub fn prepare_box(pot: &Potential, masses: &[f64], s: &BoxSpec) -> Result<BoxState, MdError> {
+    // Every caller gets the checks (the CLI's `eval` builds boxes with this alone).
+    validate_spec(pot, s)?;
     let (lo, mut l, types, mut x, mut v) = match &s.atoms {
         InitialAtoms::Lattice { kind, a0, cells, orient } => {
             let (x, l) = lattice::build_oriented(*kind, *a0, *cells, orient)?;
@@ -585,16 +699,22 @@ pub fn prepare_box(pot: &Potential, masses: &[f64], s: &BoxSpec) -> Result<BoxSt
         let (mut rho, mut fp) = (Vec::new(), Vec::new());
         kernel::with_fresh_list(pot, b, |b| {
             kernel::compute_forces(pot, b, &mut rho, &mut fp);
+            if !b.meta.pe.is_finite() || b.f.iter().any(|f| !finite3(f)) {
+                return Err(MdError::invalid(
+                    format!("box spec of point {}", s.id),
+                    format!("the energy of the initial atoms is {} eV (or a force is not finite): atoms overlap", b.meta.pe),
+                ));
+            }
             let still = Deformation::new(s.mode, &[[0.0; 3]; 3]);
-            kernel::run_steps(pot, masses, b, &still, s.relax_steps, s.relax_dt_ps, &mut rho, &mut fp);
-            relax_box_lengths(pot, masses, b, s, &mut rho, &mut fp);
-        });
+            kernel::run_steps(pot, masses, b, &still, s.relax_steps, s.relax_dt_ps, &mut rho, &mut fp)?;
+            relax_box_lengths(pot, masses, b, s, &mut rho, &mut fp)
+        })?;
     }
     Ok(batch.state(0))
 }
 
 /// Rescale box lengths towards zero mean normal stress, in blocks of 100 NVE steps.
-fn relax_box_lengths(pot: &Potential, masses: &[f64], b: &mut BoxView, s: &BoxSpec, rho: &mut Vec<f64>, fp: &mut Vec<f64>) {
+fn relax_box_lengths(pot: &Potential, masses: &[f64], b: &mut BoxView, s: &BoxSpec, rho: &mut Vec<f64>, fp: &mut Vec<f64>) -> Result<(), MdError> {
     const BLOCK: u64 = 100;
     // Assumed stiffnesses of the volumetric (C11 + 2 C12; Cu 415 GPa) and deviatoric
     // (C11 - C12; Cu 47 GPa) modes, set a little above cubic metals' values so the update
@@ -605,7 +725,7 @@ fn relax_box_lengths(pot: &Potential, masses: &[f64], b: &mut BoxView, s: &BoxSp
     for _ in 0..s.relax_box_blocks {
         let mut mean = [0.0; 3];
         for _ in 0..BLOCK / 10 {
-            kernel::run_steps(pot, masses, b, &still, 10, s.relax_dt_ps, rho, fp);
+            kernel::run_steps(pot, masses, b, &still, 10, s.relax_dt_ps, rho, fp)?;
             let st = kernel::virial_stress(b.meta, &kernel::kinetic_tensor(b.types, b.v, masses));
             for d in 0..3 {
                 mean[d] += st[d] / (BLOCK / 10) as f64;
@@ -630,10 +750,11 @@ fn relax_box_lengths(pot: &Potential, masses: &[f64], b: &mut BoxView, s: &BoxSp
         kernel::rebuild(pot, b);
         kernel::compute_forces(pot, b, rho, fp);
     }
+    Ok(())
 }
 
 /// Energy addition (thesis eq. 7.11) and the MD steps of one box; its result.
-fn advance_box(pot: &Potential, masses: &[f64], b: &mut BoxView, w: &BoxWork) -> BoxResult {
+fn advance_box(pot: &Potential, masses: &[f64], b: &mut BoxView, w: &BoxWork) -> Result<BoxResult, MdError> {
     let shortfall = add_thermal_energy(masses, b, w.energy_to_add_ev);
     let def = Deformation::new(b.meta.mode, &w.velocity_gradient);
     let (mut rho, mut fp) = (Vec::new(), Vec::new());
@@ -650,7 +771,7 @@ fn advance_box(pot: &Potential, masses: &[f64], b: &mut BoxView, w: &BoxWork) ->
         }
     };
     // Idle boxes keep no neighbour list nor build reference (memory: see kernel::with_fresh_list).
-    let wraps = kernel::with_fresh_list(pot, b, |b| kernel::run_steps_with(pot, masses, b, &def, w.steps, w.dt_ps, &mut rho, &mut fp, sample));
+    let wraps = kernel::with_fresh_list(pot, b, |b| kernel::run_steps_with(pot, masses, b, &def, w.steps, w.dt_ps, &mut rho, &mut fp, sample))?;
     let mut r = measure(masses, b);
     if let Some(a) = sum {
         // The last sample is exactly `measure`'s stress, so one step gives `Last` bit for bit.
@@ -659,7 +780,7 @@ fn advance_box(pot: &Potential, masses: &[f64], b: &mut BoxView, w: &BoxWork) ->
     r.stress_sampling = w.stress_sampling;
     r.diagnostics.energy_shortfall_ev = shortfall;
     r.diagnostics.wraps = wraps;
-    r
+    Ok(r)
 }
 
 /// Stress, energies and temperature of a box as it is now.

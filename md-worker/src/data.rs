@@ -32,6 +32,12 @@ fn num<T: std::str::FromStr>(file: &str, ln: usize, tok: Option<&str>, what: &st
     tok.parse().map_err(|_| perr(file, ln, format!("expected {what}, found {tok:?}")))
 }
 
+/// A finite number (`nan` and `inf` parse as f64 but are no coordinate).
+fn real(file: &str, ln: usize, tok: Option<&str>, what: &str) -> Result<f64, MdError> {
+    let v: f64 = num(file, ln, tok, what)?;
+    if v.is_finite() { Ok(v) } else { Err(perr(file, ln, format!("{what} = {v} is not a finite number"))) }
+}
+
 impl DataFile {
     /// Read a data file from disk.
     pub fn read(path: &std::path::Path) -> Result<Self, MdError> {
@@ -61,8 +67,8 @@ impl DataFile {
                 ntypes = num(file, ln, w.first().copied(), "the atom type count")?;
             } else if w.len() == 4 && ["xhi", "yhi", "zhi"].contains(&w[3]) {
                 let d = (w[3].as_bytes()[0] - b'x') as usize;
-                lo[d] = num(file, ln, Some(w[0]), "the box lower bound")?;
-                hi[d] = num(file, ln, Some(w[1]), "the box upper bound")?;
+                lo[d] = real(file, ln, Some(w[0]), &format!("the box lower bound {}", w[2]))?;
+                hi[d] = real(file, ln, Some(w[1]), &format!("the box upper bound {}", w[3]))?;
             } else if l.ends_with("xy xz yz") {
                 return Err(MdError::Unsupported(format!("{file}:{ln}: triclinic boxes (xy xz yz) are not supported")));
             } else if l.ends_with(" bonds") || l.ends_with(" angles") || l.contains("types") {
@@ -97,7 +103,11 @@ impl DataFile {
             };
             k += 1;
             let mut got = 0;
-            let mut m = vec![0.0; ntypes as usize];
+            if head == "Masses" && rows > lines.len() - k {
+                // Before the table is allocated: "4294967295 atom types" is a broken header.
+                return Err(perr(file, lines.len() + 1, format!("unexpected end of file: section Masses expects {rows} lines, the file has {} more", lines.len() - k)));
+            }
+            let mut m = if head == "Masses" { vec![0.0; ntypes as usize] } else { Vec::new() };
             while got < rows {
                 if k >= lines.len() {
                     return Err(perr(file, k + 1, format!("unexpected end of file: section {head} expects {rows} lines, found {got}")));
@@ -111,12 +121,13 @@ impl DataFile {
                 let mut w = l.split_whitespace();
                 match head {
                     "Atoms" => {
-                        let id = num(file, ln, w.next(), "atom id")?;
+                        let id: u64 = num(file, ln, w.next(), "atom id")?;
                         let t: u32 = num(file, ln, w.next(), "atom type")?;
                         if t == 0 || t > ntypes {
                             return Err(perr(file, ln, format!("atom type {t} out of range 1..={ntypes}")));
                         }
-                        let p: [f64; 3] = [num(file, ln, w.next(), "x")?, num(file, ln, w.next(), "y")?, num(file, ln, w.next(), "z")?];
+                        let what = |c: &str| format!("{c} of atom {id}");
+                        let p: [f64; 3] = [real(file, ln, w.next(), &what("x"))?, real(file, ln, w.next(), &what("y"))?, real(file, ln, w.next(), &what("z"))?];
                         // optional image flags
                         let mut img = [0.0; 3];
                         for c in &mut img {
@@ -125,18 +136,37 @@ impl DataFile {
                             }
                         }
                         let p = [p[0] + img[0] * lengths[0], p[1] + img[1] * lengths[1], p[2] + img[2] * lengths[2]];
+                        for d in 0..3 {
+                            let outside = if p[d] < lo[d] { (lo[d] - p[d]) / lengths[d] } else { (p[d] - lo[d]) / lengths[d] - 1.0 };
+                            if !(outside <= crate::backend::MAX_BOX_LENGTHS_OUTSIDE) {
+                                let c = ["x", "y", "z"][d];
+                                return Err(perr(
+                                    file,
+                                    ln,
+                                    format!(
+                                        "atom {id}: {c} = {} A (with its image flag) lies {outside:.3e} box lengths outside {c}lo {c}hi = [{}, {}]; \
+                                         at most {} are wrapped in",
+                                        crate::error::show(p[d]),
+                                        lo[d],
+                                        hi[d],
+                                        crate::backend::MAX_BOX_LENGTHS_OUTSIDE
+                                    ),
+                                ));
+                            }
+                        }
                         atoms.push((id, t, p));
                     }
                     "Velocities" => {
-                        let id = num(file, ln, w.next(), "atom id")?;
-                        vels.push((id, [num(file, ln, w.next(), "vx")?, num(file, ln, w.next(), "vy")?, num(file, ln, w.next(), "vz")?]));
+                        let id: u64 = num(file, ln, w.next(), "atom id")?;
+                        let what = |c: &str| format!("{c} of atom {id}");
+                        vels.push((id, [real(file, ln, w.next(), &what("vx"))?, real(file, ln, w.next(), &what("vy"))?, real(file, ln, w.next(), &what("vz"))?]));
                     }
                     _ => {
                         let t: usize = num(file, ln, w.next(), "atom type")?;
                         if t == 0 || t > ntypes as usize {
                             return Err(perr(file, ln, format!("mass for type {t} out of range 1..={ntypes}")));
                         }
-                        m[t - 1] = num(file, ln, w.next(), "mass")?;
+                        m[t - 1] = real(file, ln, w.next(), "mass")?;
                     }
                 }
                 got += 1;
@@ -175,7 +205,8 @@ impl DataFile {
     /// LAMMPS data-file text (%.17g, round-trips exactly).
     pub fn to_text(&self, title: &str) -> String {
         let mut s = String::new();
-        let ntypes = self.types.iter().copied().max().unwrap_or(1);
+        // As many types as masses are written (a type may have no atom; found by fuzzing).
+        let ntypes = self.types.iter().copied().max().unwrap_or(1).max(self.masses.as_ref().map_or(0, |m| m.len() as u32));
         let _ = writeln!(s, "{title}\n\n{} atoms\n{ntypes} atom types\n", self.x.len());
         for (d, ax) in ["x", "y", "z"].iter().enumerate() {
             let _ = writeln!(s, "{:e} {:e} {ax}lo {ax}hi", self.lo[d], self.lo[d] + self.lengths[d]);

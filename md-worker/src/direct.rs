@@ -203,6 +203,13 @@ impl Bar {
         }
     }
 
+    /// The MD step guard ([`kernel::check_box`]) on the bar as it is now: a diverged bar is
+    /// [`MdError::Diverged`] with the diagnosis.
+    pub fn check(&mut self) -> Result<(), MdError> {
+        let (pot, masses) = (self.pot.clone(), self.masses.clone());
+        kernel::check_box(&pot, &masses, &self.view())
+    }
+
     /// Atoms in the bar.
     pub fn len(&self) -> usize {
         self.x.len()
@@ -409,10 +416,15 @@ pub struct DirectArgs {
 /// Run `md-worker direct`.
 pub fn run_cli(a: &DirectArgs) -> Result<(), MdError> {
     let kind: LatticeKind = a.lattice.parse()?;
-    if a.cells.len() != 3 || !(a.dt > 0.0) || a.every == 0 {
+    if a.cells.len() != 3 || !(a.dt > 0.0 && a.dt.is_finite()) || a.every == 0 {
         return Err(MdError::invalid("direct", "needs --cells NX,NY,NZ, --dt > 0 and --every >= 1"));
     }
     let pot = std::sync::Arc::new(Potential::from_file(&a.potential)?);
+    if let Some(vib) = pot.vibration()
+        && a.dt > vib.max_dt_ps()
+    {
+        return Err(MdError::invalid("direct --dt", format!("time step {} ps exceeds {:.6} ps, {vib}; use a smaller time step", a.dt, vib.max_dt_ps())));
+    }
     let spec = BarSpec {
         kind,
         a0: a.a0,
@@ -435,6 +447,7 @@ pub fn run_cli(a: &DirectArgs) -> Result<(), MdError> {
     while done < a.steps {
         let k = a.every.min(a.steps - done);
         bar.run(k, a.dt);
+        bar.check()?;
         done += k;
         out.write_all(csv_rows(&bar.slab_stress()).as_bytes()).map_err(io)?;
     }

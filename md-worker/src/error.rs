@@ -46,9 +46,24 @@ pub enum MdError {
     /// A GPU back end is unavailable (no driver, NVRTC or device) or a device call failed.
     #[error("cuda: {0}")]
     Device(String),
+    /// A box's MD diverged (an MD guard stopped it): non-finite or runaway atoms, a collapsed
+    /// box. The input was accepted, the integration failed; the message is the diagnosis.
+    #[error("point {point}: MD diverged: {msg}")]
+    Diverged {
+        /// The box (material point id).
+        point: u64,
+        /// What the guard found and what to do.
+        msg: String,
+    },
     /// A request named a box that this back end does not hold.
     #[error("unknown box (point id {0})")]
     UnknownBox(u64),
+}
+
+/// A number for a message: plain when of moderate size, else in exponent form (1e308 rather
+/// than 309 digits).
+pub fn show(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() || (1e-4..1e9).contains(&v.abs()) { format!("{v}") } else { format!("{v:e}") }
 }
 
 impl MdError {

@@ -72,21 +72,74 @@ pub struct BoxView<'a> {
     pub list: &'a mut NeighborList,
 }
 
-/// Wrap positions into the box; returns nothing, resets image counters.
+/// Wrap positions into the box; returns nothing, resets image counters. Bounded for any
+/// input: an atom within a few box lengths steps back one length at a time (the arithmetic
+/// results have always had), a farther one in one `rem_euclid` (a coordinate such as 1e308
+/// would never change by adding L, and stepping would hang); a non-finite one is left as it is
+/// (the engine refuses it before, and the step guard stops a box that produces one).
 fn wrap_all(x: &mut [[f64; 3]], img: &mut [[i32; 3]], lo: [f64; 3], l: [f64; 3]) {
     for (p, im) in x.iter_mut().zip(img.iter_mut()) {
         for d in 0..3 {
             let mut s = p[d];
-            while s < lo[d] {
-                s += l[d];
-            }
-            while s >= lo[d] + l[d] {
-                s -= l[d];
+            if (s - lo[d]).abs() <= 4.0 * l[d] {
+                while s < lo[d] {
+                    s += l[d];
+                }
+                while s >= lo[d] + l[d] {
+                    s -= l[d];
+                }
+            } else if s.is_finite() {
+                s = lo[d] + (s - lo[d]).rem_euclid(l[d]);
+                if !(s >= lo[d] && s < lo[d] + l[d]) {
+                    s = lo[d]; // round-off of the remainder
+                }
             }
             p[d] = s;
             im[d] = 0;
         }
     }
+}
+
+/// Most kinetic energy one atom may reach before the step guard stops its box (eV): about
+/// 10^6 K, or a copper atom at 17 km/s; no solid survives it, and a diverging box passes it
+/// within a few steps of going wrong.
+pub const MAX_ATOM_KINETIC_EV: f64 = 100.0;
+
+/// The step guard: after every step, every atom must be finite, within one box length of
+/// the box (the engine wraps atoms long before that) and below [`MAX_ATOM_KINETIC_EV`], and
+/// the box lengths finite and at least [`crate::neighbor::min_box_side`]. Read-only, so
+/// results of valid runs are unchanged. The error names the point, the step and the atom.
+pub fn check_box(pot: &Potential, masses: &[f64], b: &BoxView) -> Result<(), crate::error::MdError> {
+    let m = &*b.meta;
+    let fail = |msg: String| Err(crate::error::MdError::Diverged { point: m.id, msg: format!("at step {}: {msg}", m.step) });
+    if let Some(msg) = collapsed(pot, m) {
+        return fail(msg);
+    }
+    if !(m.pe.is_finite() && m.virial.iter().all(|w| w.is_finite())) {
+        return fail(format!("the potential energy ({} eV) or the virial is not finite", m.pe));
+    }
+    for i in 0..b.x.len() {
+        let (p, v, f) = (b.x[i], b.v[i], b.f[i]);
+        if !(p.iter().chain(&v).chain(&f).all(|c| c.is_finite())) {
+            return fail(format!("atom {i} (index from 0) has a non-finite position {p:?}, velocity {v:?} or force {f:?}; use a smaller time step"));
+        }
+        let ke = 0.5 * masses[b.types[i] as usize] * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * MVV2E;
+        if !(ke <= MAX_ATOM_KINETIC_EV) {
+            return fail(format!(
+                "atom {i} (index from 0) has a kinetic energy of {ke:.6e} eV, above the bound {MAX_ATOM_KINETIC_EV} eV per atom (energy blow-up); use a smaller time step or check the input velocities and positions"
+            ));
+        }
+        if let Some(d) = (0..3).find(|&d| !(p[d] >= m.lo[d] - m.l[d] && p[d] <= m.lo[d] + 2.0 * m.l[d])) {
+            return fail(format!(
+                "atom {i} (index from 0) is lost: {} = {} lies more than a box length outside [{}, {}]",
+                ["x", "y", "z"][d],
+                crate::error::show(p[d]),
+                m.lo[d],
+                m.lo[d] + m.l[d]
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Rebuild the neighbour list now (wraps atoms first).
@@ -483,7 +536,9 @@ impl Deformation {
 }
 
 /// Run `steps` velocity-Verlet steps of `dt` ps on one box. Forces in `b.f` must be those
-/// of the current positions. Returns the number of atom wraps (seed mode).
+/// of the current positions. Returns the number of atom wraps (seed mode), or the step
+/// guard's diagnosis ([`check_box`], [`crate::error::MdError::Diverged`]) of the first step
+/// that went wrong (the box is then left as that step made it).
 #[allow(clippy::too_many_arguments)]
 pub fn run_steps(
     pot: &Potential,
@@ -494,7 +549,7 @@ pub fn run_steps(
     dt: f64,
     rho: &mut Vec<f64>,
     fp: &mut Vec<f64>,
-) -> u64 {
+) -> Result<u64, crate::error::MdError> {
     run_steps_with(pot, masses, b, def, steps, dt, rho, fp, |_| {})
 }
 
@@ -512,7 +567,7 @@ pub fn run_steps_with(
     rho: &mut Vec<f64>,
     fp: &mut Vec<f64>,
     mut after_step: impl FnMut(&BoxView),
-) -> u64 {
+) -> Result<u64, crate::error::MdError> {
     let dtf = 0.5 * dt * FTM2V;
     let mode = b.meta.mode;
     let g = def.g;
@@ -531,6 +586,8 @@ pub fn run_steps_with(
         }
         if mode == DeformMode::Seed {
             wraps += seed_box_and_wrap(b, &g, dt);
+            // The box changed before the list check: a collapsed box must not reach the list.
+            check_box_lengths(pot, b)?;
         }
         if needs_rebuild(pot, b) {
             rebuild(pot, b);
@@ -561,9 +618,32 @@ pub fn run_steps_with(
             }
         }
         b.meta.step += 1;
+        check_box(pot, masses, b)?;
         after_step(b);
     }
-    wraps
+    Ok(wraps)
+}
+
+/// Why the box's lengths stop it, if they do: not finite, or below the smallest side the
+/// neighbour list can serve ([`crate::neighbor::min_box_side`]).
+fn collapsed(pot: &Potential, m: &BoxMeta) -> Option<String> {
+    let rs = pot.cutoff() + m.skin;
+    let min_side = crate::neighbor::min_box_side(rs);
+    (0..3).find(|&d| !(m.l[d].is_finite() && m.l[d] >= min_side)).map(|d| {
+        format!(
+            "box length {} A along {} is below {min_side} A (the neighbour radius {rs} A / 16): the box collapsed or blew up; use a smaller velocity gradient",
+            m.l[d],
+            ["x", "y", "z"][d]
+        )
+    })
+}
+
+/// The box-length part of [`check_box`] alone.
+fn check_box_lengths(pot: &Potential, b: &BoxView) -> Result<(), crate::error::MdError> {
+    match collapsed(pot, b.meta) {
+        None => Ok(()),
+        Some(msg) => Err(crate::error::MdError::Diverged { point: b.meta.id, msg: format!("at step {}: {msg}", b.meta.step + 1) }),
+    }
 }
 
 /// Seed mode, after the drift: grow the box by (5.7) about its centre and wrap atoms back
@@ -640,4 +720,26 @@ pub fn atom_virials(pot: &Potential, b: &BoxView, fp: &[f64]) -> Vec<[f64; 6]> {
         }
     }
     w
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wrapping_is_bounded_for_absurd_coordinates_and_unchanged_for_near_ones() {
+        let (lo, l) = ([0.0; 3], [10.8, 10.8, 10.8]);
+        let mut img = vec![[5i32; 3]; 4];
+        // 1e308 used to hang the stepping loop (1e308 - 10.8 == 1e308).
+        let mut x = vec![[1e308, -1e308, 3.0], [-3.2 * 10.8 + 1.0, 2.0 * 10.8 + 0.5, 10.8], [f64::NAN, f64::INFINITY, -0.0], [1e12 + 0.25, 5.0, 5.0]];
+        wrap_all(&mut x, &mut img, lo, l);
+        for p in [x[0], x[1], x[3]] {
+            assert!(p.iter().all(|c| *c >= 0.0 && *c < 10.8), "{p:?}");
+        }
+        // Near atoms step by whole lengths, as before (bit for bit).
+        assert_eq!(x[1], [-3.2 * 10.8 + 1.0 + 10.8 + 10.8 + 10.8 + 10.8, 2.0 * 10.8 + 0.5 - 10.8 - 10.8, 0.0]);
+        // Non-finite coordinates are left for the guards (not looped on).
+        assert!(x[2][0].is_nan() && x[2][1].is_infinite());
+        assert!(img.iter().all(|i| *i == [0; 3]));
+    }
 }

@@ -142,7 +142,8 @@ fn main() {
     };
     if let Err(e) = res {
         eprintln!("md-worker: error: {e:#}");
-        let input = e.chain().any(|c| c.downcast_ref::<MdError>().is_some() || c.downcast_ref::<InputError>().is_some());
+        // Bad input exits 2; a box whose MD diverged (an MD guard stopped it) exits 1.
+        let input = e.chain().any(|c| matches!(c.downcast_ref::<MdError>(), Some(m) if !matches!(m, MdError::Diverged { .. })) || c.downcast_ref::<InputError>().is_some());
         std::process::exit(if input { 2 } else { 1 });
     }
 }

@@ -95,6 +95,8 @@ enum RemoteError {
     Unsupported(String),
     UnknownBox(u64),
     Other(String),
+    /// A box whose MD diverged on its rank: stays a diverged box (not a failed rank).
+    Diverged { point: u64, msg: String },
 }
 
 impl From<MdError> for RemoteError {
@@ -104,6 +106,7 @@ impl From<MdError> for RemoteError {
             MdError::Parse { file, line, msg } => RemoteError::Parse { file, line, msg },
             MdError::Unsupported(m) => RemoteError::Unsupported(m),
             MdError::UnknownBox(id) => RemoteError::UnknownBox(id),
+            MdError::Diverged { point, msg } => RemoteError::Diverged { point, msg },
             other => RemoteError::Other(other.to_string()),
         }
     }
@@ -117,6 +120,7 @@ impl RemoteError {
             RemoteError::Unsupported(m) => MdError::Unsupported(m),
             RemoteError::UnknownBox(id) => MdError::UnknownBox(id),
             RemoteError::Other(msg) => rank_error(rank, msg),
+            RemoteError::Diverged { point, msg } => MdError::Diverged { point, msg },
         }
     }
 }
@@ -493,7 +497,7 @@ impl MdBackend for MpiBackend {
             if !seen.insert(w.id) {
                 return Err(MdError::invalid("box work", format!("point id {} appears twice in one step", w.id)));
             }
-            crate::backend::validate_work(w, mode)?;
+            crate::backend::validate_work(&self.pot, w, mode)?;
         }
         let owner = &self.owner;
         let (mut parts, slots) = self.split(work.to_vec(), |w| owner.get(&w.id).map_or(0, |o| o.0));
@@ -682,5 +686,20 @@ pub fn serve_rank(world: &MpiWorld, threads: Option<Arc<rayon::ThreadPool>>) -> 
             let reply = reply.unwrap_or_else(|e| Reply::Failed(e.into()));
             send_bytes(&comm, 0, TAG_REPLY, &encode(&reply));
         }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_diverged_box_on_another_rank_stays_a_diverged_box_naming_its_point() {
+        let e = RemoteError::from(MdError::Diverged { point: 3, msg: "at step 1: atom 0 (index from 0) has a kinetic energy".into() });
+        let back: RemoteError = bincode::deserialize(&bincode::serialize(&e).unwrap()).unwrap();
+        let e = back.into_md(1);
+        assert!(matches!(e, MdError::Diverged { point: 3, .. }), "{e}");
+        assert!(e.to_string().starts_with("point 3: MD diverged: at step 1"), "{e}");
     }
 }

@@ -45,6 +45,13 @@ impl NeighborList {
     }
 }
 
+/// The smallest box side (A) the list serves for a neighbour radius `rs`: `rs / 16`, so at
+/// most 33 images per axis and 33^3 < 65536 image codes ([`build`] would panic beyond). The
+/// engine refuses smaller boxes at input and stops a box that shrinks below it.
+pub fn min_box_side(rs: f64) -> f64 {
+    rs / 16.0
+}
+
 /// Build the half list of atoms at `x` (already wrapped into `[lo, lo + l)`) with radius `rs`.
 /// Bins are at least `rs / 2` wide. Rows are sorted by distance (ties by atom and image),
 /// so the same input gives the same list.

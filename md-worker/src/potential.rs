@@ -8,6 +8,9 @@ use crate::error::MdError;
 use std::path::Path;
 
 /// A pair of (element names, masses) plus the tables of one potential.
+// One potential per run, behind an Arc: the size of the EAM variant (its cached vibration
+// included) costs nothing, and boxing it would add an indirection to every table look-up.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone)]
 pub enum Potential {
     /// Embedded-atom method, any of the three LAMMPS file formats.
@@ -80,6 +83,30 @@ impl Potential {
         }
     }
 
+    /// The fastest nearest-neighbour vibration of the potential's elements (each in its own
+    /// fcc lattice at the potential's energy minimum), from which the engine bounds the MD time
+    /// step ([`Vibration::max_dt_ps`]). `None` when the potential has no bound minimum or no
+    /// stiffness there (a null potential), in which case no time step is refused on this ground.
+    /// Computed once per EAM potential (a few milliseconds), then cached.
+    pub fn vibration(&self) -> Option<Vibration> {
+        match self {
+            Potential::Eam(t) => *t.vibration.get_or_init(|| t.compute_vibration()),
+            Potential::LjCut(lj) => {
+                // No scan: the fcc nearest-neighbour distance of LJ is the pair minimum to ~3 %.
+                let (e, s) = (lj.epsilon, lj.sigma);
+                let phi = |r: f64| if r < lj.cutoff { 4.0 * e * ((s / r).powi(12) - (s / r).powi(6)) } else { 0.0 };
+                let r1 = 2f64.powf(1.0 / 6.0) * s;
+                einstein(0, lj.mass, r1, lj.cutoff, &phi, &|_| 0.0, &|_| 0.0)
+            }
+        }
+    }
+
+    /// The largest MD time step (ps) this potential allows: a tenth of its fastest
+    /// nearest-neighbour vibration period ([`Potential::vibration`]); `None`: no bound.
+    pub fn max_time_step(&self) -> Option<f64> {
+        self.vibration().map(|v| v.max_dt_ps())
+    }
+
     /// The LAMMPS pair style name this potential corresponds to.
     pub fn style(&self) -> &'static str {
         match self {
@@ -91,6 +118,99 @@ impl Potential {
             Potential::LjCut(_) => "lj/cut",
         }
     }
+}
+
+/// MD steps per vibration period below which a time step is refused ([`Vibration::max_dt_ps`]).
+/// Velocity Verlet is unstable above about period / 4.4 (2 / omega_max, omega_max ~ sqrt(2)
+/// omega_Einstein in fcc); a tenth of the period leaves room for thermal anharmonicity.
+pub const STEPS_PER_PERIOD: f64 = 10.0;
+
+/// The nearest-neighbour vibration of one element of a potential, in its fcc lattice at the
+/// potential's energy minimum: the Einstein frequency of one atom displaced in the frozen
+/// lattice, from the pair and embedding curvature at the shell distances.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Vibration {
+    /// Element index (0-based) whose vibration is the fastest.
+    pub element: usize,
+    /// Mass of that element (amu).
+    pub mass: f64,
+    /// Nearest-neighbour distance at the energy minimum (A).
+    pub nn_distance: f64,
+    /// Vibration period (ps).
+    pub period_ps: f64,
+}
+
+impl Vibration {
+    /// The largest time step allowed: period / [`STEPS_PER_PERIOD`] (ps).
+    pub fn max_dt_ps(&self) -> f64 {
+        self.period_ps / STEPS_PER_PERIOD
+    }
+}
+
+impl std::fmt::Display for Vibration {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "a tenth of the potential's nearest-neighbour vibration period {:.4} ps (element {}, mass {} amu, fcc neighbours at {:.3} A)",
+            self.period_ps, self.element, self.mass, self.nn_distance
+        )
+    }
+}
+
+/// fcc shells in units of the nearest-neighbour distance, out to `reach`: (distance, count).
+fn fcc_shells(reach: f64) -> Vec<(f64, f64)> {
+    // fcc sites are the integer vectors with an even coordinate sum (units of a0 / 2); the
+    // nearest neighbour is at sqrt(2).
+    let reach = reach.clamp(1.0, 8.0); // shells beyond 8 neighbour distances add nothing here
+    let nmax = (2.0 * reach * reach).floor() as i64;
+    let m = (nmax as f64).sqrt().ceil() as i64;
+    let mut count = std::collections::BTreeMap::<i64, f64>::new();
+    for i in -m..=m {
+        for j in -m..=m {
+            for k in -m..=m {
+                let n = i * i + j * j + k * k;
+                if n > 0 && n <= nmax && (i + j + k) % 2 == 0 {
+                    *count.entry(n).or_default() += 1.0;
+                }
+            }
+        }
+    }
+    count.into_iter().map(|(n, c)| ((n as f64 / 2.0).sqrt(), c)).collect()
+}
+
+/// The Einstein vibration of an atom of mass `mass` in an fcc lattice of nearest-neighbour
+/// distance `r1` under pair energy `phi`, density `rho` and embedding `embed`; `None` when
+/// the lattice is not stiff (omega^2 <= 0 or not finite).
+fn einstein(
+    element: usize,
+    mass: f64,
+    r1: f64,
+    cutoff: f64,
+    phi: &dyn Fn(f64) -> f64,
+    rho: &dyn Fn(f64) -> f64,
+    embed: &dyn Fn(f64) -> f64,
+) -> Option<Vibration> {
+    let shells = fcc_shells(cutoff / r1);
+    let h = 1e-3 * r1;
+    let d1 = |f: &dyn Fn(f64) -> f64, r: f64| (f(r + h) - f(r - h)) / (2.0 * h);
+    let d2 = |f: &dyn Fn(f64) -> f64, r: f64| (f(r + h) - 2.0 * f(r) + f(r - h)) / (h * h);
+    let rho_bar: f64 = shells.iter().map(|&(d, c)| c * rho(d * r1)).sum();
+    let hr = 1e-3 * rho_bar.abs().max(1e-6);
+    let fp = (embed(rho_bar + hr) - embed(rho_bar - hr)) / (2.0 * hr);
+    let fpp = (embed(rho_bar + hr) - 2.0 * embed(rho_bar) + embed(rho_bar - hr)) / (hr * hr);
+    // Trace of the displaced atom's Hessian: the effective pair psi = phi + 2 F'(rho) rho gives
+    // psi'' + 2 psi' / r per neighbour, the neighbours' embedding F'' rho'^2.
+    let mut trace = 0.0;
+    for &(d, c) in &shells {
+        let r = d * r1;
+        if r + h >= cutoff {
+            continue;
+        }
+        let psi = |x: f64| phi(x) + 2.0 * fp * rho(x);
+        trace += c * (d2(&psi, r) + 2.0 * d1(&psi, r) / r + fpp * d1(rho, r).powi(2));
+    }
+    let omega2 = trace / 3.0 / mass * crate::units::FTM2V;
+    (omega2.is_finite() && omega2 > 0.0 && mass > 0.0).then(|| Vibration { element, mass, nn_distance: r1, period_ps: 2.0 * std::f64::consts::PI / omega2.sqrt() })
 }
 
 /// The three LAMMPS EAM file formats.
@@ -131,6 +251,8 @@ pub struct EamTables {
     /// type2rhor[i][j]: which rhor spline, as LAMMPS.
     pub(crate) type2rhor: Vec<Vec<usize>>,
     pub(crate) type2z2r: Vec<Vec<usize>>,
+    /// [`Potential::vibration`], computed on first use.
+    pub(crate) vibration: std::sync::OnceLock<Option<Vibration>>,
 }
 
 /// A reader of whitespace-separated numbers spanning lines, tracking line numbers.
@@ -153,7 +275,9 @@ impl<'a> Reader<'a> {
     }
     /// `n` numbers, read from whole lines (extra numbers at the end of the last line ignored).
     fn values(&mut self, n: usize, what: &str) -> Result<Vec<f64>, MdError> {
-        let mut out = Vec::with_capacity(n);
+        // Capacity by what the file can hold, not by its header: a count of 1e11 in a broken
+        // header must be an "unexpected end of file", not an allocation of 800 GB.
+        let mut out = Vec::with_capacity(n.min(1 << 16));
         while out.len() < n {
             if self.next >= self.lines.len() {
                 return Err(self.err(
@@ -209,6 +333,18 @@ fn read_grid(r: &mut Reader) -> Result<Grid, MdError> {
     };
     if g.nrho < 5 || g.nr < 5 || !(g.drho > 0.0) || !(g.dr > 0.0) || !(g.cut > 0.0) {
         return Err(r.err(ln, "grid needs Nrho >= 5, Nr >= 5 and positive drho, dr, cutoff".into()));
+    }
+    if let Some((name, v)) = [("drho", g.drho), ("dr", g.dr), ("cutoff", g.cut)].into_iter().find(|(_, v)| !v.is_finite()) {
+        return Err(r.err(ln, format!("grid {name} = {v} is not a finite number")));
+    }
+    // The force kernel converts r / dr (r below the cut-off) to an i32 unchecked.
+    if !(g.cut / g.dr < (1u64 << 30) as f64) {
+        return Err(r.err(ln, format!("cutoff / dr = {:e} rows; at most 2^30", g.cut / g.dr)));
+    }
+    // The tables must span a finite range: (N - 1) d = inf made funcfl's resampled table
+    // length usize::MAX (found by fuzzing).
+    if !((g.nrho - 1) as f64 * g.drho).is_finite() || !((g.nr - 1) as f64 * g.dr).is_finite() {
+        return Err(r.err(ln, format!("grid spans (Nrho - 1) drho = {:e} and (Nr - 1) dr = {:e}: not finite", (g.nrho - 1) as f64 * g.drho, (g.nr - 1) as f64 * g.dr)));
     }
     Ok(g)
 }
@@ -380,7 +516,53 @@ impl EamTables {
             z2r: z2r.iter().map(|f| interpolate(nr, dr, f)).collect(),
             type2rhor,
             type2z2r,
+            vibration: std::sync::OnceLock::new(),
         }
+    }
+
+    /// The fastest element vibration ([`Potential::vibration`]): per element, the fcc lattice
+    /// energy per atom is scanned for its minimum in nearest-neighbour distance, and the
+    /// Einstein frequency taken there.
+    fn compute_vibration(&self) -> Option<Vibration> {
+        let cut = self.cutoff;
+        let (lo, n) = (0.15 * cut, 1700);
+        let shells = fcc_shells(1.0 / 0.15);
+        let mut best: Option<Vibration> = None;
+        for e in 0..self.masses.len() {
+            let phi = |r: f64| if r < cut { self.pair(e, e, r, 0.0, 0.0).0 } else { 0.0 };
+            let rho = |r: f64| if r < cut { self.density(e, e, r) } else { 0.0 };
+            let embed = |x: f64| self.embed(e, x).0;
+            let energy = |r1: f64| {
+                let (mut dens, mut pair) = (0.0, 0.0);
+                for &(d, c) in &shells {
+                    let r = d * r1;
+                    if r >= cut {
+                        break;
+                    }
+                    dens += c * rho(r);
+                    pair += c * phi(r);
+                }
+                embed(dens) + 0.5 * pair
+            };
+            let step = (cut - lo) / n as f64;
+            let (mut kmin, mut emin) = (0, f64::INFINITY);
+            for k in 0..=n {
+                let en = energy(lo + k as f64 * step);
+                if en < emin {
+                    (kmin, emin) = (k, en);
+                }
+            }
+            if kmin == 0 || kmin == n {
+                continue; // no bound minimum in the scanned range
+            }
+            let r1 = lo + kmin as f64 * step;
+            if let Some(v) = einstein(e, self.masses[e], r1, cut, &phi, &rho, &embed)
+                && best.is_none_or(|b| v.period_ps < b.period_ps)
+            {
+                best = Some(v);
+            }
+        }
+        best
     }
 
     /// Squared force cut-off (A^2).
@@ -459,6 +641,34 @@ mod tests {
         let der = (c[0] * p + c[1]) * p + c[2];
         assert!((val - (1.0 + 2.0 * x + 3.0 * x * x)).abs() < 1e-12, "{val}");
         assert!((der - (2.0 + 6.0 * x)).abs() < 1e-10, "{der}");
+    }
+
+    fn shipped(name: &str) -> Potential {
+        Potential::from_file(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("potentials").join(name)).unwrap()
+    }
+
+    #[test]
+    fn the_time_step_bound_comes_from_the_copper_nearest_neighbour_vibration() {
+        for name in ["Cu_u3.eam", "Cu_mishin1.eam.alloy"] {
+            let pot = shipped(name);
+            let v = pot.vibration().unwrap();
+            // Copper: a0 = 3.615 A, neighbours at 2.556 A; Einstein frequency about 5-7 THz.
+            assert!((v.nn_distance - 3.615 / 2f64.sqrt()).abs() < 0.03, "{name}: {v:?}");
+            assert!(v.period_ps > 0.12 && v.period_ps < 0.3, "{name}: {v:?}");
+            assert_eq!(v.mass, pot.mass(0));
+            let dt = pot.max_time_step().unwrap();
+            assert_eq!(dt, v.period_ps / STEPS_PER_PERIOD);
+            // Every time step in use (1-5 fs) passes; 5 ps is refused.
+            assert!(dt > 0.005 && dt < 5.0, "{name}: {dt}");
+            // Cached: the same value again.
+            assert_eq!(pot.vibration(), Some(v));
+        }
+        let argon = Potential::LjCut(LjCut { epsilon: 0.0104, sigma: 3.4, cutoff: 8.5, mass: 39.95 });
+        let v = argon.vibration().unwrap();
+        assert!(v.period_ps > 0.3 && v.period_ps < 1.5, "{v:?}");
+        // The null potential (no interaction) has no vibration and so no bound.
+        let null = Potential::LjCut(LjCut { epsilon: 0.0, sigma: 1.0, cutoff: 1.0, mass: 1.0 });
+        assert_eq!(null.max_time_step(), None);
     }
 
     #[test]

@@ -234,7 +234,97 @@ impl From<MdError> for tonic::Status {
             MdError::Invalid { .. } | MdError::Parse { .. } => tonic::Status::invalid_argument(e.to_string()),
             MdError::UnknownBox(_) => tonic::Status::not_found(e.to_string()),
             MdError::Unsupported(_) => tonic::Status::unimplemented(e.to_string()),
+            // Internal, not a loss: the pool must not recover the box on another worker, where
+            // the same box diverges the same way; the message names the point.
+            MdError::Diverged { .. } => tonic::Status::internal(e.to_string()),
             _ => tonic::Status::internal(e.to_string()),
         }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::pool::{Endpoint, PotentialSource, Remote};
+    use std::sync::Arc;
+
+    /// A worker served in this process on a free loopback port; stopped when dropped.
+    struct Worker {
+        addr: String,
+        stop: Option<tokio::sync::oneshot::Sender<()>>,
+        thread: Option<std::thread::JoinHandle<()>>,
+    }
+
+    impl Worker {
+        fn start() -> Worker {
+            let (addr_tx, addr_rx) = std::sync::mpsc::channel();
+            let (stop, stop_rx) = tokio::sync::oneshot::channel::<()>();
+            let thread = std::thread::spawn(move || {
+                let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
+                rt.block_on(async move {
+                    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+                    addr_tx.send(listener.local_addr().unwrap().to_string()).unwrap();
+                    let opts = crate::server::ServeOptions { backend: "reference".into(), threads: None, device: "test".into() };
+                    crate::server::serve(listener, opts, async move {
+                        let _ = stop_rx.await;
+                    })
+                    .await
+                    .unwrap();
+                });
+            });
+            Worker { addr: addr_rx.recv().unwrap(), stop: Some(stop), thread: Some(thread) }
+        }
+    }
+
+    impl Drop for Worker {
+        fn drop(&mut self) {
+            if let Some(s) = self.stop.take() {
+                let _ = s.send(());
+            }
+            if let Some(t) = self.thread.take() {
+                let _ = t.join();
+            }
+        }
+    }
+
+    fn cu() -> PotentialSource {
+        PotentialSource::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/potentials/Cu_mishin1.eam.alloy"))).unwrap()
+    }
+
+    #[test]
+    fn hostile_values_over_the_wire_are_refused_or_stopped_naming_the_point() {
+        let w = Worker::start();
+        let rt = Arc::new(tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap());
+        let mut remote = Remote::connect(&w.addr, rt).unwrap();
+        // A lattice constant that gives a box below the neighbour list's reach.
+        let tiny = BoxSpec::lattice(9, LatticeKind::Fcc, 1e-300, [1, 1, 1]);
+        let e = remote.open(&cu(), &[tiny]).unwrap_err().to_string();
+        assert!(e.contains("InvalidArgument") && e.contains("point 9") && e.contains("1e-300"), "{e}");
+        let specs: Vec<BoxSpec> = [3, 5].iter().map(|&id| BoxSpec::lattice(id, LatticeKind::Fcc, 3.615, [2, 2, 2])).collect();
+        remote.open(&cu(), &specs).unwrap();
+        // A velocity gradient of 1e6 1/ps: refused before any box moves.
+        let mut l = [[0.0; 3]; 3];
+        l[0][0] = 1e6;
+        let e = remote.step(1, &[BoxWork::new(3, l, 10, 0.001), BoxWork::new(5, [[0.0; 3]; 3], 10, 0.001)]).unwrap_err().to_string();
+        assert!(e.contains("InvalidArgument") && e.contains("point 3") && e.contains("xx = 1000000 1/ps"), "{e}");
+        // A 5 ps time step: refused at the wire's edge, naming the point and the field.
+        let e = remote.step(1, &[BoxWork::new(3, [[0.0; 3]; 3], 10, 5.0)]).unwrap_err().to_string();
+        assert!(e.contains("InvalidArgument") && e.contains("point 3 field `dt_ps`") && e.contains("5 ps"), "{e}");
+        // 1e5 eV added to box 5 (about 3e3 eV per atom): the MD guard stops it at its first
+        // step, and the worker's error names the point.
+        let mut hot = BoxWork::new(5, [[0.0; 3]; 3], 10, 0.001);
+        hot.energy_to_add_ev = 1e5;
+        let e = remote.step(2, &[BoxWork::new(3, [[0.0; 3]; 3], 10, 0.001), hot]).unwrap_err().to_string();
+        assert!(e.contains("Internal") && e.contains("point 5: MD diverged: at step 1") && e.contains("kinetic energy"), "{e}");
+    }
+
+    #[test]
+    fn a_diverged_box_is_an_internal_status_not_a_loss() {
+        let s: tonic::Status = MdError::Diverged { point: 7, msg: "x".into() }.into();
+        assert_eq!(s.code(), tonic::Code::Internal);
+        assert!(s.message().contains("point 7: MD diverged"));
+        let s: tonic::Status = MdError::invalid("box work of point 7", "velocity gradient xx = 1000000 1/ps").into();
+        assert_eq!(s.code(), tonic::Code::InvalidArgument);
     }
 }

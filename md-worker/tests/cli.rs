@@ -74,3 +74,143 @@ fn direct_takes_the_documented_comma_lists_and_writes_slab_stresses() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--cells NX,NY,NZ"), "{}", String::from_utf8_lossy(&out.stderr));
 }
+
+/// `md_worker` with a time limit: a hang fails the test instead of stalling it.
+fn md_worker_within(secs: u64, args: &[&str]) -> std::process::Output {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_md-worker"))
+        .args(args)
+        .current_dir(crate_dir())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t0.elapsed().as_secs() > secs {
+            child.kill().unwrap();
+            panic!("md-worker {args:?} still running after {secs} s");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.wait_with_output().unwrap()
+}
+
+/// cu108_hot.data with the x coordinate of atom 1 replaced by `x`, in `dir`.
+fn data_with_atom1_x(dir: &std::path::Path, x: &str) -> String {
+    let text = std::fs::read_to_string(crate_dir().join("tests/golden/cu108_hot.data")).unwrap();
+    let line = text.lines().find(|l| l.starts_with("1 1 ")).unwrap();
+    let mut w: Vec<&str> = line.split_whitespace().collect();
+    w[2] = x;
+    let path = dir.join(format!("atom1_x_{x}.data"));
+    std::fs::write(&path, text.replacen(line, &w.join(" "), 1)).unwrap();
+    path.to_str().unwrap().to_string()
+}
+
+fn stderr_of(out: &std::process::Output) -> String {
+    String::from_utf8_lossy(&out.stderr).to_string()
+}
+
+#[test]
+fn eval_of_an_atom_at_x_1e308_is_refused_not_a_hang() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = data_with_atom1_x(dir.path(), "1e308");
+    let out = md_worker_within(60, &["eval", "--potential", "potentials/Cu_u3.eam", "--data", &data]);
+    let err = stderr_of(&out);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("atom 1") && err.contains("x = 1e308") && err.contains("box lengths outside"), "{err}");
+    assert!(err.contains(&format!("{data}:16")), "names the file and line: {err}");
+    assert!(out.stdout.is_empty(), "no energy printed");
+}
+
+#[test]
+fn eval_of_an_atom_at_x_nan_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    for bad in ["NaN", "nan", "inf", "-inf"] {
+        let data = data_with_atom1_x(dir.path(), bad);
+        let out = md_worker_within(60, &["eval", "--potential", "potentials/Cu_u3.eam", "--data", &data]);
+        let err = stderr_of(&out);
+        assert_eq!(out.status.code(), Some(2), "{bad}: {err}");
+        assert!(err.contains("x of atom 1") && err.contains("is not a finite number"), "{bad}: {err}");
+        assert!(out.stdout.is_empty(), "{bad}: no energy printed");
+    }
+}
+
+#[test]
+fn eval_wraps_an_atom_a_few_box_lengths_out_to_the_same_energy() {
+    // Atom 1 moved by +3 box lengths (10.8 A each): bounded, so wrapped in, same energy.
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(crate_dir().join("tests/golden/cu108_hot.data")).unwrap();
+    let line = text.lines().find(|l| l.starts_with("1 1 ")).unwrap();
+    let x: f64 = line.split_whitespace().nth(2).unwrap().parse().unwrap();
+    let data = data_with_atom1_x(dir.path(), &format!("{:e}", x + 3.0 * 10.8));
+    let e = |data: &str| {
+        let out = md_worker_within(60, &["eval", "--potential", "potentials/Cu_u3.eam", "--data", data]);
+        assert!(out.status.success(), "{}", stderr_of(&out));
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        v["energy_ev"].as_f64().unwrap()
+    };
+    let (moved, orig) = (e(&data), e("tests/golden/cu108_hot.data"));
+    assert!((moved - orig).abs() < 1e-9 * orig.abs(), "{moved} vs {orig}");
+}
+
+#[test]
+fn run_with_a_5_ps_time_step_is_refused_naming_the_bound() {
+    let out = md_worker_within(60, &["run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", "tests/golden/cu108_hot.data", "--steps", "100", "--dt", "5"]);
+    let err = stderr_of(&out);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("time step 5 ps exceeds") && err.contains("vibration period") && err.contains("point 0"), "{err}");
+    assert!(out.stdout.is_empty(), "nothing run: {}", String::from_utf8_lossy(&out.stdout));
+}
+
+#[test]
+fn run_with_a_velocity_gradient_of_1e6_is_refused() {
+    for remap in ["affine", "seed"] {
+        let out = md_worker_within(60, &[
+            "run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", "tests/golden/cu108_hot.data", "--steps", "10", "--dt", "0.001",
+            "--velocity-gradient", "xx=1e6", "--remap", remap,
+        ]);
+        let err = stderr_of(&out);
+        assert_eq!(out.status.code(), Some(2), "{remap}: {err}");
+        assert!(err.contains("velocity gradient xx = 1000000 1/ps") && err.contains("point 0"), "{remap}: {err}");
+    }
+    // Under the per-step bound but a box stretched by e^5 in one call of 1000 steps.
+    let out = md_worker_within(60, &[
+        "run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", "tests/golden/cu108_hot.data", "--steps", "1000", "--dt", "0.001",
+        "--velocity-gradient", "yy=-5", "--thermo", "1000",
+    ]);
+    let err = stderr_of(&out);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("yy = -5 1/ps over 1000 steps") && err.contains("factor 2"), "{err}");
+}
+
+#[test]
+fn run_of_a_runaway_atom_is_stopped_by_the_md_guard_with_exit_1() {
+    // Atom 5 given 3000 A/ps (300 km/s, 2.9e4 eV): input the parser accepts, a box the MD
+    // guard stops at its first step with the diagnosis.
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(crate_dir().join("tests/golden/cu108_hot.data")).unwrap();
+    let (head, vels) = text.split_at(text.find("Velocities").unwrap());
+    let line = vels.lines().find(|l| l.starts_with("5 ")).unwrap();
+    let data = dir.path().join("runaway.data");
+    std::fs::write(&data, format!("{head}{}", vels.replacen(line, "5 3000 0 0", 1))).unwrap();
+    let out = md_worker_within(60, &["run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", data.to_str().unwrap(), "--steps", "10", "--dt", "0.001"]);
+    let err = stderr_of(&out);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("point 0: MD diverged: at step 1: atom 4 (index from 0) has a kinetic energy of") && err.contains("energy blow-up"), "{err}");
+}
+
+#[test]
+fn eval_of_two_atoms_at_one_place_is_refused() {
+    // Atom 1 put on atom 2: an infinite energy, refused as input rather than printed.
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(crate_dir().join("tests/golden/cu108_hot.data")).unwrap();
+    let l1 = text.lines().find(|l| l.starts_with("1 1 ")).unwrap();
+    let l2 = text.lines().find(|l| l.starts_with("2 1 ")).unwrap();
+    let data = dir.path().join("overlap.data");
+    std::fs::write(&data, text.replacen(l1, &l2.replacen("2 1 ", "1 1 ", 1), 1)).unwrap();
+    let out = md_worker_within(60, &["eval", "--potential", "potentials/Cu_u3.eam", "--data", data.to_str().unwrap()]);
+    let err = stderr_of(&out);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("point 0") && err.contains("atoms overlap"), "{err}");
+    assert!(out.stdout.is_empty());
+}

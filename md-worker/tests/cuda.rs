@@ -180,3 +180,17 @@ fn device_cuda_is_a_clear_error_and_auto_falls_back_without_a_gpu() {
     assert!(md_worker::device::backend_for_device("tpu", "double", mishin()).is_err());
 }
 
+
+#[test]
+fn a_box_that_blows_up_on_the_shim_is_stopped_naming_the_point() {
+    // 1e5 eV added to a 32-atom box (3e3 eV per atom): the CPU back ends stop it at its first
+    // step; the cuda back end checks once per call and stops it at the call's end.
+    let mut b = shim(Precision::Double);
+    b.open(&[BoxSpec::lattice(4, LatticeKind::Fcc, 3.615, [2, 2, 2])]).unwrap();
+    let mut w = work(4, [[0.0; 3]; 3], 5);
+    w.energy_to_add_ev = 1e5;
+    let mut out = [BoxResult::default()];
+    let e = b.step(&[w], &mut out).unwrap_err();
+    assert!(matches!(e, md_worker::MdError::Diverged { point: 4, .. }), "{e}");
+    assert!(e.to_string().contains("mean kinetic energy"), "{e}");
+}

@@ -21,6 +21,8 @@ pub struct LatticeProperties {
     pub c11_gpa: f64,
     /// Longitudinal wave speed sqrt(C11 / rho) (m/s).
     pub wave_speed: f64,
+    /// The vibration that bounds the MD time step ([`md_worker::Potential::vibration`]).
+    pub vibration: Option<md_worker::potential::Vibration>,
 }
 
 pub fn lattice_kind(name: &str) -> Result<LatticeKind> {
@@ -52,6 +54,7 @@ pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64, orient: Orie
     let pot = Arc::new(Potential::from_file(potential)?);
     let kind = lattice_kind(lattice)?;
     let density = atoms_per_cell(kind) * pot.mass(0) * AMU_KG / (a0 * 1e-10).powi(3);
+    let vibration = pot.vibration();
     let eps = 1e-3;
     let mut md = md_worker::ReferenceBackend::new(pot);
     let specs: Vec<BoxSpec> = [eps, -eps]
@@ -70,7 +73,7 @@ pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64, orient: Orie
     // Tension positive: stretching (+eps) raises sigma_xx.
     let c11_gpa = (out[0].stress_gpa[0] - out[1].stress_gpa[0]) / (2.0 * eps);
     anyhow::ensure!(c11_gpa > 0.0 && c11_gpa.is_finite(), "the {lattice} lattice at a0 = {a0} A is not stable under this potential (C11 = {c11_gpa} GPa)");
-    Ok(LatticeProperties { density, c11_gpa, wave_speed: (c11_gpa * 1e9 / density).sqrt() })
+    Ok(LatticeProperties { density, c11_gpa, wave_speed: (c11_gpa * 1e9 / density).sqrt(), vibration })
 }
 
 /// The box of one material point of an md body.

@@ -574,6 +574,9 @@ pub fn parse(file: &str, text: &str, sets: &[String], base: &Path, default_name:
     Ok(LoadedScene { scene, path: PathBuf::from(file), text, files, dt, steps })
 }
 
+/// Largest lattice constant an md material may have (A); real crystals of these lattices have 2-7.
+const MAX_LATTICE_CONSTANT: f64 = 100.0;
+
 fn finite_positive(loc: &Locator<'_>, key: &str, v: f64, what: &str) -> Result<(), SceneError> {
     if v.is_finite() && v > 0.0 { Ok(()) } else { Err(loc.err(key, v, format!("{what} must be a finite positive number"))) }
 }
@@ -752,6 +755,9 @@ impl Scene {
                     return Err(loc.err(&k("material.lattice"), format!("{:?}", md.lattice), "allowed: \"fcc\", \"bcc\", \"sc\""));
                 }
                 finite_positive(loc, &k("material.lattice_constant_angstrom"), md.lattice_constant_angstrom, "the lattice constant (A)")?;
+                if md.lattice_constant_angstrom > MAX_LATTICE_CONSTANT {
+                    return Err(loc.err(&k("material.lattice_constant_angstrom"), md_worker::error::show(md.lattice_constant_angstrom), format!("the lattice constant must be at most {MAX_LATTICE_CONSTANT} A")));
+                }
                 if !(1..=40).contains(&md.cells_per_side) {
                     return Err(loc.err(&k("material.cells_per_side"), md.cells_per_side, "allowed: 1 to 40 lattice cells per box side"));
                 }
@@ -785,6 +791,11 @@ impl Scene {
                 md.potential = file.clone();
                 let props = crate::md::lattice_properties(&file, &md.lattice, md.lattice_constant_angstrom, md_worker::Orientation(md.orientation))
                     .map_err(|e| loc.err(&k("material.potential"), format!("{:?}", md.potential), format!("{e}")))?;
+                if let Some(v) = props.vibration
+                    && md.timestep_fs > v.max_dt_ps() * 1e3
+                {
+                    return Err(loc.err(&k("material.timestep_fs"), md.timestep_fs, format!("exceeds {:.3} fs, {v}", v.max_dt_ps() * 1e3)));
+                }
                 if (rho - props.density).abs() > 0.01 * props.density {
                     return Err(loc.err(&k("density"), rho, format!("an md body's density must match its lattice: {:.1} kg/m^3 for {} at a0 = {} A", props.density, md.lattice, md.lattice_constant_angstrom)));
                 }

@@ -547,7 +547,7 @@ impl<E: Exec> GpuEngine<E> {
                 return Err(MdError::invalid("box work", format!("point id {} appears twice in one step", item.id)));
             }
             let mode = if self.host.boxi[k * BOXI + 2] == 1 { DeformMode::Seed } else { DeformMode::Affine };
-            backend::validate_work(item, mode)?;
+            backend::validate_work(&self.pot, item, mode)?;
             w.boxes.push(k as i32);
             let g = kernel::Deformation::new(mode, &item.velocity_gradient).g;
             w.d.extend(g.iter().flatten());
@@ -600,6 +600,22 @@ impl<E: Exec> GpuEngine<E> {
             } else {
                 std::array::from_fn(|c| -(kin[c] + d[1 + c]) / vol * EV_PER_A3_TO_GPA)
             };
+            // The MD guard, once per call here (the device loop has none per step): a box
+            // that blew up is stopped with its diagnosis, as the CPU back ends stop it.
+            let ke_atom = self.kinetic[k] / n.max(1) as f64;
+            if !(d[0].is_finite() && stress_gpa.iter().all(|c| c.is_finite()) && ke_atom <= kernel::MAX_ATOM_KINETIC_EV && [d[13], d[14], d[15]].iter().all(|l| l.is_finite() && *l > 0.0)) {
+                return Err(MdError::Diverged {
+                    point: item.id,
+                    msg: format!(
+                        "after step {} (the cuda back end checks once per call): potential energy {} eV, mean kinetic energy {ke_atom:.6e} eV per atom \
+                         (bound {} eV), box {:?} A; use a smaller time step or velocity gradient",
+                        i[0],
+                        d[0],
+                        kernel::MAX_ATOM_KINETIC_EV,
+                        [d[13], d[14], d[15]]
+                    ),
+                });
+            }
             *o = BoxResult {
                 id: item.id,
                 stress_gpa,
