@@ -38,7 +38,7 @@ use crate::run::{self, Outcome, Progress, RunOptions};
 use crate::scene;
 use crate::store::{EventKind, EventRecord, JobRecord, JobState, Store, WorkerAd, WorkerRecord, WorkerState, now_unix};
 use crate::workers::{self, Registry, WorkerError};
-use continuum::coupling::MdShared;
+use coupling::MdShared;
 use anyhow::{Context, Result, bail};
 use mscale_proto::orchestrator::v1 as pb;
 use pb::orchestrator_server::{Orchestrator, OrchestratorServer};
