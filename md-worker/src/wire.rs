@@ -228,13 +228,14 @@ pub fn check_result(r: &BoxResult, worker: &str) -> Result<(), MdError> {
     Ok(())
 }
 
-impl From<MdError> for tonic::Status {
-    fn from(e: MdError) -> Self {
-        match e {
-            MdError::Invalid { .. } | MdError::Parse { .. } => tonic::Status::invalid_argument(e.to_string()),
-            MdError::UnknownBox(_) => tonic::Status::not_found(e.to_string()),
-            MdError::Unsupported(_) => tonic::Status::unimplemented(e.to_string()),
-            _ => tonic::Status::internal(e.to_string()),
-        }
+/// The gRPC status of an engine error: InvalidArgument for bad input, NotFound for an unknown
+/// box, Unimplemented for an unsupported request, Internal otherwise. (A function, not a
+/// `From` impl: both types belong to other crates.)
+pub fn status(e: MdError) -> tonic::Status {
+    match e {
+        MdError::Invalid { .. } | MdError::Parse { .. } => tonic::Status::invalid_argument(e.to_string()),
+        MdError::UnknownBox(_) => tonic::Status::not_found(e.to_string()),
+        MdError::Unsupported(_) => tonic::Status::unimplemented(e.to_string()),
+        _ => tonic::Status::internal(e.to_string()),
     }
 }
