@@ -471,7 +471,7 @@ fn finite3(v: &[f64]) -> bool {
     v.iter().all(|x| x.is_finite())
 }
 
-pub(crate) fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
+pub fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
     let bad = |msg: String| Err(MdError::invalid(format!("box spec of point {}", s.id), msg));
     match &s.atoms {
         InitialAtoms::Lattice { a0, cells, orient, .. } => {
@@ -510,7 +510,7 @@ pub(crate) fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError>
     Ok(())
 }
 
-pub(crate) fn validate_work(w: &BoxWork, mode: DeformMode) -> Result<(), MdError> {
+pub fn validate_work(w: &BoxWork, mode: DeformMode) -> Result<(), MdError> {
     let what = || format!("box work of point {}", w.id);
     if !(w.dt_ps > 0.0 && w.dt_ps.is_finite()) && w.steps > 0 {
         return Err(MdError::invalid(what(), format!("time step must be > 0 ps, got {}", w.dt_ps)));
