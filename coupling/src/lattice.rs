@@ -67,6 +67,7 @@ pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64, orient: Orie
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 
