@@ -8,11 +8,10 @@
 //! ([`solver::Simulation::step`]) only ever talks to stencils, so the schemes differ in one
 //! place and 1D, 2D and 3D share one code path through the const generic `D`.
 //! Material behaviour enters through the batched [`closure::Closure`] trait, which is where
-//! the MD coupling plugs in. Units are SI throughout (in 1D, mass and volume are per unit
+//! the MD coupling (crate `mscale-coupling`) plugs in. Units are SI throughout (in 1D, mass and volume are per unit
 //! cross-section; in 2D per unit thickness).
 
 pub mod closure;
-pub mod coupling;
 pub mod ddmp;
 pub mod diagnostics;
 pub mod exact;

@@ -1,12 +1,15 @@
 //! Where MD runs: `auto`, `cpu` or `cuda` (the `--device` option). `cuda` needs the `cuda`
 //! cargo feature, a CUDA driver, NVRTC and a device, and is an error (exit code 2 in the CLI)
 //! when one is missing; `auto` takes the GPU when there is one and otherwise falls back to the
-//! `cpu` back end, saying why in one warning.
+//! `cpu` back end, saying why in one warning. The back ends themselves are the engine's
+//! (`md_engine::device`).
 
 use crate::backend::{CpuBackend, MdBackend};
 use crate::error::MdError;
 use crate::potential::Potential;
 use std::sync::Arc;
+
+pub use md_engine::device::gpu_unavailable;
 
 /// Back end for a device name (`auto`, `cpu`, `cuda`) and a GPU precision (`double` or
 /// `mixed`; ignored on the CPU, which is always double).
@@ -15,9 +18,8 @@ pub fn backend_for_device(device: &str, precision: &str, pot: Arc<Potential>) ->
         return Err(MdError::invalid("precision", format!("{precision:?}; expected double or mixed")));
     }
     match device {
-        "cpu" => Ok(Box::new(CpuBackend::new(pot))),
-        "cuda" => cuda(precision, pot),
-        "auto" => match cuda(precision, pot.clone()) {
+        "cpu" | "cuda" => md_engine::device::backend_for_device(device, precision, pot),
+        "auto" => match md_engine::device::backend_for_device("cuda", precision, pot.clone()) {
             Ok(b) => Ok(b),
             Err(e) => {
                 tracing::warn!("device auto: no usable GPU ({e}); running on the cpu back end");
@@ -25,30 +27,5 @@ pub fn backend_for_device(device: &str, precision: &str, pot: Arc<Potential>) ->
             }
         },
         _ => Err(MdError::invalid("device", format!("{device:?}; expected auto, cpu or cuda"))),
-    }
-}
-
-#[cfg(feature = "cuda")]
-fn cuda(precision: &str, pot: Arc<Potential>) -> Result<Box<dyn MdBackend>, MdError> {
-    use crate::cuda::{CudaBackend, Precision};
-    let p = if precision == "mixed" { Precision::Mixed } else { Precision::Double };
-    Ok(Box::new(CudaBackend::new(pot, p)?))
-}
-
-#[cfg(not(feature = "cuda"))]
-fn cuda(_precision: &str, _pot: Arc<Potential>) -> Result<Box<dyn MdBackend>, MdError> {
-    Err(MdError::Device("this md-worker was built without the `cuda` cargo feature".into()))
-}
-
-/// Why the GPU cannot be used here, or `None` when it can (checked without touching cudarc
-/// beyond its library probes).
-pub fn gpu_unavailable() -> Option<String> {
-    #[cfg(feature = "cuda")]
-    {
-        crate::cuda::unavailable_reason()
-    }
-    #[cfg(not(feature = "cuda"))]
-    {
-        Some("this md-worker was built without the `cuda` cargo feature".into())
     }
 }

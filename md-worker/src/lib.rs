@@ -1,40 +1,31 @@
-//! MD engine: batches of small periodic EAM boxes deformed by a velocity gradient, returning
-//! their virial stress. LAMMPS `metal` units throughout (A, ps, eV, amu; stress in GPa at the
-//! edge, tension positive). Design decision: one set of serial per-box kernels
-//! ([`kernel`]) over a flat structure-of-arrays batch with per-box offsets ([`backend::Batch`]);
-//! back ends ([`backend::MdBackend`]) only decide how boxes are spread over threads or a device,
-//! so every box's result is bitwise the same for any thread count, and EAM tables are splined
-//! exactly as LAMMPS `pair_eam` does, so results agree with LAMMPS to round-off.
+//! The MD worker: the pool of endpoints a coupled run steps its boxes through (in-process or
+//! remote workers over gRPC, `mscale.coupling.v1`), the recovery of a lost worker's boxes,
+//! the conversion between the engine's types and the wire, the worker's gRPC service
+//! (`md-worker serve`), its registration with an orchestrator, MPI inside one worker, and the
+//! `md-worker` program. The MD itself is the `md-engine` crate, re-exported here (its modules
+//! and its main types), so `md_worker::X` paths keep working.
 
 // Index loops over x, y, z read like the physics; `!(x > 0.0)` deliberately rejects NaN.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 
-pub mod backend;
-#[cfg(feature = "cuda")]
-pub mod cuda;
-pub mod data;
-pub mod direct;
 pub mod device;
-pub mod error;
 pub mod join;
-pub mod kernel;
-pub mod lattice;
 #[cfg(feature = "mpi")]
 pub mod mpi;
-pub mod neighbor;
 pub mod null;
 pub mod pool;
-pub mod potential;
 pub mod recovery;
 pub mod server;
-pub mod units;
 pub mod wire;
 
-pub use backend::{
-    BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, Diagnostics, InitialAtoms, MdBackend, PointId, ReferenceBackend,
-    StressSampling, backend_by_name,
+#[cfg(feature = "cuda")]
+pub use md_engine::cuda;
+pub use md_engine::{backend, data, direct, error, kernel, lattice, neighbor, potential, units};
+
+pub use md_engine::{
+    BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, DeformMode, Diagnostics, EamFormat, InitialAtoms, LatticeKind, LjCut, MdBackend, MdError,
+    Orientation, PointId, Potential, ReferenceBackend, StressSampling, backend_by_name,
 };
-pub use error::MdError;
 
 /// Cargo features this build was compiled with (programs report them in their provenance).
 pub const FEATURES: &[&str] = &[
@@ -43,6 +34,3 @@ pub const FEATURES: &[&str] = &[
     #[cfg(feature = "mpi")]
     "mpi",
 ];
-pub use kernel::DeformMode;
-pub use lattice::{LatticeKind, Orientation};
-pub use potential::{EamFormat, LjCut, Potential};

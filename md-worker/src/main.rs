@@ -1,6 +1,8 @@
 //! `md-worker`: evaluate, run and benchmark EAM boxes from the command line.
 //! Exit code 2 for bad input (with the message), 1 for other failures.
 
+mod coupling_bench;
+
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 use md_worker::data::{DataFile, dump_frame};
@@ -420,7 +422,7 @@ fn bench_coupling(points: usize, workers: usize, reps: usize) -> Result<()> {
     if points == 0 || workers == 0 || reps < 5 {
         return Err(bad("--points and --workers must be at least 1, --reps at least 5"));
     }
-    let (median, times) = md_worker::null::coupling_round_trip(points, workers, reps).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let (median, times) = coupling_bench::coupling_round_trip(points, workers, reps).map_err(|e| anyhow::anyhow!("{e}"))?;
     println!(
         "{}",
         json!({

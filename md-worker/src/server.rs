@@ -65,7 +65,7 @@ impl WorkerService {
 
 /// Runs blocking MD work off the runtime.
 async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, MdError> + Send + 'static) -> Result<T, Status> {
-    tokio::task::spawn_blocking(f).await.map_err(|e| Status::internal(format!("worker task failed: {e}")))?.map_err(Status::from)
+    tokio::task::spawn_blocking(f).await.map_err(|e| Status::internal(format!("worker task failed: {e}")))?.map_err(wire::status)
 }
 
 #[tonic::async_trait]
@@ -113,7 +113,7 @@ impl MdWorker for WorkerService {
                 pot
             }
         };
-        let specs = req.boxes.iter().map(wire::spec_from_pb).collect::<Result<Vec<_>, _>>()?;
+        let specs = req.boxes.iter().map(wire::spec_from_pb).collect::<Result<Vec<_>, _>>().map_err(wire::status)?;
         if req.session != 0 {
             let backend = self.session(req.session)?;
             let name = blocking(move || {
@@ -164,7 +164,7 @@ impl MdWorker for WorkerService {
                 let reply = async {
                     let batch = batch?;
                     let backend = lock(&sessions).get(&batch.session).cloned().ok_or_else(|| Status::not_found(format!("no session {}", batch.session)))?;
-                    let work = batch.work.iter().map(wire::work_from_pb).collect::<Result<Vec<_>, _>>()?;
+                    let work = batch.work.iter().map(wire::work_from_pb).collect::<Result<Vec<_>, _>>().map_err(wire::status)?;
                     let (results, secs) = blocking(move || {
                         let t = std::time::Instant::now();
                         let mut out = vec![crate::BoxResult::default(); work.len()];

@@ -228,17 +228,18 @@ pub fn check_result(r: &BoxResult, worker: &str) -> Result<(), MdError> {
     Ok(())
 }
 
-impl From<MdError> for tonic::Status {
-    fn from(e: MdError) -> Self {
-        match e {
-            MdError::Invalid { .. } | MdError::Parse { .. } => tonic::Status::invalid_argument(e.to_string()),
-            MdError::UnknownBox(_) => tonic::Status::not_found(e.to_string()),
-            MdError::Unsupported(_) => tonic::Status::unimplemented(e.to_string()),
-            // Internal, not a loss: the pool must not recover the box on another worker, where
-            // the same box diverges the same way; the message names the point.
-            MdError::Diverged { .. } => tonic::Status::internal(e.to_string()),
-            _ => tonic::Status::internal(e.to_string()),
-        }
+/// The gRPC status of an engine error: InvalidArgument for bad input, NotFound for an unknown
+/// box, Unimplemented for an unsupported request, Internal for a diverged box and otherwise. (A function, not a
+/// `From` impl: both types belong to other crates.)
+pub fn status(e: MdError) -> tonic::Status {
+    match e {
+        MdError::Invalid { .. } | MdError::Parse { .. } => tonic::Status::invalid_argument(e.to_string()),
+        MdError::UnknownBox(_) => tonic::Status::not_found(e.to_string()),
+        MdError::Unsupported(_) => tonic::Status::unimplemented(e.to_string()),
+        // Internal, not a loss: the pool must not recover the box on another worker, where
+        // the same box diverges the same way; the message names the point.
+        MdError::Diverged { .. } => tonic::Status::internal(e.to_string()),
+        _ => tonic::Status::internal(e.to_string()),
     }
 }
 
@@ -321,10 +322,10 @@ mod tests {
 
     #[test]
     fn a_diverged_box_is_an_internal_status_not_a_loss() {
-        let s: tonic::Status = MdError::Diverged { point: 7, msg: "x".into() }.into();
+        let s = status(MdError::Diverged { point: 7, msg: "x".into() });
         assert_eq!(s.code(), tonic::Code::Internal);
         assert!(s.message().contains("point 7: MD diverged"));
-        let s: tonic::Status = MdError::invalid("box work of point 7", "velocity gradient xx = 1000000 1/ps").into();
+        let s = status(MdError::invalid("box work of point 7", "velocity gradient xx = 1000000 1/ps"));
         assert_eq!(s.code(), tonic::Code::InvalidArgument);
     }
 }

@@ -15,7 +15,7 @@
 //! the solver recomputes its scratch (stencils, nodal fields) from the points every step.
 
 use anyhow::{Context, Result, bail, ensure};
-use continuum::coupling::{MdPointState, MdShared};
+use coupling::{MdPointState, MdShared};
 use continuum::diagnostics::Totals;
 use continuum::tensor::Mat3;
 use continuum::{Particles, Simulation};

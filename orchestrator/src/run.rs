@@ -10,7 +10,7 @@ use crate::{checkpoint, setup};
 use anyhow::{Context, Result};
 use continuum::exact::{IsothermalRiemann, PressureErrors, State};
 use continuum::Simulation;
-use continuum::coupling::MdShared;
+use coupling::MdShared;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use serde_json::{json, Value};
@@ -150,7 +150,7 @@ struct Snapshots {
 /// Per-point MD columns of the particle files (empty without MD).
 fn md_columns(md: Option<&Arc<Mutex<MdShared>>>, n: usize) -> Vec<(&'static str, Vec<f64>)> {
     let Some(m) = md.and_then(|m| m.lock().ok()) else { return Vec::new() };
-    let col = |f: &dyn Fn(&continuum::coupling::MdPointState) -> f64| (0..n).map(|p| m.points.get(p).and_then(|s| s.as_ref()).map_or(f64::NAN, f)).collect::<Vec<_>>();
+    let col = |f: &dyn Fn(&coupling::MdPointState) -> f64| (0..n).map(|p| m.points.get(p).and_then(|s| s.as_ref()).map_or(f64::NAN, f)).collect::<Vec<_>>();
     vec![
         ("md_temperature_k", col(&|s| s.last.temperature_k)),
         ("md_potential_ev", col(&|s| s.last.potential_energy_ev)),

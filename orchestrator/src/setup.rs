@@ -5,7 +5,7 @@ use crate::scene::{Body, FaceSpec, Material, Scene, Shape};
 use continuum::closure::{IdealGasIsothermal, LinearElastic, NeoHookean};
 use continuum::solver::{TimeIntegrator, Viscosity};
 use continuum::tensor::IDENTITY;
-use continuum::coupling::{MdClosure, MdSettings, MdShared};
+use coupling::{MdClosure, MdSettings, MdShared};
 use std::sync::{Arc, Mutex};
 use continuum::{Closure, Face, Grid, Particles, SchemeKind, Simulation};
 

@@ -10,7 +10,7 @@ use super::workers;
 use crate::run::{self, Outcome, Progress, RunOptions};
 use crate::scene;
 use anyhow::Result;
-use continuum::coupling::MdShared;
+use coupling::MdShared;
 use mscale_proto::orchestrator::v1 as pb;
 use prost::Message;
 use std::path::Path;

@@ -367,6 +367,7 @@ pub fn csv_rows(s: &SlabStress) -> String {
 }
 
 /// `md-worker direct` options.
+#[cfg(feature = "cli")]
 #[derive(Debug, Clone, clap::Args)]
 pub struct DirectArgs {
     /// EAM potential file.
@@ -414,6 +415,7 @@ pub struct DirectArgs {
 }
 
 /// Run `md-worker direct`.
+#[cfg(feature = "cli")]
 pub fn run_cli(a: &DirectArgs) -> Result<(), MdError> {
     let kind: LatticeKind = a.lattice.parse()?;
     if a.cells.len() != 3 || !(a.dt > 0.0 && a.dt.is_finite()) || a.every == 0 {

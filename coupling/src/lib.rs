@@ -14,9 +14,14 @@
 //! (`average`, computed by the worker after every MD step, in step order). With `average`, the
 //! continuum work of the energy balance uses that mean (the step's own time average) instead
 //! of the trapezoid of the stresses at the ends of the step.
+//!
+//! [`lattice`] measures what a scene needs of an md material before anything runs: the
+//! lattice's density and longitudinal modulus from a strained unit cell.
 
-use crate::closure::{Closure, ClosureBatch, ClosureError};
-use crate::tensor::{self, Mat3};
+pub mod lattice;
+
+use continuum::closure::{Closure, ClosureBatch, ClosureError};
+use continuum::tensor::{self, Mat3};
 use md_worker::pool::MdPool;
 use md_worker::{BoxResult, BoxSpec, BoxWork, StressSampling};
 use std::sync::{Arc, Mutex};

@@ -487,7 +487,7 @@ pub const MAX_STRAIN_PER_STEP: f64 = 0.05;
 /// Most a box may stretch or shrink in one step call: a factor of 2 either way per axis.
 pub const MAX_STRETCH_PER_CALL: f64 = 2.0;
 
-pub(crate) fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
+pub fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
     let bad = |msg: String| Err(MdError::invalid(format!("box spec of point {}", s.id), msg));
     // Box lengths before the strain, and atom count.
     let (lengths0, natoms, source) = match &s.atoms {
@@ -579,7 +579,7 @@ fn check_time_step(pot: &Potential, dt: f64) -> Result<(), String> {
     }
 }
 
-pub(crate) fn validate_work(pot: &Potential, w: &BoxWork, mode: DeformMode) -> Result<(), MdError> {
+pub fn validate_work(pot: &Potential, w: &BoxWork, mode: DeformMode) -> Result<(), MdError> {
     let what = || format!("box work of point {}", w.id);
     if !(w.dt_ps > 0.0 && w.dt_ps.is_finite()) && w.steps > 0 {
         return Err(MdError::invalid(what(), format!("time step must be > 0 ps, got {}", w.dt_ps)));
