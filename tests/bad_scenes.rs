@@ -99,11 +99,10 @@ fn the_small_scene_is_valid_and_overrides_apply() {
 fn shipped_scenes_are_valid() {
     for entry in std::fs::read_dir(repo().join("scenes")).expect("scenes/") {
         let path = entry.expect("entry").path();
-        if path.extension().is_some_and(|e| e == "toml") {
-            if let Err(e) = scene::load(&path, &[]) {
+        if path.extension().is_some_and(|e| e == "toml")
+            && let Err(e) = scene::load(&path, &[]) {
                 panic!("{} is invalid: {e}", path.display());
             }
-        }
     }
 }
 

@@ -115,7 +115,7 @@ pub fn sub_point_layout<const D: usize>(n: usize) -> [usize; D] {
     let mut m = n.max(1);
     let mut f = 2;
     while m > 1 {
-        while m % f == 0 {
+        while m.is_multiple_of(f) {
             factors.push(f);
             m /= f;
         }

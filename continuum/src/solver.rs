@@ -691,13 +691,12 @@ fn for_each_neighbour<const D: usize>(grid: &Grid<D>, i: usize, mut f: impl FnMu
                 _ => None,
             };
         }
-        if let Some(j) = lin {
-            if !seen[..count].contains(&j) {
+        if let Some(j) = lin
+            && !seen[..count].contains(&j) {
                 seen[count] = j;
                 count += 1;
                 f(j);
             }
-        }
     }
 }
 

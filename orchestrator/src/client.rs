@@ -384,63 +384,6 @@ pub fn is_final(ev: &pb::JobEvent) -> bool {
     matches!(pb::JobState::try_from(ev.state), Ok(pb::JobState::Completed | pb::JobState::Failed | pb::JobState::Cancelled))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn chunk(path: &str, offset: u64, data: &[u8], last: bool) -> pb::FetchRunChunk {
-        let sha256 = if last { hex::encode(Sha256::digest(data)) } else { String::new() };
-        pb::FetchRunChunk { path: path.into(), offset, data: data.to_vec(), last, size: if last { offset + data.len() as u64 } else { 0 }, sha256 }
-    }
-
-    #[test]
-    fn fetched_files_stay_inside_the_destination() {
-        let dir = tempfile::tempdir().unwrap();
-        let out = dir.path().join("out");
-        for bad in ["../escape", "/tmp/escape", "a/../../escape", "", "./x", "a/.."] {
-            let mut w = RunWriter::new(&out).unwrap();
-            let e = w.chunk(&chunk(bad, 0, b"x", true)).unwrap_err();
-            assert!(format!("{e:#}").contains("not a plain relative path"), "{bad}: {e:#}");
-        }
-        assert!(!dir.path().join("escape").exists());
-        // A directory inside DIR that is a link out of it is not written through.
-        std::fs::create_dir_all(dir.path().join("elsewhere")).unwrap();
-        std::os::unix::fs::symlink(dir.path().join("elsewhere"), out.join("link")).unwrap();
-        let mut w = RunWriter::new(&out).unwrap();
-        let e = w.chunk(&chunk("link/f", 0, b"x", true)).unwrap_err();
-        assert!(format!("{e:#}").contains("outside"), "{e:#}");
-        assert!(!dir.path().join("elsewhere/f").exists());
-    }
-
-    #[test]
-    fn fetched_files_are_checked_and_written_whole() {
-        let dir = tempfile::tempdir().unwrap();
-        let mut w = RunWriter::new(dir.path()).unwrap();
-        let data: Vec<u8> = (0..2500u32).map(|k| (k % 251) as u8).collect();
-        let mut c = chunk("snapshots/a.csv", 0, &data[..1000], false);
-        w.chunk(&c).unwrap();
-        c = chunk("snapshots/a.csv", 1000, &data[1000..], true);
-        c.size = 2500;
-        c.sha256 = hex::encode(Sha256::digest(&data));
-        w.chunk(&c).unwrap();
-        w.chunk(&chunk("empty", 0, b"", true)).unwrap();
-        // A damaged file: refused, nothing left behind.
-        let mut bad = chunk("summary.json", 0, b"{}", true);
-        bad.sha256 = hex::encode(Sha256::digest(b"{ }"));
-        assert!(format!("{:#}", w.chunk(&bad).unwrap_err()).contains("arrived damaged"));
-        assert_eq!(w.finish().unwrap(), (2, 2500));
-        assert_eq!(std::fs::read(dir.path().join("snapshots/a.csv")).unwrap(), data);
-        assert!(!dir.path().join("summary.json").exists());
-        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name()).filter(|n| n.to_string_lossy().starts_with('.')).collect();
-        assert!(left.is_empty(), "temporary files left: {left:?}");
-        // A stream cut in the middle of a file is an error, and leaves no partial file.
-        let mut w = RunWriter::new(dir.path()).unwrap();
-        w.chunk(&chunk("cut", 0, b"abc", false)).unwrap();
-        assert!(w.finish().is_err());
-        assert!(!dir.path().join("cut").exists());
-    }
-}
-
 // ---- the verbs, as `mscale` runs them (each returns its exit code) ----
 
 static CA_FILE: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
@@ -611,4 +554,61 @@ pub fn health(server: &str, token_file: Option<&Path>) -> Result<i32> {
     let s = c.health()?;
     println!("{s}");
     Ok(if s == "SERVING" { crate::exit::OK } else { crate::exit::RUN_FAILED })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn chunk(path: &str, offset: u64, data: &[u8], last: bool) -> pb::FetchRunChunk {
+        let sha256 = if last { hex::encode(Sha256::digest(data)) } else { String::new() };
+        pb::FetchRunChunk { path: path.into(), offset, data: data.to_vec(), last, size: if last { offset + data.len() as u64 } else { 0 }, sha256 }
+    }
+
+    #[test]
+    fn fetched_files_stay_inside_the_destination() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        for bad in ["../escape", "/tmp/escape", "a/../../escape", "", "./x", "a/.."] {
+            let mut w = RunWriter::new(&out).unwrap();
+            let e = w.chunk(&chunk(bad, 0, b"x", true)).unwrap_err();
+            assert!(format!("{e:#}").contains("not a plain relative path"), "{bad}: {e:#}");
+        }
+        assert!(!dir.path().join("escape").exists());
+        // A directory inside DIR that is a link out of it is not written through.
+        std::fs::create_dir_all(dir.path().join("elsewhere")).unwrap();
+        std::os::unix::fs::symlink(dir.path().join("elsewhere"), out.join("link")).unwrap();
+        let mut w = RunWriter::new(&out).unwrap();
+        let e = w.chunk(&chunk("link/f", 0, b"x", true)).unwrap_err();
+        assert!(format!("{e:#}").contains("outside"), "{e:#}");
+        assert!(!dir.path().join("elsewhere/f").exists());
+    }
+
+    #[test]
+    fn fetched_files_are_checked_and_written_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = RunWriter::new(dir.path()).unwrap();
+        let data: Vec<u8> = (0..2500u32).map(|k| (k % 251) as u8).collect();
+        let mut c = chunk("snapshots/a.csv", 0, &data[..1000], false);
+        w.chunk(&c).unwrap();
+        c = chunk("snapshots/a.csv", 1000, &data[1000..], true);
+        c.size = 2500;
+        c.sha256 = hex::encode(Sha256::digest(&data));
+        w.chunk(&c).unwrap();
+        w.chunk(&chunk("empty", 0, b"", true)).unwrap();
+        // A damaged file: refused, nothing left behind.
+        let mut bad = chunk("summary.json", 0, b"{}", true);
+        bad.sha256 = hex::encode(Sha256::digest(b"{ }"));
+        assert!(format!("{:#}", w.chunk(&bad).unwrap_err()).contains("arrived damaged"));
+        assert_eq!(w.finish().unwrap(), (2, 2500));
+        assert_eq!(std::fs::read(dir.path().join("snapshots/a.csv")).unwrap(), data);
+        assert!(!dir.path().join("summary.json").exists());
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name()).filter(|n| n.to_string_lossy().starts_with('.')).collect();
+        assert!(left.is_empty(), "temporary files left: {left:?}");
+        // A stream cut in the middle of a file is an error, and leaves no partial file.
+        let mut w = RunWriter::new(dir.path()).unwrap();
+        w.chunk(&chunk("cut", 0, b"abc", false)).unwrap();
+        assert!(w.finish().is_err());
+        assert!(!dir.path().join("cut").exists());
+    }
 }

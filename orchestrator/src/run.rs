@@ -184,11 +184,10 @@ fn write_snapshot<const D: usize>(sim: &Simulation<D>, scene: &Scene, dir: &Path
         snaps.index.push_str(&format!("{step},{:e},{file}\n", sim.time));
         output::write_atomic(&dir.join("snapshots/index.csv"), snaps.index.as_bytes())?;
     }
-    if !scene.output.dump_points.is_empty() {
-        if let Some(md) = md {
+    if !scene.output.dump_points.is_empty()
+        && let Some(md) = md {
             dump_boxes(md, &scene.output.dump_points, step, dir)?;
         }
-    }
     if scene.output.vtk {
         let file = format!("particles_{step:08}.vtu");
         output::write_atomic(&dir.join("vtk").join(&file), output::particles_vtu(&sim.points).as_bytes())?;
@@ -228,11 +227,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     }
     let setup_s = before.setup_s + wall.elapsed().as_secs_f64();
     // The MD of setup (relaxation, initial stresses) counts as setup, not as step time.
-    if let Some(m) = &md {
-        if let Ok(mut m) = m.lock() {
+    if let Some(m) = &md
+        && let Ok(mut m) = m.lock() {
             m.pool.times = Default::default();
         }
-    }
     tracing::info!(points = sim.points.len(), nodes = sim.grid.node_count(), steps = loaded.steps, dt = sim.dt, "running {}", scene.name);
 
     let every = (loaded.steps / scene.output.snapshots.max(1) as u64).max(1);
@@ -295,11 +293,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
             report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, true);
             return Ok(Outcome::Cancelled { checkpoint: path, step: sim.step });
         }
-        if let Some(md) = &md {
-            if let Ok(mut m) = md.lock() {
+        if let Some(md) = &md
+            && let Ok(mut m) = md.lock() {
                 m.step = sim.step + 1;
             }
-        }
         let t = Instant::now();
         let result = sim.step();
         continuum_s += t.elapsed().as_secs_f64();

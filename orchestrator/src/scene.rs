@@ -458,11 +458,10 @@ impl Locator<'_> {
             return format!("--set {key}={v}");
         }
         // An element of an overridden array (`output.dump_points[1]`): the --set of the array.
-        if let Some((array, _)) = key.split_once('[') {
-            if let Some(v) = self.overrides.get(array) {
+        if let Some((array, _)) = key.split_once('[')
+            && let Some(v) = self.overrides.get(array) {
                 return format!("--set {array}={v}");
             }
-        }
         line_of(self.text, key).map(|l| format!("line {l}")).unwrap_or_default()
     }
 
@@ -485,11 +484,10 @@ fn line_of(text: &str, key: &str) -> Option<usize> {
         let (k, next) = table.get_key_value(name)?;
         span = k.span().or(span);
         item = next;
-        if let Some(i) = index {
-            if let Some(v) = item.as_array().and_then(|a| a.get(i)) {
+        if let Some(i) = index
+            && let Some(v) = item.as_array().and_then(|a| a.get(i)) {
                 span = v.span().or(span);
             }
-        }
         if let Some(s) = item.span() {
             span = Some(span.map_or(s.clone(), |old: std::ops::Range<usize>| old.start.min(s.start)..s.end));
         }

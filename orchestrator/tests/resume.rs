@@ -3,6 +3,9 @@
 //! `state_digest` as one never stopped, also from the previous checkpoint when the newest one
 //! is damaged.
 
+// A panic is how these tests report a failure, also in their helper functions.
+#![allow(clippy::unwrap_used)]
+
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

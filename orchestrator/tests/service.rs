@@ -6,6 +6,9 @@
 //! orchestrator (`mscale watch` reconnects); `mscale fetch JOB --out DIR` copies the whole run
 //! directory and nothing outside it.
 
+// A panic is how these tests report a failure, also in their helper functions.
+#![allow(clippy::unwrap_used)]
+
 use mscale_testkit::{Listening, Proc, text};
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};

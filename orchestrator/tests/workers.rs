@@ -10,6 +10,9 @@
 //! The md-worker program is the prebuilt one next to `mscale` (mscale_testkit::prebuilt: `cargo
 //! test --workspace` builds it; alone, `cargo build --profile test -p md-worker --bin md-worker`).
 
+// A panic is how these tests report a failure, also in their helper functions.
+#![allow(clippy::unwrap_used)]
+
 use mscale_proto::orchestrator::v1 as pb;
 use mscale_testkit::{Listening, Proc, plain, text};
 use orchestrator::client::Client;

@@ -249,7 +249,7 @@ fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_d
     let last = Mutex::new(Instant::now() - Duration::from_secs(1));
     opts.progress = Some(Arc::new(move |p: &Progress| {
         last_step.store(p.step, Ordering::SeqCst);
-        let checkpoint = !p.done && every > 0 && p.step % every == 0 && p.step < p.steps;
+        let checkpoint = !p.done && every > 0 && p.step.is_multiple_of(every) && p.step < p.steps;
         let mut last = lock(&last);
         let now = Instant::now();
         // Progress is sampled (at most one event per 100 ms); checkpoints and the last step

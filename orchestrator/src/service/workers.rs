@@ -384,7 +384,7 @@ mod tests {
         }
         let a = r.register(&mut store, ad("127.0.0.1:1", "cpu", 2.0)).unwrap();
         let b = r.register(&mut store, ad("127.0.0.1:2", "cpu", 1.0)).unwrap();
-        assert_eq!(r.heartbeat(&a.id, a.epoch, mscale_proto::COUPLING_PROTOCOL_VERSION).unwrap(), false);
+        assert!(!r.heartbeat(&a.id, a.epoch, mscale_proto::COUPLING_PROTOCOL_VERSION).unwrap());
         assert!(matches!(r.heartbeat(&a.id, b.epoch, mscale_proto::COUPLING_PROTOCOL_VERSION), Err(WorkerError::NotFound(_))));
         r.drain(&mut store, &b.id).unwrap();
         assert!(r.heartbeat(&b.id, b.epoch, mscale_proto::COUPLING_PROTOCOL_VERSION).unwrap());

@@ -315,6 +315,7 @@ impl Store {
 
     /// Records progress and its numbered event (`Progress` or `Checkpoint`) in one
     /// transaction; prunes the job's old progress events now and then.
+    #[allow(clippy::too_many_arguments)] // one event's columns
     pub fn progress_event(&mut self, id: &str, kind: EventKind, step: u64, steps: u64, sim_time: f64, message: &str, detail: &[u8]) -> Result<EventRecord> {
         let tx = self.db.transaction()?;
         tx.execute("UPDATE jobs SET step = ?2, steps = ?3, sim_time = ?4 WHERE id = ?1", params![id, step as i64, steps as i64, sim_time])?;
