@@ -334,14 +334,6 @@ mod host {
 
 pub use host::params_size_c;
 
-#[cfg(test)]
-mod tests {
-    #[test]
-    fn params_layout_matches_the_c_struct() {
-        assert_eq!(std::mem::size_of::<super::Params>(), super::params_size_c());
-    }
-}
-
 /// Neighbour capacity per atom: twice the neighbours within cut-off + skin at the densest
 /// box's number density (margin for compression), plus a floor for tiny boxes.
 fn list_capacity(p: &Packed, cutoff: f64) -> usize {
@@ -672,4 +664,10 @@ impl MdBackend for ShimBackend {
     }
 }
 
-
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn params_layout_matches_the_c_struct() {
+        assert_eq!(std::mem::size_of::<super::Params>(), super::params_size_c());
+    }
+}
