@@ -16,48 +16,130 @@ fn parse_edited(from: &str, to: &str, sets: &[&str]) -> Result<scene::LoadedScen
 /// (what, replace this, with this, overrides, every fragment the message must contain)
 const CASES: &[(&str, &str, &str, &[&str], &[&str])] = &[
     ("unknown top-level key", "name = \"small\"", "name = \"small\"\ncolour = 3", &[], &["bad.toml", "line 3", "unknown field `colour`"]),
-    ("unknown key in a body", "density = 1.0\n", "density = 1.0\ndensty = 2.0\n", &[], &["line 22", "`densty`", "unknown field `densty`", "expected one of"]),
+    (
+        "unknown key in a body",
+        "density = 1.0\n",
+        "density = 1.0\ndensty = 2.0\n",
+        &[],
+        &["line 22", "`densty`", "unknown field `densty`", "expected one of"],
+    ),
     ("missing scheme", "[scheme]\nmethod", "[schemex]\nmethod", &[], &["unknown field `schemex`"]),
     ("missing end time", "end_time = 0.1\n", "\n", &[], &["missing field `end_time`"]),
     ("wrong type", "cells = [50]", "cells = \"fifty\"", &[], &["line 8", "invalid type: string \"fifty\""]),
     ("schema version", "schema = 1", "schema = 7", &[], &["line 1", "`schema` = 7", "this build reads schema 1"]),
     ("dimension 4", "dimension = 1", "dimension = 4", &[], &["line 5", "`domain.dimension` = 4", "allowed: 1, 2 or 3"]),
     ("inverted domain", "max = [1.0]\ncells", "max = [-1.0]\ncells", &[], &["line 7", "`domain.max` = [-1.0]", "must exceed domain.min"]),
-    ("cells and cell_size disagree", "cells = [50]", "cells = [50]\ncell_size = [0.03]", &[], &["line 9", "`domain.cell_size` = [0.03]", "disagrees with cells = [50]"]),
+    (
+        "cells and cell_size disagree",
+        "cells = [50]",
+        "cells = [50]\ncell_size = [0.03]",
+        &[],
+        &["line 9", "`domain.cell_size` = [0.03]", "disagrees with cells = [50]"],
+    ),
     ("zero cells", "cells = [50]", "cells = [0]", &[], &["`domain.cells` = [0]", "positive integer"]),
     ("cell size not dividing", "cells = [50]", "cell_size = [0.3]", &[], &["`domain.cell_size` = [0.3]", "whole number of cells"]),
     ("negative density", "density = 1.0\n", "density = -1.0\n", &[], &["line 21", "`bodies.right.density` = -1", "finite positive"]),
-    ("body outside the domain", "max = [1.0]\ndensity = 1.0", "max = [1.5]\ndensity = 1.0", &[], &["`bodies.right.max`", "inside the domain"]),
-    ("unknown law", "law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]", "law = \"unobtainium\", sound_speed = 1.0 }\n\n[bodies.right]", &[], &["unknown variant `unobtainium`", "ideal-gas-isothermal"]),
-    ("zero sound speed", "sound_speed = 1.0 }\n\n[scheme]", "sound_speed = 0.0 }\n\n[scheme]", &[], &["`bodies.right.material.sound_speed` = 0", "finite positive"]),
+    (
+        "body outside the domain",
+        "max = [1.0]\ndensity = 1.0",
+        "max = [1.5]\ndensity = 1.0",
+        &[],
+        &["`bodies.right.max`", "inside the domain"],
+    ),
+    (
+        "unknown law",
+        "law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
+        "law = \"unobtainium\", sound_speed = 1.0 }\n\n[bodies.right]",
+        &[],
+        &["unknown variant `unobtainium`", "ideal-gas-isothermal"],
+    ),
+    (
+        "zero sound speed",
+        "sound_speed = 1.0 }\n\n[scheme]",
+        "sound_speed = 0.0 }\n\n[scheme]",
+        &[],
+        &["`bodies.right.material.sound_speed` = 0", "finite positive"],
+    ),
     ("unknown method", "method = \"ugimp\"", "method = \"magic\"", &[], &["line 25", "`scheme.method` = \"magic\"", "allowed: mpm, ugimp"]),
     ("CFL beyond stability", "cfl = 0.2", "cfl = 1.5", &[], &["line 28", "`scheme.cfl` = 1.5", "0 < cfl <= 1"]),
-    ("time step beyond the bound", "cfl = 0.2", "timestep = 0.05", &[], &["`scheme.timestep` = 0.05", "exceeds the stability bound", "2.000000e-2 s"]),
-    ("cfl and timestep disagree", "cfl = 0.2", "cfl = 0.2\ntimestep = 0.001", &[], &["`scheme.timestep` = 0.001", "disagrees with cfl = 0.2", "not both"]),
+    (
+        "time step beyond the bound",
+        "cfl = 0.2",
+        "timestep = 0.05",
+        &[],
+        &["`scheme.timestep` = 0.05", "exceeds the stability bound", "2.000000e-2 s"],
+    ),
+    (
+        "cfl and timestep disagree",
+        "cfl = 0.2",
+        "cfl = 0.2\ntimestep = 0.001",
+        &[],
+        &["`scheme.timestep` = 0.001", "disagrees with cfl = 0.2", "not both"],
+    ),
     ("no time step", "cfl = 0.2\n", "\n", &[], &["`scheme`", "missing `cfl`"]),
     ("negative end time", "end_time = 0.1", "end_time = -0.1", &[], &["`scheme.end_time` = -0.1"]),
-    ("unknown boundary", "x_min = \"reflective\"", "x_min = \"sticky\"", &[], &["line 32", "`boundary.x_min` = \"sticky\"", "allowed: \"free\", \"fixed\""]),
+    (
+        "unknown boundary",
+        "x_min = \"reflective\"",
+        "x_min = \"sticky\"",
+        &[],
+        &["line 32", "`boundary.x_min` = \"sticky\"", "allowed: \"free\", \"fixed\""],
+    ),
     ("half periodic", "x_min = \"reflective\"", "x_min = \"periodic\"", &[], &["`boundary.x_max`", "periodic must be set on both"]),
-    ("face of a missing axis", "x_max = \"reflective\"", "x_max = \"reflective\"\ny_min = \"fixed\"", &[], &["`boundary.y_min` = \"fixed\"", "a 1D scene has no y_min face"]),
-    ("reference names a missing body", "right = \"right\"\n", "right = \"middle\"\n", &[], &["`reference.right` = \"middle\"", "no such body; bodies: left, right"]),
-    ("too many particles per cell", "particles_per_cell = 4", "particles_per_cell = 0", &[], &["`scheme.particles_per_cell` = 0", "allowed: 1 to 64"]),
+    (
+        "face of a missing axis",
+        "x_max = \"reflective\"",
+        "x_max = \"reflective\"\ny_min = \"fixed\"",
+        &[],
+        &["`boundary.y_min` = \"fixed\"", "a 1D scene has no y_min face"],
+    ),
+    (
+        "reference names a missing body",
+        "right = \"right\"\n",
+        "right = \"middle\"\n",
+        &[],
+        &["`reference.right` = \"middle\"", "no such body; bodies: left, right"],
+    ),
+    (
+        "too many particles per cell",
+        "particles_per_cell = 4",
+        "particles_per_cell = 0",
+        &[],
+        &["`scheme.particles_per_cell` = 0", "allowed: 1 to 64"],
+    ),
     ("bad override value", "", "", &["bodies.left.density=-3"], &["--set bodies.left.density=-3", "`bodies.left.density` = -3"]),
     ("override of an unknown key", "", "", &["scheme.colour=blue"], &["unknown field `colour`"]),
     ("override through a value", "", "", &["scheme.method.name=x"], &["--set scheme.method.name=x", "is a value, not a table"]),
     ("malformed override", "", "", &["scheme.cfl"], &["--set scheme.cfl", "expected --set dotted.key=value"]),
     ("not TOML", "[domain]", "[domain", &[], &["not valid TOML"]),
-    ("missing potential file", "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
+    (
+        "missing potential file",
+        "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
         "material = { law = \"md\", potential = \"nowhere/Cu.eam.alloy\", lattice = \"fcc\", lattice_constant_angstrom = 3.615, cells_per_side = 5 }\n\n[bodies.right]",
-        &[], &["line 15", "`bodies.left.material.potential` = \"nowhere/Cu.eam.alloy\"", "no such file", "relative to the scene file"]),
-    ("skewed crystal orientation", "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
+        &[],
+        &["line 15", "`bodies.left.material.potential` = \"nowhere/Cu.eam.alloy\"", "no such file", "relative to the scene file"],
+    ),
+    (
+        "skewed crystal orientation",
+        "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
         "material = { law = \"md\", potential = \"../md-worker/potentials/Cu_mishin1.eam.alloy\", lattice = \"fcc\", lattice_constant_angstrom = 3.615, cells_per_side = 5, orientation = [[1, 1, 0], [1, 0, 0], [0, 0, 1]] }\n\n[bodies.right]",
-        &[], &["line 15", "`bodies.left.material.orientation` = [[1, 1, 0], [1, 0, 0], [0, 0, 1]]", "not orthogonal"]),
-    ("oriented box too large", "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
+        &[],
+        &["line 15", "`bodies.left.material.orientation` = [[1, 1, 0], [1, 0, 0], [0, 0, 1]]", "not orthogonal"],
+    ),
+    (
+        "oriented box too large",
+        "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
         "material = { law = \"md\", potential = \"../md-worker/potentials/Cu_mishin1.eam.alloy\", lattice = \"fcc\", lattice_constant_angstrom = 3.615, cells_per_side = 40, orientation = [[1, 1, 1], [-1, 1, 0], [-1, -1, 2]] }\n\n[bodies.right]",
-        &[], &["`bodies.left.material.cells_per_side` = 40", "1536000 atoms per box", "at most 256000"]),
-    ("absurd lattice constant", "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
+        &[],
+        &["`bodies.left.material.cells_per_side` = 40", "1536000 atoms per box", "at most 256000"],
+    ),
+    (
+        "absurd lattice constant",
+        "material = { law = \"ideal-gas-isothermal\", sound_speed = 1.0 }\n\n[bodies.right]",
         "material = { law = \"md\", potential = \"../md-worker/potentials/Cu_mishin1.eam.alloy\", lattice = \"fcc\", lattice_constant_angstrom = 1e308, cells_per_side = 5 }\n\n[bodies.right]",
-        &[], &["line 15", "`bodies.left.material.lattice_constant_angstrom` = 1e308", "at most 100 A"]),
+        &[],
+        &["line 15", "`bodies.left.material.lattice_constant_angstrom` = 1e308", "at most 100 A"],
+    ),
 ];
 
 #[test]
@@ -100,9 +182,10 @@ fn shipped_scenes_are_valid() {
     for entry in std::fs::read_dir(repo().join("scenes")).expect("scenes/") {
         let path = entry.expect("entry").path();
         if path.extension().is_some_and(|e| e == "toml")
-            && let Err(e) = scene::load(&path, &[]) {
-                panic!("{} is invalid: {e}", path.display());
-            }
+            && let Err(e) = scene::load(&path, &[])
+        {
+            panic!("{} is invalid: {e}", path.display());
+        }
     }
 }
 
@@ -111,22 +194,60 @@ const RIEMANN: &str = "solution = \"isothermal-riemann\"\nleft = \"left\"\nright
 
 /// (what, the direct-md reference's lines, overrides, every fragment the message must contain)
 const DIRECT_MD_CASES: &[(&str, &str, &[&str], &[&str])] = &[
-    ("direct-md profile missing", "solution = \"direct-md\"\nprofile = \"nowhere/bar.csv\"\ntimes_ps = [5.0]\n", &[],
-        &["bad.toml", "line 40", "`reference.profile` = \"nowhere/bar.csv\"", "cannot read the direct-MD reference", "relative to the scene file"]),
-    ("direct-md profile unreadable", "solution = \"direct-md\"\nprofile = \"cu-shock-1d.toml\"\ntimes_ps = [5.0]\n", &[],
-        &["line 40", "`reference.profile` = \"cu-shock-1d.toml\"", "no column `time_ps`", "md-worker direct --slab"]),
-    ("direct-md time outside the profile", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0, 12.5]\n", &[],
-        &["line 41", "`reference.times_ps[1]` = 12.5", "outside the profile's range 0 to 10 ps"]),
-    ("direct-md time between frames", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [7.25]\n", &[],
-        &["`reference.times_ps[0]` = 7.25", "no frame at t = 7.25 ps", "0, 0.5, 1"]),
-    ("direct-md time after the end", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0]\n", &["scheme.end_time=4e-12"],
-        &["`reference.times_ps[0]` = 5", "after the end time 4 ps"]),
-    ("direct-md no times", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = []\n", &[],
-        &["`reference.times_ps` = []", "at least one time"]),
-    ("direct-md unknown component", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0]\ncomponent = \"sxy\"\n", &[],
-        &["line 42", "`reference.component` = \"sxy\"", "allowed: \"sxx\", \"syy\", \"szz\""]),
-    ("direct-md without particle files", "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0]\n", &["output.particles=false"],
-        &["--set output.particles=false", "`output.particles`", "needs output.particles = true"]),
+    (
+        "direct-md profile missing",
+        "solution = \"direct-md\"\nprofile = \"nowhere/bar.csv\"\ntimes_ps = [5.0]\n",
+        &[],
+        &[
+            "bad.toml",
+            "line 40",
+            "`reference.profile` = \"nowhere/bar.csv\"",
+            "cannot read the direct-MD reference",
+            "relative to the scene file",
+        ],
+    ),
+    (
+        "direct-md profile unreadable",
+        "solution = \"direct-md\"\nprofile = \"cu-shock-1d.toml\"\ntimes_ps = [5.0]\n",
+        &[],
+        &["line 40", "`reference.profile` = \"cu-shock-1d.toml\"", "no column `time_ps`", "md-worker direct --slab"],
+    ),
+    (
+        "direct-md time outside the profile",
+        "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0, 12.5]\n",
+        &[],
+        &["line 41", "`reference.times_ps[1]` = 12.5", "outside the profile's range 0 to 10 ps"],
+    ),
+    (
+        "direct-md time between frames",
+        "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [7.25]\n",
+        &[],
+        &["`reference.times_ps[0]` = 7.25", "no frame at t = 7.25 ps", "0, 0.5, 1"],
+    ),
+    (
+        "direct-md time after the end",
+        "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0]\n",
+        &["scheme.end_time=4e-12"],
+        &["`reference.times_ps[0]` = 5", "after the end time 4 ps"],
+    ),
+    (
+        "direct-md no times",
+        "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = []\n",
+        &[],
+        &["`reference.times_ps` = []", "at least one time"],
+    ),
+    (
+        "direct-md unknown component",
+        "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0]\ncomponent = \"sxy\"\n",
+        &[],
+        &["line 42", "`reference.component` = \"sxy\"", "allowed: \"sxx\", \"syy\", \"szz\""],
+    ),
+    (
+        "direct-md without particle files",
+        "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0]\n",
+        &["output.particles=false"],
+        &["--set output.particles=false", "`output.particles`", "needs output.particles = true"],
+    ),
     ("unknown reference solution", "solution = \"oracle\"\n", &[], &["unknown variant `oracle`", "direct-md"]),
 ];
 
@@ -151,7 +272,9 @@ fn every_bad_direct_md_reference_is_refused_with_its_message() {
     // among the scene's files.
     let ok = "solution = \"direct-md\"\nprofile = \"../tests/golden/cu-shock-1d/direct-bar.csv\"\ntimes_ps = [5.0, 10.0]\n";
     let loaded = parse_edited(RIEMANN, ok, &[]).expect("valid direct-md reference");
-    let Some(scene::Reference::DirectMd(r)) = &loaded.scene.reference else { panic!("not a direct-md reference: {:?}", loaded.scene.reference) };
+    let Some(scene::Reference::DirectMd(r)) = &loaded.scene.reference else {
+        panic!("not a direct-md reference: {:?}", loaded.scene.reference)
+    };
     assert!(r.profile.is_absolute() && r.profile.ends_with("tests/golden/cu-shock-1d/direct-bar.csv"), "{}", r.profile.display());
     assert_eq!(r.component, "sxx");
     assert!(loaded.files.contains(&r.profile));

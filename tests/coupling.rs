@@ -63,7 +63,16 @@ fn a_worker_killed_mid_run_stops_the_run_naming_it_and_the_step() {
     let scene = repo().join("tests/data/md-small.toml");
     // Long enough (thousands of steps) that the worker dies mid-run.
     let child = Command::new(binary("mscale", "orchestrator"))
-        .args(["run", scene.to_str().expect("utf8"), "--out", out.to_str().expect("utf8"), "--workers", &w.addr, "--set", "scheme.end_time=1e-10"])
+        .args([
+            "run",
+            scene.to_str().expect("utf8"),
+            "--out",
+            out.to_str().expect("utf8"),
+            "--workers",
+            &w.addr,
+            "--set",
+            "scheme.end_time=1e-10",
+        ])
         .current_dir(repo())
         .env("RUST_LOG", "warn")
         .stderr(std::process::Stdio::piped())
@@ -148,7 +157,11 @@ fn chosen_boxes_are_dumped_for_ovito_at_every_snapshot_in_process_and_remote() {
     for id in [1, 4] {
         let file = format!("boxes/point-{id}.dump");
         let frames = dump_frames(&local.join(&file));
-        assert_eq!(frames.iter().map(|f| f.0).collect::<Vec<_>>(), steps, "{file}: one frame per snapshot, stamped with its continuum step");
+        assert_eq!(
+            frames.iter().map(|f| f.0).collect::<Vec<_>>(),
+            steps,
+            "{file}: one frame per snapshot, stamped with its continuum step"
+        );
         assert!(frames.iter().all(|f| f.1.len() == 32), "{file}: 2x2x2 fcc cells = 32 atoms");
         assert_ne!(frames[0].1, frames[frames.len() - 1].1, "{file}: the atoms moved");
         let same = std::fs::read(local.join(&file)).expect("local dump") == std::fs::read(remote.join(&file)).expect("remote dump");
@@ -166,7 +179,15 @@ fn dump_points_must_name_points_of_md_bodies() {
         scene::load(path, &sets).expect_err("must be refused").to_string()
     };
     let e = err(&md_small, &["output.dump_points=[2, 6]"]);
-    for part in ["md-small.toml", "--set output.dump_points=[2, 6]", "`output.dump_points[1]` = 6", "no such material point", "ids 0..=5", "0..=2 (body `left`)", "3..=5 (body `right`)"] {
+    for part in [
+        "md-small.toml",
+        "--set output.dump_points=[2, 6]",
+        "`output.dump_points[1]` = 6",
+        "no such material point",
+        "ids 0..=5",
+        "0..=2 (body `left`)",
+        "3..=5 (body `right`)",
+    ] {
         assert!(e.contains(part), "{e:?} lacks {part:?}");
     }
     let e = err(&md_small, &["output.dump_points=[3, 3]"]);
@@ -178,6 +199,12 @@ fn dump_points_must_name_points_of_md_bodies() {
     assert!(text.contains("[output]\n"), "test bug: the small scene has no [output] table");
     std::fs::write(&gas, text.replacen("[output]\n", "[output]\ndump_points = [0]\n", 1)).expect("write");
     let e = err(&gas, &[]);
-    assert!(e.contains("gas.toml, line ") && e.contains("`output.dump_points[0]` = 0") && e.contains("which has no MD box") && e.contains("the scene has no md body"), "{e}");
+    assert!(
+        e.contains("gas.toml, line ")
+            && e.contains("`output.dump_points[0]` = 0")
+            && e.contains("which has no MD box")
+            && e.contains("the scene has no md body"),
+        "{e}"
+    );
     assert!(scene::load(&md_small, &["output.dump_points=[0, 5]".to_string()]).is_ok());
 }

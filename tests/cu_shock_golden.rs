@@ -39,7 +39,11 @@ fn check_boxes_against_the_direct_bar(compressed: [f64; 6], relaxed: [f64; 6]) {
     };
     for (c, k) in [(2usize, 0usize), (3, 1)] {
         let (direct_c, direct_r) = (mean(10.0, 45.0, c), mean(65.0, 100.0, c));
-        assert!((direct_c - compressed[k]).abs() < 0.01 * compressed[k].abs(), "compressed component {k}: direct {direct_c} vs box {}", compressed[k]);
+        assert!(
+            (direct_c - compressed[k]).abs() < 0.01 * compressed[k].abs(),
+            "compressed component {k}: direct {direct_c} vs box {}",
+            compressed[k]
+        );
         assert!((direct_r - relaxed[k]).abs() < 0.02, "relaxed component {k}: direct {direct_r} vs box {}", relaxed[k]);
     }
 }
@@ -48,7 +52,9 @@ fn check_boxes_against_the_direct_bar(compressed: [f64; 6], relaxed: [f64; 6]) {
 fn the_main_job_names_the_0k_direct_bar_it_models() {
     use orchestrator::scene::{self, Material, Reference};
     let l = scene::load(&repo().join("scenes/cu-shock-1d.toml"), &[]).expect("scenes/cu-shock-1d.toml");
-    let Some(Reference::DirectMd(r)) = &l.scene.reference else { panic!("the main job names no direct-md reference: {:?}", l.scene.reference) };
+    let Some(Reference::DirectMd(r)) = &l.scene.reference else {
+        panic!("the main job names no direct-md reference: {:?}", l.scene.reference)
+    };
     let golden = repo().join("tests/golden/cu-shock-1d/direct-bar.csv").canonicalize().expect("golden");
     assert_eq!(r.profile, golden, "the main job must be scored against the 0 K bar");
     assert_eq!((r.component.as_str(), r.times_ps.as_slice()), ("sxx", [5.0, 10.0].as_slice()));

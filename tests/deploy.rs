@@ -224,7 +224,8 @@ fn is_separator(w: &str) -> bool {
 
 /// Words that may stand before a command without being it.
 fn is_prefix_word(w: &str) -> bool {
-    matches!(w, "if" | "then" | "else" | "elif" | "do" | "while" | "until" | "!" | "time" | "{" | "}") || Regex::new(r"^[A-Za-z_][A-Za-z0-9_]*=").expect("regex").is_match(w)
+    matches!(w, "if" | "then" | "else" | "elif" | "do" | "while" | "until" | "!" | "time" | "{" | "}")
+        || Regex::new(r"^[A-Za-z_][A-Za-z0-9_]*=").expect("regex").is_match(w)
 }
 
 /// Commands that run another program given after their own options.
@@ -303,7 +304,14 @@ fn invocations(words: &[String], origin: &str, errors: &mut Vec<String>) -> Vec<
             i = p + 1;
             continue;
         };
-        let mut inv = Invocation { origin: origin.to_string(), program: name.clone(), command: Vec::new(), flags: Vec::new(), positionals: Vec::new(), wrapper };
+        let mut inv = Invocation {
+            origin: origin.to_string(),
+            program: name.clone(),
+            command: Vec::new(),
+            flags: Vec::new(),
+            positionals: Vec::new(),
+            wrapper,
+        };
         let mut level = top;
         let mut j = p + 1;
         // Subcommand path.
@@ -316,12 +324,20 @@ fn invocations(words: &[String], origin: &str, errors: &mut Vec<String>) -> Vec<
                 }
                 None if level.subcommands.is_empty() => break,
                 None => {
-                    errors.push(format!("{origin}: `{name} {}` is not a subcommand of `{name}{}` (it has: {})", words[j], inv.command.iter().map(|c| format!(" {c}")).collect::<String>(), level.subcommands.keys().cloned().collect::<Vec<_>>().join(", ")));
+                    errors.push(format!(
+                        "{origin}: `{name} {}` is not a subcommand of `{name}{}` (it has: {})",
+                        words[j],
+                        inv.command.iter().map(|c| format!(" {c}")).collect::<String>(),
+                        level.subcommands.keys().cloned().collect::<Vec<_>>().join(", ")
+                    ));
                     break;
                 }
             }
         }
-        if inv.command.is_empty() && !top.subcommands.is_empty() && !(j < words.len() && matches!(words[j].as_str(), "--help" | "-h" | "--version" | "-V")) {
+        if inv.command.is_empty()
+            && !top.subcommands.is_empty()
+            && !(j < words.len() && matches!(words[j].as_str(), "--help" | "-h" | "--version" | "-V"))
+        {
             errors.push(format!("{origin}: `{name}` without a subcommand"));
         }
         let what = format!("{name}{}", inv.command.iter().map(|c| format!(" {c}")).collect::<String>());
@@ -334,9 +350,13 @@ fn invocations(words: &[String], origin: &str, errors: &mut Vec<String>) -> Vec<
                 };
                 match level.long.get(&flag) {
                     None => {
-                        errors.push(format!("{origin}: `{what}` has no flag --{flag} (its flags: {})", level.long.keys().map(|k| format!("--{k}")).collect::<Vec<_>>().join(" ")));
+                        errors.push(format!(
+                            "{origin}: `{what}` has no flag --{flag} (its flags: {})",
+                            level.long.keys().map(|k| format!("--{k}")).collect::<Vec<_>>().join(" ")
+                        ));
                         // Keep its value (a guess) so that later checks do not fail on its absence.
-                        let value = inline.or_else(|| words.get(j + 1).filter(|v| !is_separator(v) && !v.starts_with('-')).inspect(|_| j += 1).cloned());
+                        let value = inline
+                            .or_else(|| words.get(j + 1).filter(|v| !is_separator(v) && !v.starts_with('-')).inspect(|_| j += 1).cloned());
                         inv.flags.push((flag, value));
                     }
                     Some(&takes) => {
@@ -426,8 +446,50 @@ fn script_defaults(text: &str) -> BTreeMap<String, String> {
 
 /// Every invocation in the Slurm scripts, with `bash -n` and #SBATCH/srun checks.
 fn slurm(errors: &mut Vec<String>) -> Vec<Invocation> {
-    const SBATCH: &[&str] = &["job-name", "nodes", "ntasks", "ntasks-per-node", "gpus-per-node", "gpus-per-task", "gpus", "gres", "cpus-per-task", "mem", "mem-per-cpu", "time", "output", "error", "exclusive", "partition", "account", "qos", "constraint", "signal", "requeue"];
-    const SRUN: &[&str] = &["nodes", "ntasks", "ntasks-per-node", "nodelist", "gres", "overlap", "exact", "kill-on-bad-exit", "gpus-per-task", "gpus", "mpi", "cpus-per-task", "mem", "label", "export", "output", "error", "cpu-bind", "gpu-bind"];
+    const SBATCH: &[&str] = &[
+        "job-name",
+        "nodes",
+        "ntasks",
+        "ntasks-per-node",
+        "gpus-per-node",
+        "gpus-per-task",
+        "gpus",
+        "gres",
+        "cpus-per-task",
+        "mem",
+        "mem-per-cpu",
+        "time",
+        "output",
+        "error",
+        "exclusive",
+        "partition",
+        "account",
+        "qos",
+        "constraint",
+        "signal",
+        "requeue",
+    ];
+    const SRUN: &[&str] = &[
+        "nodes",
+        "ntasks",
+        "ntasks-per-node",
+        "nodelist",
+        "gres",
+        "overlap",
+        "exact",
+        "kill-on-bad-exit",
+        "gpus-per-task",
+        "gpus",
+        "mpi",
+        "cpus-per-task",
+        "mem",
+        "label",
+        "export",
+        "output",
+        "error",
+        "cpu-bind",
+        "gpu-bind",
+    ];
     let mut all = Vec::new();
     for p in files("slurm", &[".sbatch", ".sh"]) {
         let text = read(&p);
@@ -496,7 +558,9 @@ fn unit_entries(text: &str, name: &str, errors: &mut Vec<String>) -> Vec<(String
             continue;
         }
         match t.split_once('=') {
-            Some((k, v)) if !section.is_empty() && key.is_match(k.trim()) => out.push((section.clone(), k.trim().to_string(), v.trim().to_string())),
+            Some((k, v)) if !section.is_empty() && key.is_match(k.trim()) => {
+                out.push((section.clone(), k.trim().to_string(), v.trim().to_string()))
+            }
             _ => errors.push(format!("{name}:{}: not `Key=Value` in a section: {t:?}", n + 1)),
         }
     }
@@ -532,7 +596,8 @@ fn systemd(errors: &mut Vec<String>) -> Vec<Invocation> {
                 }
             }
         }
-        let creds: BTreeSet<String> = get("Service", "LoadCredential").iter().filter_map(|v| v.split(':').next().map(String::from)).collect();
+        let creds: BTreeSet<String> =
+            get("Service", "LoadCredential").iter().filter_map(|v| v.split(':').next().map(String::from)).collect();
         let exec = get("Service", "ExecStart");
         if exec.len() != 1 {
             errors.push(format!("{name}: expected one ExecStart=, found {}", exec.len()));
@@ -581,7 +646,8 @@ fn systemd_analyze(units: &[PathBuf], errors: &mut Vec<String>) {
     let o = Command::new("systemd-analyze").args(&args).current_dir(tmp.path()).output().expect("systemd-analyze");
     let msg = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
     // Users and credential files of the target host do not exist here; those are not errors.
-    let msg: Vec<&str> = msg.lines().filter(|l| !l.trim().is_empty() && !l.contains("/etc/mscale") && !l.contains("User") && !l.contains("Group")).collect();
+    let msg: Vec<&str> =
+        msg.lines().filter(|l| !l.trim().is_empty() && !l.contains("/etc/mscale") && !l.contains("User") && !l.contains("Group")).collect();
     if !o.status.success() || !msg.is_empty() {
         errors.push(format!("systemd-analyze verify: {}", msg.join(" | ")));
     }
@@ -621,10 +687,13 @@ fn seq(v: Option<&Value>) -> Vec<Value> {
 }
 
 fn words_of(v: Option<&Value>) -> Vec<String> {
-    seq(v).iter().map(|w| match w {
-        Value::String(s) => s.clone(),
-        other => serde_yaml::to_string(other).unwrap_or_default().trim().to_string(),
-    }).collect()
+    seq(v)
+        .iter()
+        .map(|w| match w {
+            Value::String(s) => s.clone(),
+            other => serde_yaml::to_string(other).unwrap_or_default().trim().to_string(),
+        })
+        .collect()
 }
 
 /// A workload's containers with where they come from.
@@ -638,7 +707,11 @@ fn containers(docs: &[(String, Value)]) -> Vec<Container> {
     let mut out = Vec::new();
     for (file, d) in docs {
         for c in seq(s(d, &["spec", "template", "spec", "containers"])) {
-            out.push(Container { origin: format!("{file}: {} {}/{}", st(d, &["kind"]), st(d, &["metadata", "name"]), st(&c, &["name"])), workload: d.clone(), container: c });
+            out.push(Container {
+                origin: format!("{file}: {} {}/{}", st(d, &["kind"]), st(d, &["metadata", "name"]), st(&c, &["name"])),
+                workload: d.clone(),
+                container: c,
+            });
         }
     }
     out
@@ -696,7 +769,11 @@ fn dockerfile() -> (Vec<Instruction>, Vec<(String, Vec<String>)>) {
             continue;
         }
         joined.push_str(line);
-        let (k, rest) = joined.trim().split_once(char::is_whitespace).map(|(k, r)| (k.to_uppercase(), r.trim().to_string())).unwrap_or((joined.trim().to_uppercase(), String::new()));
+        let (k, rest) = joined
+            .trim()
+            .split_once(char::is_whitespace)
+            .map(|(k, r)| (k.to_uppercase(), r.trim().to_string()))
+            .unwrap_or((joined.trim().to_uppercase(), String::new()));
         if k == "FROM" {
             let name = rest.split_whitespace().collect::<Vec<_>>();
             let alias = match name.as_slice() {
@@ -732,7 +809,12 @@ fn image_copies() -> Vec<(String, String)> {
 
 /// Ports the image declares.
 fn exposed() -> BTreeSet<u16> {
-    dockerfile().0.iter().filter(|i| i.keyword == "EXPOSE").flat_map(|i| i.rest.split_whitespace().filter_map(|p| p.split('/').next()?.parse().ok()).collect::<Vec<_>>()).collect()
+    dockerfile()
+        .0
+        .iter()
+        .filter(|i| i.keyword == "EXPOSE")
+        .flat_map(|i| i.rest.split_whitespace().filter_map(|p| p.split('/').next()?.parse().ok()).collect::<Vec<_>>())
+        .collect()
 }
 
 fn cargo_toml(p: &str) -> toml::Value {
@@ -747,19 +829,54 @@ fn setup_components() -> BTreeSet<String> {
 }
 
 fn docker(errors: &mut Vec<String>) -> Vec<Invocation> {
-    const KEYWORDS: &[&str] = &["FROM", "ARG", "ENV", "RUN", "COPY", "ADD", "EXPOSE", "USER", "WORKDIR", "CMD", "ENTRYPOINT", "LABEL", "VOLUME", "HEALTHCHECK", "SHELL", "STOPSIGNAL", "ONBUILD"];
+    const KEYWORDS: &[&str] = &[
+        "FROM",
+        "ARG",
+        "ENV",
+        "RUN",
+        "COPY",
+        "ADD",
+        "EXPOSE",
+        "USER",
+        "WORKDIR",
+        "CMD",
+        "ENTRYPOINT",
+        "LABEL",
+        "VOLUME",
+        "HEALTHCHECK",
+        "SHELL",
+        "STOPSIGNAL",
+        "ONBUILD",
+    ];
     let (ins, stages) = dockerfile();
     let name = "deploy/Dockerfile";
     let mut all = Vec::new();
     let global_args: Vec<String> = ins.iter().filter(|i| i.keyword == "GLOBAL-ARG").map(|i| i.rest.clone()).collect();
-    let md_features: BTreeSet<String> = cargo_toml("md-worker/Cargo.toml").get("features").and_then(|f| f.as_table()).map(|t| t.keys().cloned().collect()).unwrap_or_default();
-    let packages: BTreeMap<String, Vec<String>> = ["orchestrator", "md-worker"].iter().map(|d| {
-        let t = cargo_toml(&format!("{d}/Cargo.toml"));
-        let pkg = t.get("package").and_then(|p| p.get("name")).and_then(|n| n.as_str()).unwrap_or("").to_string();
-        let bins = t.get("bin").and_then(|b| b.as_array()).map(|a| a.iter().filter_map(|b| b.get("name")?.as_str().map(String::from)).collect()).unwrap_or_default();
-        (pkg, bins)
-    }).collect();
-    let ignore: Vec<String> = std::fs::read_to_string(repo().join(".dockerignore")).unwrap_or_default().lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with('#')).map(String::from).collect();
+    let md_features: BTreeSet<String> = cargo_toml("md-worker/Cargo.toml")
+        .get("features")
+        .and_then(|f| f.as_table())
+        .map(|t| t.keys().cloned().collect())
+        .unwrap_or_default();
+    let packages: BTreeMap<String, Vec<String>> = ["orchestrator", "md-worker"]
+        .iter()
+        .map(|d| {
+            let t = cargo_toml(&format!("{d}/Cargo.toml"));
+            let pkg = t.get("package").and_then(|p| p.get("name")).and_then(|n| n.as_str()).unwrap_or("").to_string();
+            let bins = t
+                .get("bin")
+                .and_then(|b| b.as_array())
+                .map(|a| a.iter().filter_map(|b| b.get("name")?.as_str().map(String::from)).collect())
+                .unwrap_or_default();
+            (pkg, bins)
+        })
+        .collect();
+    let ignore: Vec<String> = std::fs::read_to_string(repo().join(".dockerignore"))
+        .unwrap_or_default()
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#'))
+        .map(String::from)
+        .collect();
     let args_use = Regex::new(r"\$\{?([A-Z_][A-Z0-9_]*)").expect("regex");
     let features_case = Regex::new(r"\*,([a-z0-9_-]+),\*\)").expect("regex");
     let setup_call = Regex::new(r"setup\.sh\s+([a-z0-9_-]+)").expect("regex");
@@ -774,14 +891,23 @@ fn docker(errors: &mut Vec<String>) -> Vec<Invocation> {
             continue;
         }
         // Build arguments: declared in scope (global for FROM, the stage's own otherwise).
-        let scope: Vec<String> = if i.keyword == "FROM" { global_args.clone() } else { stages.get(i.stage.wrapping_sub(1)).map(|s| s.1.clone()).unwrap_or_default() };
-        let env_names: Vec<String> = ins.iter().filter(|e| e.keyword == "ENV" && e.stage == i.stage).flat_map(|e| e.rest.split_whitespace().filter_map(|kv| kv.split('=').next().map(String::from)).collect::<Vec<_>>()).collect();
+        let scope: Vec<String> = if i.keyword == "FROM" {
+            global_args.clone()
+        } else {
+            stages.get(i.stage.wrapping_sub(1)).map(|s| s.1.clone()).unwrap_or_default()
+        };
+        let env_names: Vec<String> = ins
+            .iter()
+            .filter(|e| e.keyword == "ENV" && e.stage == i.stage)
+            .flat_map(|e| e.rest.split_whitespace().filter_map(|kv| kv.split('=').next().map(String::from)).collect::<Vec<_>>())
+            .collect();
         for c in args_use.captures_iter(&i.rest) {
             let v = &c[1];
             // Shell variables in RUN (lower-case) are not matched; upper-case ones must be
             // build arguments or ENV of the stage.
             if !scope.iter().any(|a| a == v) && !env_names.iter().any(|e| e == v) && !["PATH", "HOME", "LD_LIBRARY_PATH"].contains(&v) {
-                errors.push(format!("{at}: {} uses ${v}, which is not an ARG in scope (a stage sees only the ARGs it declares)", i.keyword));
+                errors
+                    .push(format!("{at}: {} uses ${v}, which is not an ARG in scope (a stage sees only the ARGs it declares)", i.keyword));
             }
         }
         match i.keyword.as_str() {
@@ -814,12 +940,20 @@ fn docker(errors: &mut Vec<String>) -> Vec<Invocation> {
                 let body = mount.replace_all(&i.rest, "");
                 for c in features_case.captures_iter(&body) {
                     if !md_features.contains(&c[1]) {
-                        errors.push(format!("{at}: FEATURES value {} is not a cargo feature of md-worker (it has: {})", &c[1], md_features.iter().cloned().collect::<Vec<_>>().join(", ")));
+                        errors.push(format!(
+                            "{at}: FEATURES value {} is not a cargo feature of md-worker (it has: {})",
+                            &c[1],
+                            md_features.iter().cloned().collect::<Vec<_>>().join(", ")
+                        ));
                     }
                 }
                 for c in setup_call.captures_iter(&body) {
                     if !setup_components().contains(&c[1]) {
-                        errors.push(format!("{at}: deploy/setup.sh has no component {} (it has: {})", &c[1], setup_components().into_iter().collect::<Vec<_>>().join(", ")));
+                        errors.push(format!(
+                            "{at}: deploy/setup.sh has no component {} (it has: {})",
+                            &c[1],
+                            setup_components().into_iter().collect::<Vec<_>>().join(", ")
+                        ));
                     }
                 }
                 let words = shell_words(&body, &BTreeMap::new());
@@ -865,7 +999,13 @@ fn docker(errors: &mut Vec<String>) -> Vec<Invocation> {
     // The runtime image holds both programs on PATH, copied from what the build stage built.
     let last = stages.len();
     for (bin, _) in PROGRAMS {
-        let copied = ins.iter().any(|i| i.stage == last && i.keyword == "COPY" && i.rest.contains("--from=") && i.rest.split_whitespace().any(|w| basename(w) == bin) && i.rest.trim_end().ends_with("/usr/local/bin/"));
+        let copied = ins.iter().any(|i| {
+            i.stage == last
+                && i.keyword == "COPY"
+                && i.rest.contains("--from=")
+                && i.rest.split_whitespace().any(|w| basename(w) == bin)
+                && i.rest.trim_end().ends_with("/usr/local/bin/")
+        });
         if !copied {
             errors.push(format!("{name}: the runtime stage does not copy {bin} into /usr/local/bin/"));
         }
@@ -874,7 +1014,9 @@ fn docker(errors: &mut Vec<String>) -> Vec<Invocation> {
             errors.push(format!("{name}: no stage builds --bin {bin}"));
         }
     }
-    if !ins.iter().any(|i| i.keyword == "RUN" && i.rest.contains("deploy/setup.sh")) && !ins.iter().any(|i| i.keyword == "RUN" && i.rest.contains("setup.sh")) {
+    if !ins.iter().any(|i| i.keyword == "RUN" && i.rest.contains("deploy/setup.sh"))
+        && !ins.iter().any(|i| i.keyword == "RUN" && i.rest.contains("setup.sh"))
+    {
         errors.push(format!("{name}: does not call deploy/setup.sh"));
     }
     all
@@ -954,7 +1096,9 @@ fn ports_agree() {
         for flag in ["server", "orchestrator"] {
             if let Some(v) = inv.flag(flag) {
                 match port(v) {
-                    Some(q) if q != p => errors.push(format!("{}: --{flag} {v}: port {q}, but the orchestrator listens on {p}", inv.origin)),
+                    Some(q) if q != p => {
+                        errors.push(format!("{}: --{flag} {v}: port {q}, but the orchestrator listens on {p}", inv.origin))
+                    }
                     None if !v.contains('$') => errors.push(format!("{}: --{flag} {v}: no port", inv.origin)),
                     _ => {}
                 }
@@ -976,7 +1120,8 @@ fn ports_agree() {
     let docs = k8s_docs();
     let cs = containers(&docs);
     for c in &cs {
-        let ports: Vec<(String, u16)> = seq(c.container.get("ports")).iter().map(|p| (st(p, &["name"]), st(p, &["containerPort"]).parse().unwrap_or(0))).collect();
+        let ports: Vec<(String, u16)> =
+            seq(c.container.get("ports")).iter().map(|p| (st(p, &["name"]), st(p, &["containerPort"]).parse().unwrap_or(0))).collect();
         let mut words = words_of(c.container.get("command"));
         words.extend(words_of(c.container.get("args")));
         let listen = invocations(&words, &c.origin, &mut Vec::new()).iter().find_map(|i| i.flag("listen").and_then(port));
@@ -1006,7 +1151,8 @@ fn ports_agree() {
     for (file, svc) in docs.iter().filter(|(_, d)| st(d, &["kind"]) == "Service") {
         let name = st(svc, &["metadata", "name"]);
         let selector = s(svc, &["spec", "selector"]).cloned().unwrap_or(Value::Null);
-        let chosen: Vec<&Container> = cs.iter().filter(|c| labels_match(&selector, s(&c.workload, &["spec", "template", "metadata", "labels"]))).collect();
+        let chosen: Vec<&Container> =
+            cs.iter().filter(|c| labels_match(&selector, s(&c.workload, &["spec", "template", "metadata", "labels"]))).collect();
         if chosen.is_empty() {
             errors.push(format!("{file}: Service {name} selects no pod template"));
         }
@@ -1014,14 +1160,18 @@ fn ports_agree() {
             let port_n: u16 = st(&sp, &["port"]).parse().unwrap_or(0);
             let target = s(&sp, &["targetPort"]).cloned().unwrap_or(Value::Number(port_n.into()));
             for c in &chosen {
-                let resolved = seq(c.container.get("ports")).iter().find(|p| match &target {
-                    Value::String(t) => st(p, &["name"]) == *t,
-                    Value::Number(n) => st(p, &["containerPort"]) == n.to_string(),
-                    _ => false,
-                }).map(|p| st(p, &["containerPort"]));
+                let resolved = seq(c.container.get("ports"))
+                    .iter()
+                    .find(|p| match &target {
+                        Value::String(t) => st(p, &["name"]) == *t,
+                        Value::Number(n) => st(p, &["containerPort"]) == n.to_string(),
+                        _ => false,
+                    })
+                    .map(|p| st(p, &["containerPort"]));
                 match resolved {
                     None => errors.push(format!("{file}: Service {name} targets port {target:?}, which {} does not declare", c.origin)),
-                    Some(cp) if cp != port_n.to_string() => errors.push(format!("{file}: Service {name} port {port_n} maps to containerPort {cp}: clients and the server disagree")),
+                    Some(cp) if cp != port_n.to_string() => errors
+                        .push(format!("{file}: Service {name} port {port_n} maps to containerPort {cp}: clients and the server disagree")),
                     _ => {}
                 }
             }
@@ -1044,7 +1194,9 @@ fn labels_match(selector: &Value, labels: Option<&Value>) -> bool {
 fn kubernetes_manifests_hang_together() {
     let mut errors = Vec::new();
     let docs = k8s_docs();
-    let defined = |kind: &str| -> BTreeMap<String, Value> { docs.iter().filter(|(_, d)| st(d, &["kind"]) == kind).map(|(_, d)| (st(d, &["metadata", "name"]), d.clone())).collect() };
+    let defined = |kind: &str| -> BTreeMap<String, Value> {
+        docs.iter().filter(|(_, d)| st(d, &["kind"]) == kind).map(|(_, d)| (st(d, &["metadata", "name"]), d.clone())).collect()
+    };
     let secrets = defined("Secret");
     let claims = defined("PersistentVolumeClaim");
     let services = defined("Service");
@@ -1060,7 +1212,12 @@ fn kubernetes_manifests_hang_together() {
                 }
             }
         }
-        if ["Deployment", "StatefulSet"].contains(&kind.as_str()) && !labels_match(s(d, &["spec", "selector", "matchLabels"]).unwrap_or(&Value::Null), s(d, &["spec", "template", "metadata", "labels"])) {
+        if ["Deployment", "StatefulSet"].contains(&kind.as_str())
+            && !labels_match(
+                s(d, &["spec", "selector", "matchLabels"]).unwrap_or(&Value::Null),
+                s(d, &["spec", "template", "metadata", "labels"]),
+            )
+        {
             errors.push(format!("{file}: {kind} selector does not match its pod template's labels"));
         }
         if kind == "StatefulSet" {
@@ -1075,8 +1232,10 @@ fn kubernetes_manifests_hang_together() {
     let k8s_var = Regex::new(r"\$\(([A-Za-z_0-9]+)\)").expect("regex");
     for c in containers(&docs) {
         let kind = st(&c.workload, &["kind"]);
-        let mounts: Vec<(String, String)> = seq(c.container.get("volumeMounts")).iter().map(|m| (st(m, &["mountPath"]), st(m, &["name"]))).collect();
-        let volumes: BTreeMap<String, Value> = seq(s(&c.workload, &["spec", "template", "spec", "volumes"])).iter().map(|v| (st(v, &["name"]), v.clone())).collect();
+        let mounts: Vec<(String, String)> =
+            seq(c.container.get("volumeMounts")).iter().map(|m| (st(m, &["mountPath"]), st(m, &["name"]))).collect();
+        let volumes: BTreeMap<String, Value> =
+            seq(s(&c.workload, &["spec", "template", "spec", "volumes"])).iter().map(|v| (st(v, &["name"]), v.clone())).collect();
         let env: BTreeSet<String> = seq(c.container.get("env")).iter().map(|e| st(e, &["name"])).collect();
         for (_, vol) in &mounts {
             if !volumes.contains_key(vol) {
@@ -1097,7 +1256,8 @@ fn kubernetes_manifests_hang_together() {
                     }
                 }
             }
-            if let Some(claim) = s(v, &["persistentVolumeClaim", "claimName"]).and_then(|n| n.as_str()).filter(|c| !claims.contains_key(*c)) {
+            if let Some(claim) = s(v, &["persistentVolumeClaim", "claimName"]).and_then(|n| n.as_str()).filter(|c| !claims.contains_key(*c))
+            {
                 errors.push(format!("{}: PersistentVolumeClaim {claim} is not defined", c.origin));
             }
         }
@@ -1117,7 +1277,9 @@ fn kubernetes_manifests_hang_together() {
                     if let Some((v, name)) = secret {
                         let items = seq(s(v, &["secret", "items"]));
                         let has = if items.is_empty() {
-                            secrets.get(name).is_some_and(|sec| s(sec, &["stringData", file]).is_some() || s(sec, &["data", file]).is_some())
+                            secrets
+                                .get(name)
+                                .is_some_and(|sec| s(sec, &["stringData", file]).is_some() || s(sec, &["data", file]).is_some())
                         } else {
                             items.iter().any(|i| st(i, &["path"]) == file)
                         };
@@ -1230,7 +1392,8 @@ fn dockerfile_names_real_things() {
 #[test]
 fn repository_paths_exist() {
     let mut errors = Vec::new();
-    let re = Regex::new(r#"(?:^|[\s"'=/}:(])((?:scenes|deploy|md-worker/potentials|tests/data|scripts)(?:/[A-Za-z0-9_.@-]+)*)"#).expect("regex");
+    let re =
+        Regex::new(r#"(?:^|[\s"'=/}:(])((?:scenes|deploy|md-worker/potentials|tests/data|scripts)(?:/[A-Za-z0-9_.@-]+)*)"#).expect("regex");
     let mut all: Vec<PathBuf> = Vec::new();
     for dir in ["slurm", "k8s", "systemd"] {
         all.extend(files(dir, &[""]));
@@ -1267,7 +1430,10 @@ fn readme_says_these_files_are_statically_checked() {
     let readme = read(&repo().join("README.md"));
     let section = readme.split("\n## Deployment").nth(1).expect("README.md has a `## Deployment` section");
     let section = section.split("\n## ").next().unwrap_or("");
-    assert!(section.contains("statically") && section.contains("tests/deploy.rs"), "README's Deployment section must say the files are only statically checked (tests/deploy.rs)");
+    assert!(
+        section.contains("statically") && section.contains("tests/deploy.rs"),
+        "README's Deployment section must say the files are only statically checked (tests/deploy.rs)"
+    );
 }
 
 /// The orchestrator command and the health probe of the Kubernetes Deployment, run here with
@@ -1282,15 +1448,23 @@ fn kubernetes_orchestrator_and_probe_commands_run() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let root = tmp.path();
     let certs = root.join("etc/mscale/tls");
-    let o = Command::new("bash").arg(deploy().join("make-certs.sh")).arg(&certs).arg("mscale-orchestrator").output().expect("bash make-certs.sh");
+    let o = Command::new("bash")
+        .arg(deploy().join("make-certs.sh"))
+        .arg(&certs)
+        .arg("mscale-orchestrator")
+        .output()
+        .expect("bash make-certs.sh");
     assert!(o.status.success(), "make-certs.sh: {}", String::from_utf8_lossy(&o.stderr));
     std::fs::create_dir_all(root.join("etc/mscale/token")).expect("mkdir");
     std::fs::write(root.join("etc/mscale/token/token"), "deploy-test-token-0123456789\n").expect("token");
     let map = |w: &String| -> String {
-        let w = w.replace("/etc/mscale", &root.join("etc/mscale").to_string_lossy()).replace("/var/lib/mscale", &root.join("state").to_string_lossy());
+        let w = w
+            .replace("/etc/mscale", &root.join("etc/mscale").to_string_lossy())
+            .replace("/var/lib/mscale", &root.join("state").to_string_lossy());
         if w.starts_with("0.0.0.0:") { "0.0.0.0:0".to_string() } else { w }
     };
-    let mut words: Vec<String> = words_of(c.container.get("command")).iter().chain(words_of(c.container.get("args")).iter()).map(map).collect();
+    let mut words: Vec<String> =
+        words_of(c.container.get("command")).iter().chain(words_of(c.container.get("args")).iter()).map(map).collect();
     assert_eq!(basename(&words[0]), "mscale");
     words[0] = binary("mscale", "orchestrator").to_string_lossy().into_owned();
     let log = root.join("serve.log");
@@ -1305,16 +1479,30 @@ fn kubernetes_orchestrator_and_probe_commands_run() {
     let addr = line.trim().rsplit(' ').next().unwrap_or("").to_string();
     let served_port = port(&addr);
     let result = (|| {
-        let port_n = served_port.ok_or_else(|| format!("mscale serve did not say where it listens: {line:?}; {}", std::fs::read_to_string(&log).unwrap_or_default()))?;
+        let port_n = served_port.ok_or_else(|| {
+            format!("mscale serve did not say where it listens: {line:?}; {}", std::fs::read_to_string(&log).unwrap_or_default())
+        })?;
         for probe in ["startupProbe", "readinessProbe", "livenessProbe"] {
             let mut w: Vec<String> = words_of(s(&c.container, &[probe, "exec", "command"])).iter().map(map).collect();
             if w.is_empty() {
                 continue;
             }
-            w = w.into_iter().map(|x| if x.starts_with("https://localhost:") { format!("https://localhost:{port_n}") } else { x }).collect();
-            let o = Command::new(binary("mscale", "orchestrator")).args(&w[1..]).env_remove("MSCALE_CA_FILE").output().map_err(|e| e.to_string())?;
+            w = w
+                .into_iter()
+                .map(|x| if x.starts_with("https://localhost:") { format!("https://localhost:{port_n}") } else { x })
+                .collect();
+            let o = Command::new(binary("mscale", "orchestrator"))
+                .args(&w[1..])
+                .env_remove("MSCALE_CA_FILE")
+                .output()
+                .map_err(|e| e.to_string())?;
             if !o.status.success() || !String::from_utf8_lossy(&o.stdout).contains("SERVING") {
-                return Err(format!("{probe} {w:?}: exit {:?}, {}{}", o.status.code(), String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)));
+                return Err(format!(
+                    "{probe} {w:?}: exit {:?}, {}{}",
+                    o.status.code(),
+                    String::from_utf8_lossy(&o.stdout),
+                    String::from_utf8_lossy(&o.stderr)
+                ));
             }
         }
         Ok(())

@@ -67,7 +67,13 @@ fn write(entries: &[Entry]) -> String {
     let mut text = HEADER.to_string();
     for e in entries {
         let set: Vec<String> = e.set.iter().map(|s| format!("{s:?}")).collect();
-        text.push_str(&format!("\n[[scene]]\nfile = {:?}\nset = [{}]\nsteps = {}\nstate_digest = {:?}\n", e.file, set.join(", "), e.steps, e.state_digest));
+        text.push_str(&format!(
+            "\n[[scene]]\nfile = {:?}\nset = [{}]\nsteps = {}\nstate_digest = {:?}\n",
+            e.file,
+            set.join(", "),
+            e.steps,
+            e.state_digest
+        ));
     }
     text
 }
@@ -90,7 +96,10 @@ fn every_shipped_scene_has_its_golden_digest() {
     assert!(!shipped.is_empty(), "no scenes in scenes/");
     for s in &shipped {
         let n = golden.scene.iter().filter(|e| &e.file == s).count();
-        assert_eq!(n, 1, "{s}: {n} entries in {FILE}; add one ([[scene]] with `file` and a short-run `set`), then bless: MSCALE_BLESS=1 cargo test -p mscale-tests --test golden_digests");
+        assert_eq!(
+            n, 1,
+            "{s}: {n} entries in {FILE}; add one ([[scene]] with `file` and a short-run `set`), then bless: MSCALE_BLESS=1 cargo test -p mscale-tests --test golden_digests"
+        );
     }
     for e in &golden.scene {
         assert!(repo().join(&e.file).is_file(), "{FILE} names {}, which does not exist", e.file);
@@ -107,7 +116,10 @@ fn every_shipped_scene_has_its_golden_digest() {
             Ok((steps, digest)) => {
                 eprintln!("{}: {steps} steps, {digest} ({:.1} s)", e.file, start.elapsed().as_secs_f64());
                 if (steps, digest.as_str()) != (e.steps, e.state_digest.as_str()) {
-                    failures.push(format!("{}: expected {} ({} steps), found {digest} ({steps} steps)\n    {command}", e.file, e.state_digest, e.steps));
+                    failures.push(format!(
+                        "{}: expected {} ({} steps), found {digest} ({steps} steps)\n    {command}",
+                        e.file, e.state_digest, e.steps
+                    ));
                 }
                 found[k].steps = steps;
                 found[k].state_digest = digest;

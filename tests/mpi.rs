@@ -19,8 +19,12 @@ use std::sync::Arc;
 fn mpi_worker() -> PathBuf {
     match std::env::var_os("MSCALE_MPI_WORKER") {
         Some(p) if !p.is_empty() && Path::new(&p).is_file() => PathBuf::from(p),
-        Some(p) if !p.is_empty() => panic!("MSCALE_MPI_WORKER={} is not a file (an md-worker built with --features mpi; see .ci/run)", Path::new(&p).display()),
-        _ => panic!("MSCALE_MPI_WORKER is unset: set it to an md-worker built with --features mpi (`bash deploy/setup.sh mpi`; see .ci/run)"),
+        Some(p) if !p.is_empty() => {
+            panic!("MSCALE_MPI_WORKER={} is not a file (an md-worker built with --features mpi; see .ci/run)", Path::new(&p).display())
+        }
+        _ => {
+            panic!("MSCALE_MPI_WORKER is unset: set it to an md-worker built with --features mpi (`bash deploy/setup.sh mpi`; see .ci/run)")
+        }
     }
 }
 
@@ -51,7 +55,10 @@ fn summary(dir: &Path) -> serde_json::Value {
 }
 
 #[test]
-#[cfg_attr(not(require_mpi), ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_WORKER=<md-worker built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored")]
+#[cfg_attr(
+    not(require_mpi),
+    ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_WORKER=<md-worker built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
+)]
 fn a_coupled_run_on_two_mpi_ranks_has_the_in_process_digest() {
     let exe = mpi_worker();
     let scene = repo().join("tests/data/md-small.toml");
@@ -106,7 +113,18 @@ fn work(ids: &[u64], rate: f64) -> Vec<BoxWork> {
 }
 
 fn bits(r: &[BoxResult]) -> Vec<String> {
-    r.iter().map(|r| format!("{} {:?} {:x} {:x} {:x}", r.id, r.stress_gpa.map(f64::to_bits), r.potential_energy_ev.to_bits(), r.kinetic_energy_ev.to_bits(), r.temperature_k.to_bits())).collect()
+    r.iter()
+        .map(|r| {
+            format!(
+                "{} {:?} {:x} {:x} {:x}",
+                r.id,
+                r.stress_gpa.map(f64::to_bits),
+                r.potential_energy_ev.to_bits(),
+                r.kinetic_energy_ev.to_bits(),
+                r.temperature_k.to_bits()
+            )
+        })
+        .collect()
 }
 
 /// Runs the same open / step / snapshot / restore / second open / step sequence on `ep`.
@@ -135,7 +153,10 @@ fn sequence(ep: Box<dyn Endpoint>) -> (Vec<Vec<String>>, Vec<md_worker::BoxState
 }
 
 #[test]
-#[cfg_attr(not(require_mpi), ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_WORKER=<md-worker built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored")]
+#[cfg_attr(
+    not(require_mpi),
+    ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_WORKER=<md-worker built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
+)]
 fn open_step_snapshot_restore_on_two_mpi_ranks_match_in_process_bit_for_bit() {
     let exe = mpi_worker();
     let w = mpi_serve(&exe, 2);
@@ -162,7 +183,8 @@ fn open_step_snapshot_restore_on_two_mpi_ranks_match_in_process_bit_for_bit() {
     // Info says how the worker computes.
     let info = rt
         .block_on(async {
-            let mut c = mscale_proto::coupling::v1::md_worker_client::MdWorkerClient::connect(format!("http://{}", w.addr)).await.expect("connect");
+            let mut c =
+                mscale_proto::coupling::v1::md_worker_client::MdWorkerClient::connect(format!("http://{}", w.addr)).await.expect("connect");
             c.info(mscale_proto::coupling::v1::InfoRequest {}).await
         })
         .expect("info")

@@ -10,7 +10,12 @@ use std::time::Instant;
 /// a 36 nm triangular notch in the top face, moving down at 2.5 km/s onto a fixed wall.
 fn jet(sub: usize) -> Simulation<2> {
     let (lx, ly) = (144e-9, 72e-9);
-    let grid = Grid::<2> { origin: [0.0; 2], h: [lx / 100.0, ly / 50.0], cells: [100, 50], faces: [(Face::Reflective, Face::Reflective), (Face::Fixed, Face::Free)] };
+    let grid = Grid::<2> {
+        origin: [0.0; 2],
+        h: [lx / 100.0, ly / 50.0],
+        cells: [100, 50],
+        faces: [(Face::Reflective, Face::Reflective), (Face::Fixed, Face::Free)],
+    };
     let mut pts = Particles::default();
     let ppc = 2;
     let vol = grid.cell_volume() / 4.0;
@@ -23,13 +28,23 @@ fn jet(sub: usize) -> Simulation<2> {
             if below_top < 36e-9 && (x[0] - 0.5 * lx).abs() < half_width {
                 continue;
             }
-            pts.push(0, x, [0.0, -2500.0], rho * vol, vol, [0.5 * grid.h[0] / ppc as f64, 0.5 * grid.h[1] / ppc as f64], Particles::<2>::identity());
+            pts.push(
+                0,
+                x,
+                [0.0, -2500.0],
+                rho * vol,
+                vol,
+                [0.5 * grid.h[0] / ppc as f64, 0.5 * grid.h[1] / ppc as f64],
+                Particles::<2>::identity(),
+            );
         }
     }
     let law: Box<dyn Closure> = Box::new(LinearElastic { youngs_modulus: 130e9, poisson_ratio: 0.34, density0: rho });
     let c = law.wave_speed(&pts.mass, &pts.volume);
     let dt = 0.2 * grid.h[1] / (c + 2500.0);
-    Simulation::new(grid, pts, SchemeKind::DdmpSubpoints, vec![law], Viscosity::Tensor { linear: 1.5, quadratic: 2.0 }, dt).expect("jet builds").with_sub_points(sub)
+    Simulation::new(grid, pts, SchemeKind::DdmpSubpoints, vec![law], Viscosity::Tensor { linear: 1.5, quadratic: 2.0 }, dt)
+        .expect("jet builds")
+        .with_sub_points(sub)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -48,7 +63,9 @@ fn weak_tube(scheme: SchemeKind, ppc: usize, sub: usize) -> Simulation<1> {
         pts.push(b, [x], [0.0], rho * v, v, [0.5 * v], Particles::<1>::identity());
     }
     let gas = || -> Box<dyn Closure> { Box::new(IdealGasIsothermal { sound_speed: 1.0 }) };
-    Simulation::new(grid, pts, scheme, vec![gas(), gas()], Viscosity::Linear { coefficient: 0.5 }, 0.1 * v * ppc as f64).expect("tube builds").with_sub_points(sub)
+    Simulation::new(grid, pts, scheme, vec![gas(), gas()], Viscosity::Linear { coefficient: 0.5 }, 0.1 * v * ppc as f64)
+        .expect("tube builds")
+        .with_sub_points(sub)
 }
 
 fn main() {
@@ -76,10 +93,17 @@ fn main() {
     let per_thread: Vec<f64> = times.into_iter().map(median).collect();
     for ((threads, _), t) in pools.iter().zip(&per_thread) {
         let rate = (points * 8) as f64 / t;
-        println!("jet 100x50 cells, {points} points x 8 sub-points, {threads} thread(s): {:.3} ms/step, {:.2e} sub-point updates/s ({:.2e} per thread)", t * 1e3, rate, rate / *threads as f64);
+        println!(
+            "jet 100x50 cells, {points} points x 8 sub-points, {threads} thread(s): {:.3} ms/step, {:.2e} sub-point updates/s ({:.2e} per thread)",
+            t * 1e3,
+            rate,
+            rate / *threads as f64
+        );
     }
     println!("speed-up on 2 threads: {:.2}x (median of {runs} interleaved runs of {steps} steps each)", per_thread[0] / per_thread[1]);
-    for (name, scheme, ppc, sub) in [("ddmp 32 per cell", SchemeKind::Ddmp, 32, 1), ("ddmp-subpoints 2 x 16", SchemeKind::DdmpSubpoints, 2, 16)] {
+    for (name, scheme, ppc, sub) in
+        [("ddmp 32 per cell", SchemeKind::Ddmp, 32, 1), ("ddmp-subpoints 2 x 16", SchemeKind::DdmpSubpoints, 2, 16)]
+    {
         let mut times = Vec::new();
         for _ in 0..runs {
             let mut sim = weak_tube(scheme, ppc, sub);

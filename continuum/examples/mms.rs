@@ -1,6 +1,6 @@
 //! Manufactured solution (diagnostic): `cargo run --release -p continuum --example mms -- SCHEME D CELLS [G] [T] [ppc]`.
 //! Prints the L2 displacement error sqrt(sum V0 |u - u_exact|^2) at time T (default 0.02 s).
-use continuum::closure::{lame, NeoHookean};
+use continuum::closure::{NeoHookean, lame};
 use continuum::solver::{TimeIntegrator, Viscosity};
 use continuum::{Face, Grid, Particles, SchemeKind, Simulation};
 use std::f64::consts::PI;
@@ -11,7 +11,8 @@ fn run<const D: usize>(scheme: SchemeKind, cells: usize, g: f64, t_end: f64, ppc
     let (lambda, mu) = lame(e, nu);
     let c = (e / rho0).sqrt();
     let h = 1.0 / cells as f64;
-    let grid = Grid::<D> { origin: [0.0; D], h: [h; D], cells: [cells; D], faces: std::array::from_fn(|_| (Face::Reflective, Face::Reflective)) };
+    let grid =
+        Grid::<D> { origin: [0.0; D], h: [h; D], cells: [cells; D], faces: std::array::from_fn(|_| (Face::Reflective, Face::Reflective)) };
     let mut pts = Particles::default();
     let n = cells * ppc;
     let vol = h.powi(D as i32) / ppc.pow(D as u32) as f64;
@@ -26,7 +27,15 @@ fn run<const D: usize>(scheme: SchemeKind, cells: usize, g: f64, t_end: f64, ppc
         pts.push(0, x, v, rho0 * vol, vol, [0.5 * h / ppc as f64; D], Particles::<D>::identity());
     }
     let dt = cfl * h / c;
-    let mut s = Simulation::new(grid, pts, scheme, vec![Box::new(NeoHookean { youngs_modulus: e, poisson_ratio: nu, density0: rho0 })], Viscosity::None, dt).expect("builds");
+    let mut s = Simulation::new(
+        grid,
+        pts,
+        scheme,
+        vec![Box::new(NeoHookean { youngs_modulus: e, poisson_ratio: nu, density0: rho0 })],
+        Viscosity::None,
+        dt,
+    )
+    .expect("builds");
     if lf {
         s.integrator = TimeIntegrator::Leapfrog;
     }

@@ -1,6 +1,6 @@
 //! Weak isothermal shock tube (diagnostic): `cargo run --release -p continuum --example tube -- SCHEME PPC SUB [dump]`.
 use continuum::closure::IdealGasIsothermal;
-use continuum::exact::{pressure_errors, IsothermalRiemann, State};
+use continuum::exact::{IsothermalRiemann, State, pressure_errors};
 use continuum::solver::Viscosity;
 use continuum::{Closure, Face, Grid, Particles, SchemeKind, Simulation};
 
@@ -20,7 +20,9 @@ fn main() {
         pts.push(b, [x], [0.0], rho * v, v, [0.5 * v], Particles::<1>::identity());
     }
     let gas = || -> Box<dyn Closure> { Box::new(IdealGasIsothermal { sound_speed: 1.0 }) };
-    let mut sim = Simulation::new(grid, pts, scheme, vec![gas(), gas()], Viscosity::Linear { coefficient: 0.5 }, 0.1 / cells as f64).expect("tube").with_sub_points(sub);
+    let mut sim = Simulation::new(grid, pts, scheme, vec![gas(), gas()], Viscosity::Linear { coefficient: 0.5 }, 0.1 / cells as f64)
+        .expect("tube")
+        .with_sub_points(sub);
     let steps = 1250;
     for _ in 0..steps {
         sim.step().expect("step");

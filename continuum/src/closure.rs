@@ -6,7 +6,7 @@
 //! tension positive.
 
 use crate::par::CHUNK;
-use crate::tensor::{self, Mat3, IDENTITY};
+use crate::tensor::{self, IDENTITY, Mat3};
 use rayon::prelude::*;
 
 /// The points of one body, handed to its closure.
@@ -47,12 +47,15 @@ impl ClosureBatch<'_> {
             .par_chunks_mut(CHUNK)
             .enumerate()
             .filter_map(|(c, chunk)| {
-                chunk.iter_mut().enumerate().try_for_each(|(i, s)| {
-                    let k = c * CHUNK + i;
-                    f(PointIn { id: first + k, vel_grad: &vel_grad[k], def_grad: &def_grad[k], mass: mass[k], volume: volume[k] }, s)
-                })
-                .err()
-                .map(|e| (c, e))
+                chunk
+                    .iter_mut()
+                    .enumerate()
+                    .try_for_each(|(i, s)| {
+                        let k = c * CHUNK + i;
+                        f(PointIn { id: first + k, vel_grad: &vel_grad[k], def_grad: &def_grad[k], mass: mass[k], volume: volume[k] }, s)
+                    })
+                    .err()
+                    .map(|e| (c, e))
             })
             .min_by_key(|(c, _)| *c);
         failed.map_or(Ok(()), |(_, e)| Err(e))
@@ -62,9 +65,13 @@ impl ClosureBatch<'_> {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
 pub enum ClosureError {
-    #[error("point {point}: {law} closure produced a non-finite stress (J = {jacobian:e}); the time step is probably too large or the point was crushed")]
+    #[error(
+        "point {point}: {law} closure produced a non-finite stress (J = {jacobian:e}); the time step is probably too large or the point was crushed"
+    )]
     NonFinite { point: usize, law: &'static str, jacobian: f64 },
-    #[error("point {point}: {law} closure needs a positive volume ratio, got J = {jacobian:e} (the point was inverted: reduce the time step or add particles per cell)")]
+    #[error(
+        "point {point}: {law} closure needs a positive volume ratio, got J = {jacobian:e} (the point was inverted: reduce the time step or add particles per cell)"
+    )]
     Inverted { point: usize, law: &'static str, jacobian: f64 },
     #[error("{0}")]
     Other(String),

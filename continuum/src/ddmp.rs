@@ -37,7 +37,7 @@
 use crate::grid::Grid;
 use crate::par::{self, Scatter};
 use crate::particles::Particles;
-use crate::shape::{cell_node, cell_shape, node_index, Block, OutsideGrid, StencilPart};
+use crate::shape::{Block, OutsideGrid, StencilPart, cell_node, cell_shape, node_index};
 
 /// Number of neighbour offsets of a node within one cell (3^D).
 pub const fn neighbours(d: usize) -> usize {
@@ -183,7 +183,14 @@ fn sub_point_span<const D: usize>(grid: &Grid<D>, subs: &[[f64; D]]) -> (usize, 
 
 /// Scatters V_j = sum_s V_s S_j(x_s) from the integration points (`subs`, `n` per point, each
 /// carrying 1/n of its point's current volume) into `volume` (one value per node).
-pub fn assemble_volumes<const D: usize>(grid: &Grid<D>, pts: &Particles<D>, subs: &[[f64; D]], n: usize, scatter: &mut Scatter, volume: &mut Vec<f64>) {
+pub fn assemble_volumes<const D: usize>(
+    grid: &Grid<D>,
+    pts: &Particles<D>,
+    subs: &[[f64; D]],
+    n: usize,
+    scatter: &mut Scatter,
+    volume: &mut Vec<f64>,
+) {
     let nc = 1usize << D;
     scatter.run(
         pts.len(),
@@ -208,7 +215,15 @@ pub fn assemble_volumes<const D: usize>(grid: &Grid<D>, pts: &Particles<D>, subs
 }
 
 /// Appends point `p`'s DDMP row: hat weights at x_p and the sub-point average of (3.31).
-pub(crate) fn ddmp_row<const D: usize>(grid: &Grid<D>, pts: &Particles<D>, p: usize, subs: &[[f64; D]], volume: Option<&[f64]>, block: &mut Block<D>, out: &mut StencilPart<D>) -> Result<(), OutsideGrid> {
+pub(crate) fn ddmp_row<const D: usize>(
+    grid: &Grid<D>,
+    pts: &Particles<D>,
+    p: usize,
+    subs: &[[f64; D]],
+    volume: Option<&[f64]>,
+    block: &mut Block<D>,
+    out: &mut StencilPart<D>,
+) -> Result<(), OutsideGrid> {
     let nc = 1usize << D;
     let nn = neighbours(D);
     // Points outside the grid are an error, not clamped.

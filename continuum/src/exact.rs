@@ -124,11 +124,8 @@ pub fn spike_measure(x: &[f64], p: &[f64], jump: f64, cell: f64, report: impl Fn
         window.clear();
         window.extend(order[lo..hi].iter().map(|&q| p[q]));
         window.sort_by(f64::total_cmp);
-        let median = if window.len() % 2 == 1 {
-            window[window.len() / 2]
-        } else {
-            0.5 * (window[window.len() / 2 - 1] + window[window.len() / 2])
-        };
+        let median =
+            if window.len() % 2 == 1 { window[window.len() / 2] } else { 0.5 * (window[window.len() / 2 - 1] + window[window.len() / 2]) };
         if report(order[k]) {
             spike = spike.max((p[order[k]] - median).abs() / jump);
         }

@@ -1,7 +1,7 @@
 //! Material points as structure-of-arrays. Points of one body are contiguous, so a closure
 //! sees a body as one slice.
 
-use crate::tensor::{Mat3, IDENTITY, ZERO};
+use crate::tensor::{IDENTITY, Mat3, ZERO};
 use std::ops::Range;
 
 #[derive(Debug, Clone, Default)]

@@ -191,7 +191,13 @@ pub fn gimp(r: f64, h: f64, lp: f64) -> (f64, f64) {
 }
 
 /// Appends point `p`'s row for the hat and GIMP schemes (tensor products of 1D factors).
-pub(crate) fn gimp_row<const D: usize>(kind: SchemeKind, grid: &Grid<D>, pts: &Particles<D>, p: usize, out: &mut StencilPart<D>) -> Result<(), OutsideGrid> {
+pub(crate) fn gimp_row<const D: usize>(
+    kind: SchemeKind,
+    grid: &Grid<D>,
+    pts: &Particles<D>,
+    p: usize,
+    out: &mut StencilPart<D>,
+) -> Result<(), OutsideGrid> {
     // Per-axis 1D factors: (node index along the axis, S, dS); at most 4 per axis.
     let mut axis_terms = [[(0usize, 0.0f64, 0.0f64); 4]; D];
     let mut counts = [0usize; D];
@@ -456,7 +462,14 @@ pub(crate) fn corner_integrals<const D: usize>(corners: &[[f64; D]; 8]) -> Optio
 
 /// Appends point `p`'s CPDI row: S_ip = sum_a N_i(x_a) w_a / V, G_ip = sum_a N_i(x_a) g_a / V
 /// (Gong 6.26-6.27, 6.30-6.32, 6.33-6.34 with the prefactor 1/2 of the errata).
-pub(crate) fn cpdi_row<const D: usize>(kind: SchemeKind, grid: &Grid<D>, pts: &Particles<D>, p: usize, block: &mut Block<D>, out: &mut StencilPart<D>) -> Result<(), OutsideGrid> {
+pub(crate) fn cpdi_row<const D: usize>(
+    kind: SchemeKind,
+    grid: &Grid<D>,
+    pts: &Particles<D>,
+    p: usize,
+    block: &mut Block<D>,
+    out: &mut StencilPart<D>,
+) -> Result<(), OutsideGrid> {
     let nc = 1usize << D;
     let mut corners = [[0.0; D]; 8];
     domain_corners(kind, pts, p, &mut corners);

@@ -8,7 +8,7 @@ use crate::closure::{Closure, ClosureBatch, ClosureError};
 use crate::ddmp;
 use crate::diagnostics::Totals;
 use crate::grid::Grid;
-use crate::par::{self, Scatter, CHUNK};
+use crate::par::{self, CHUNK, Scatter};
 use crate::particles::Particles;
 use crate::shape::{self, Block, OutsideGrid, SchemeKind, Stencil, StencilPart};
 use crate::tensor::{self, Mat3};
@@ -20,11 +20,16 @@ pub enum Viscosity {
     None,
     /// Linear form of Ch. 6.3: q = coefficient * rho * c * h * |tr D| when tr D < 0, as a
     /// pressure (the viscous stress is -q I).
-    Linear { coefficient: f64 },
+    Linear {
+        coefficient: f64,
+    },
     /// Tensor form (7.8)-(7.10): q = sum_k rho l lambda_k (tau0 c_L c - c_q l lambda_k) g_k g_k^T
     /// over the negative eigenvalues lambda_k (eigenvectors g_k) of D, with
     /// tau0 = |tr L| / |L| (Frobenius norm) and l the mean current length of the point's domain.
-    Tensor { linear: f64, quadratic: f64 },
+    Tensor {
+        linear: f64,
+        quadratic: f64,
+    },
 }
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -319,22 +324,29 @@ impl<const D: usize> Simulation<D> {
     /// Steps 3-4: lumped nodal mass and momentum, nodal velocity, small-mass velocities (7.7).
     fn map_to_grid(&mut self) {
         let (st, pts) = (&self.stencil, &self.points);
-        self.scatter.run(pts.len(), self.grid.node_count(), D + 1, &mut self.flat, |r| st.span(r), |r, w| {
-            for p in r {
-                let (nodes, weights, _) = st.row(p);
-                for (&i, &s) in nodes.iter().zip(weights) {
-                    if s == 0.0 {
-                        continue;
-                    }
-                    let slot = w.slot(i);
-                    let m = s * pts.mass[p];
-                    slot[0] += m;
-                    for a in 0..D {
-                        slot[1 + a] += m * pts.v[p][a];
+        self.scatter.run(
+            pts.len(),
+            self.grid.node_count(),
+            D + 1,
+            &mut self.flat,
+            |r| st.span(r),
+            |r, w| {
+                for p in r {
+                    let (nodes, weights, _) = st.row(p);
+                    for (&i, &s) in nodes.iter().zip(weights) {
+                        if s == 0.0 {
+                            continue;
+                        }
+                        let slot = w.slot(i);
+                        let m = s * pts.mass[p];
+                        slot[0] += m;
+                        for a in 0..D {
+                            slot[1 + a] += m * pts.v[p][a];
+                        }
                     }
                 }
-            }
-        });
+            },
+        );
         let floor = self.empty_floor();
         let flat = &self.flat;
         self.node_mass.par_iter_mut().zip(self.node_v.par_iter_mut()).enumerate().for_each(|(i, (m, v))| {
@@ -376,29 +388,36 @@ impl<const D: usize> Simulation<D> {
     /// Step 5: f_i = -sum_p V_p (sigma_p + q_p) . G_ip, then the distribution (7.4)-(7.6).
     fn nodal_forces(&mut self) {
         let (st, pts, body, t) = (&self.stencil, &self.points, &self.body_force, self.time);
-        self.scatter.run(pts.len(), self.grid.node_count(), D, &mut self.flat, |r| st.span(r), |r, w| {
-            for p in r {
-                let s = tensor::add_scaled(&pts.stress[p], &pts.visc_stress[p], 1.0);
-                let vol = pts.volume[p];
-                let b = body.as_ref().map(|f| f(&pts.x0[p], t));
-                let (nodes, weights, grads) = st.row(p);
-                for ((&i, g), &sw) in nodes.iter().zip(grads).zip(weights) {
-                    let slot = w.slot(i);
-                    if let Some(b) = b {
+        self.scatter.run(
+            pts.len(),
+            self.grid.node_count(),
+            D,
+            &mut self.flat,
+            |r| st.span(r),
+            |r, w| {
+                for p in r {
+                    let s = tensor::add_scaled(&pts.stress[p], &pts.visc_stress[p], 1.0);
+                    let vol = pts.volume[p];
+                    let b = body.as_ref().map(|f| f(&pts.x0[p], t));
+                    let (nodes, weights, grads) = st.row(p);
+                    for ((&i, g), &sw) in nodes.iter().zip(grads).zip(weights) {
+                        let slot = w.slot(i);
+                        if let Some(b) = b {
+                            for a in 0..D {
+                                slot[a] += sw * pts.mass[p] * b[a];
+                            }
+                        }
                         for a in 0..D {
-                            slot[a] += sw * pts.mass[p] * b[a];
+                            let mut f = 0.0;
+                            for b in 0..D {
+                                f += s[a][b] * g[b];
+                            }
+                            slot[a] -= vol * f;
                         }
-                    }
-                    for a in 0..D {
-                        let mut f = 0.0;
-                        for b in 0..D {
-                            f += s[a][b] * g[b];
-                        }
-                        slot[a] -= vol * f;
                     }
                 }
-            }
-        });
+            },
+        );
         let flat = &self.flat;
         self.node_force.par_iter_mut().enumerate().for_each(|(i, f)| *f = std::array::from_fn(|a| flat[i * D + a]));
         let floor = self.empty_floor();
@@ -451,7 +470,10 @@ impl<const D: usize> Simulation<D> {
         if let Some((i, a, acc)) = bad {
             return Err(SolverError::Diverged {
                 step,
-                what: format!("node {:?} acceleration {acc:e} m/s^2 along axis {a} exceeds {limit:e} (= {ACCELERATION_LIMIT} c^2/h)", self.grid.unlinear(i)),
+                what: format!(
+                    "node {:?} acceleration {acc:e} m/s^2 along axis {a} exceeds {limit:e} (= {ACCELERATION_LIMIT} c^2/h)",
+                    self.grid.unlinear(i)
+                ),
                 cause: "time step too large for the wave speed, or a tension instability (too few particles per cell)",
             });
         }
@@ -545,7 +567,11 @@ impl<const D: usize> Simulation<D> {
                     Viscosity::None => tensor::ZERO,
                     Viscosity::Linear { coefficient } => {
                         let rate = tensor::trace(&d);
-                        if rate < 0.0 { tensor::add_scaled(&tensor::ZERO, &tensor::IDENTITY, -coefficient * rho * c * h * rate.abs()) } else { tensor::ZERO }
+                        if rate < 0.0 {
+                            tensor::add_scaled(&tensor::ZERO, &tensor::IDENTITY, -coefficient * rho * c * h * rate.abs())
+                        } else {
+                            tensor::ZERO
+                        }
                     }
                     Viscosity::Tensor { linear, quadratic } => tensor_viscosity(pts_ro, p, &d, l, rho, c, linear, quadratic),
                 };
@@ -571,12 +597,8 @@ impl<const D: usize> Simulation<D> {
         let pts = &mut self.points;
         let track = self.scheme.tracks_corners();
         let nc = 1usize << D;
-        pts.v
-            .par_chunks_mut(CHUNK)
-            .zip(pts.x.par_chunks_mut(CHUNK))
-            .zip(pts.corners.par_chunks_mut(CHUNK * nc))
-            .enumerate()
-            .for_each(|(c, ((vs, xs), cs))| {
+        pts.v.par_chunks_mut(CHUNK).zip(pts.x.par_chunks_mut(CHUNK)).zip(pts.corners.par_chunks_mut(CHUNK * nc)).enumerate().for_each(
+            |(c, ((vs, xs), cs))| {
                 for k in 0..vs.len() {
                     let p = c * CHUNK + k;
                     let (nodes, weights, _) = st.row(p);
@@ -621,7 +643,8 @@ impl<const D: usize> Simulation<D> {
                         }
                     }
                 }
-            });
+            },
+        );
     }
 
     /// Stops a run that is going wrong, naming the particle, the quantity and the likely cause.
@@ -692,11 +715,12 @@ fn for_each_neighbour<const D: usize>(grid: &Grid<D>, i: usize, mut f: impl FnMu
             };
         }
         if let Some(j) = lin
-            && !seen[..count].contains(&j) {
-                seen[count] = j;
-                count += 1;
-                f(j);
-            }
+            && !seen[..count].contains(&j)
+        {
+            seen[count] = j;
+            count += 1;
+            f(j);
+        }
     }
 }
 

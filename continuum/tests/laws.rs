@@ -23,7 +23,8 @@ fn lin(a: &M, s: f64, b: &M, t: f64) -> M {
     std::array::from_fn(|i| std::array::from_fn(|j| s * a[i][j] + t * b[i][j]))
 }
 fn det(a: &M) -> f64 {
-    a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0]) + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0])
+    a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+        + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0])
 }
 fn norm(a: &M) -> f64 {
     a.iter().flatten().map(|v| v * v).sum::<f64>().sqrt()
@@ -118,7 +119,14 @@ impl Points {
     }
 
     fn batch(&mut self) -> ClosureBatch<'_> {
-        ClosureBatch { first: 0, vel_grad: &self.vel_grad, def_grad: &self.def_grad, mass: &self.mass, volume: &self.volume, stress: &mut self.stress }
+        ClosureBatch {
+            first: 0,
+            vel_grad: &self.vel_grad,
+            def_grad: &self.def_grad,
+            mass: &self.mass,
+            volume: &self.volume,
+            stress: &mut self.stress,
+        }
     }
 
     /// One step of `dt` with velocity gradient `l` that ends at deformation gradient `f`.
@@ -195,13 +203,22 @@ fn a_small_strain_gives_the_tangent_of_youngs_modulus_and_poisson_ratio() {
         c.initialize(q.batch()).expect("initialize");
         for (how, s) in [("one step", p.stress[0]), ("initial strain", q.stress[0])] {
             let err = norm(&lin(&s, 1.0, &expected, -1.0));
-            assert!(err <= 1e-4 * increment, "{} ({how}): stress {s:?}, tangent gives {expected:?} (error {:e} of the increment)", law.name, err / increment);
+            assert!(
+                err <= 1e-4 * increment,
+                "{} ({how}): stress {s:?}, tangent gives {expected:?} (error {:e} of the increment)",
+                law.name,
+                err / increment
+            );
             assert!(norm(&lin(&s, 1.0, &tr(&s), -1.0)) <= 1e-12 * norm(&s), "{} ({how}): stress not symmetric {s:?}", law.name);
         }
         let c = (law.make)();
         let speed = c.wave_speed(&[law.rho0], &[1.0]);
         let expected_speed = (scale(&law) / law.rho0).sqrt();
-        assert!((speed - expected_speed).abs() <= 1e-12 * expected_speed, "{}: wave speed {speed}, tangent gives {expected_speed}", law.name);
+        assert!(
+            (speed - expected_speed).abs() <= 1e-12 * expected_speed,
+            "{}: wave speed {speed}, tangent gives {expected_speed}",
+            law.name
+        );
     }
 }
 
@@ -226,9 +243,18 @@ fn a_superposed_rigid_rotation_rotates_the_stress() {
         let expected = mul(&mul(&r, &before), &tr(&r));
         let err = norm(&lin(&p.stress[0], 1.0, &expected, -1.0)) / norm(&expected);
         eprintln!("{}: rotated stress off R sigma R^T by {err:e} (relative)", law.name);
-        assert!(err <= law.rotation_tolerance, "{}: after a rigid rotation the stress is {:?}, R sigma R^T is {expected:?} (relative error {err:e})", law.name, p.stress[0]);
+        assert!(
+            err <= law.rotation_tolerance,
+            "{}: after a rigid rotation the stress is {:?}, R sigma R^T is {expected:?} (relative error {err:e})",
+            law.name,
+            p.stress[0]
+        );
         // And it is not merely unchanged (the test can tell a law that ignores the spin).
-        assert!(norm(&lin(&before, 1.0, &expected, -1.0)) > 0.1 * norm(&expected) || law.mu == 0.0, "{}: test bug: the rotation does not change the stress", law.name);
+        assert!(
+            norm(&lin(&before, 1.0, &expected, -1.0)) > 0.1 * norm(&expected) || law.mu == 0.0,
+            "{}: test bug: the rotation does not change the stress",
+            law.name
+        );
     }
 }
 
@@ -239,7 +265,11 @@ fn a_batch_gives_the_same_bits_on_one_and_two_threads_and_point_by_point() {
     let fs: Vec<M> = (0..n)
         .map(|k| {
             let t = k as f64 / n as f64;
-            [[1.0 + 0.02 * t, 0.01 * (7.0 * t).sin(), 0.0], [0.003 * t, 1.0 - 0.01 * t, 0.002], [0.0, 0.004 * (3.0 * t).cos(), 1.0 + 0.005 * t]]
+            [
+                [1.0 + 0.02 * t, 0.01 * (7.0 * t).sin(), 0.0],
+                [0.003 * t, 1.0 - 0.01 * t, 0.002],
+                [0.0, 0.004 * (3.0 * t).cos(), 1.0 + 0.005 * t],
+            ]
         })
         .collect();
     let l: M = [[0.3, 0.1, 0.0], [-0.2, -0.1, 0.05], [0.0, 0.02, 0.1]];

@@ -3,7 +3,7 @@
 //! Kept small (a few thousand points, a few hundred steps) so the file runs in seconds with
 //! the optimised test profile; the full ranges are `#[ignore]`d tests.
 
-use continuum::closure::{lame, IdealGasIsothermal, NeoHookean};
+use continuum::closure::{IdealGasIsothermal, NeoHookean, lame};
 use continuum::solver::{TimeIntegrator, Viscosity};
 use continuum::{Closure, Face, Grid, Particles, SchemeKind, Simulation};
 use std::f64::consts::PI;
@@ -14,7 +14,14 @@ fn free<const D: usize>() -> [(Face, Face); D] {
 }
 
 /// Points at the sub-centres of every cell of `grid` whose centre lies in [lo, hi).
-fn points<const D: usize>(grid: &Grid<D>, lo: [f64; D], hi: [f64; D], ppc: usize, rho: f64, v: impl Fn(&[f64; D]) -> [f64; D]) -> Particles<D> {
+fn points<const D: usize>(
+    grid: &Grid<D>,
+    lo: [f64; D],
+    hi: [f64; D],
+    ppc: usize,
+    rho: f64,
+    v: impl Fn(&[f64; D]) -> [f64; D],
+) -> Particles<D> {
     let mut pts = Particles::default();
     let vol = grid.cell_volume() / ppc.pow(D as u32) as f64;
     let n: [usize; D] = std::array::from_fn(|a| grid.cells[a] * ppc);
@@ -107,7 +114,13 @@ fn wall_impulse_accounts_for_the_momentum_change() {
     }
     let (p1, _) = momentum(&s);
     assert!(s.wall_impulse[0].abs() > 0.01 * scale, "the wall did nothing");
-    assert!((p1[0] - p0[0] - s.wall_impulse[0]).abs() <= 1e-12 * scale.max(s.wall_impulse_magnitude), "{} - {} != {}", p1[0], p0[0], s.wall_impulse[0]);
+    assert!(
+        (p1[0] - p0[0] - s.wall_impulse[0]).abs() <= 1e-12 * scale.max(s.wall_impulse_magnitude),
+        "{} - {} != {}",
+        p1[0],
+        p0[0],
+        s.wall_impulse[0]
+    );
 }
 
 /// A periodic 1D bar with a smooth standing wave (neo-Hookean, no viscosity).
@@ -177,7 +190,12 @@ fn the_same_state_for_one_and_two_threads() {
 #[test]
 fn a_radial_pressure_pulse_stays_symmetric() {
     let n = 24;
-    let grid = Grid::<2> { origin: [-1.0; 2], h: [2.0 / n as f64; 2], cells: [n; 2], faces: [(Face::Reflective, Face::Reflective), (Face::Reflective, Face::Reflective)] };
+    let grid = Grid::<2> {
+        origin: [-1.0; 2],
+        h: [2.0 / n as f64; 2],
+        cells: [n; 2],
+        faces: [(Face::Reflective, Face::Reflective), (Face::Reflective, Face::Reflective)],
+    };
     let mut pts = points(&grid, [-1.0; 2], [1.0; 2], 2, 1.0, |_| [0.0; 2]);
     for p in 0..pts.len() {
         let r2 = pts.x[p][0].powi(2) + pts.x[p][1].powi(2);
@@ -185,7 +203,10 @@ fn a_radial_pressure_pulse_stays_symmetric() {
         pts.mass[p] *= rho;
     }
     let gas: Box<dyn Closure> = Box::new(IdealGasIsothermal { sound_speed: 1.0 });
-    let mut s = Simulation::new(grid, pts, SchemeKind::DdmpSubpoints, vec![gas], Viscosity::Linear { coefficient: 0.5 }, 0.2 * 2.0 / n as f64).expect("builds").with_sub_points(4);
+    let mut s =
+        Simulation::new(grid, pts, SchemeKind::DdmpSubpoints, vec![gas], Viscosity::Linear { coefficient: 0.5 }, 0.2 * 2.0 / n as f64)
+            .expect("builds")
+            .with_sub_points(4);
     for _ in 0..60 {
         s.step().expect("step");
     }
@@ -217,10 +238,19 @@ fn manufactured<const D: usize>(scheme: SchemeKind, cells: usize, g: f64, integr
     let (lambda, mu) = lame(e, nu);
     let c = (e / rho0).sqrt();
     let h = 1.0 / cells as f64;
-    let grid = Grid::<D> { origin: [0.0; D], h: [h; D], cells: [cells; D], faces: std::array::from_fn(|_| (Face::Reflective, Face::Reflective)) };
+    let grid =
+        Grid::<D> { origin: [0.0; D], h: [h; D], cells: [cells; D], faces: std::array::from_fn(|_| (Face::Reflective, Face::Reflective)) };
     let pts = points(&grid, [0.0; D], [1.0; D], 2, rho0, |x| std::array::from_fn(|a| c * PI * g * (PI * x[a]).sin()));
     let dt = 0.4 * h / c;
-    let mut s = Simulation::new(grid, pts, scheme, vec![Box::new(NeoHookean { youngs_modulus: e, poisson_ratio: nu, density0: rho0 })], Viscosity::None, dt).expect("builds");
+    let mut s = Simulation::new(
+        grid,
+        pts,
+        scheme,
+        vec![Box::new(NeoHookean { youngs_modulus: e, poisson_ratio: nu, density0: rho0 })],
+        Viscosity::None,
+        dt,
+    )
+    .expect("builds");
     s.integrator = integrator;
     s.body_force = Some(Arc::new(move |x0: &[f64; D], t: f64| {
         let f: [f64; D] = std::array::from_fn(|a| 1.0 + PI * g * (PI * x0[a]).cos() * (c * PI * t).sin());
@@ -305,7 +335,8 @@ fn manufactured_solution_converges_at_second_order_full_range() {
 /// Every scheme of the registry ([`SchemeKind::NAMES`]) defined in `dim` dimensions, with the
 /// sub-points it runs with (4 for ddmp-subpoints, else 1).
 fn registry(dim: usize) -> Vec<(SchemeKind, usize)> {
-    let all: Vec<(SchemeKind, usize)> = SchemeKind::NAMES.iter().map(|&(_, k)| (k, if k == SchemeKind::DdmpSubpoints { 4 } else { 1 })).collect();
+    let all: Vec<(SchemeKind, usize)> =
+        SchemeKind::NAMES.iter().map(|&(_, k)| (k, if k == SchemeKind::DdmpSubpoints { 4 } else { 1 })).collect();
     assert_eq!(all.len(), 8, "the registry changed: check that every scheme is still covered");
     all.into_iter().filter(|(k, _)| k.supports_dimension(dim)).collect()
 }
@@ -365,13 +396,17 @@ fn state_bits<const D: usize>(s: &Simulation<D>) -> Vec<u64> {
 
 #[test]
 fn every_scheme_gives_the_same_state_on_one_and_two_threads_in_1d_and_2d() {
-    let on = |threads: usize, f: &(dyn Fn() -> Vec<u64> + Sync)| rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool").install(f);
+    let on = |threads: usize, f: &(dyn Fn() -> Vec<u64> + Sync)| {
+        rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool").install(f)
+    };
     for (scheme, sub) in registry(1) {
         // A bar longer than one parallel chunk of points.
         let run = || {
             let grid = Grid::<1> { origin: [0.0], h: [1.0 / 320.0], cells: [320], faces: [(Face::Periodic, Face::Periodic)] };
             let pts = points(&grid, [0.0], [1.0], 2, 1e3, |x| [2.0 * (2.0 * PI * x[0]).sin() + 0.5]);
-            let mut s = Simulation::new(grid, pts, scheme, vec![neo()], Viscosity::Linear { coefficient: 0.5 }, 0.4 / 320.0 / 117.0).expect("builds").with_sub_points(sub);
+            let mut s = Simulation::new(grid, pts, scheme, vec![neo()], Viscosity::Linear { coefficient: 0.5 }, 0.4 / 320.0 / 117.0)
+                .expect("builds")
+                .with_sub_points(sub);
             for _ in 0..30 {
                 s.step().unwrap_or_else(|e| panic!("{scheme:?}: {e}"));
             }

@@ -65,7 +65,10 @@ pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64, orient: Orie
     md.step(&work, &mut out)?;
     // Tension positive: stretching (+eps) raises sigma_xx.
     let c11_gpa = (out[0].stress_gpa[0] - out[1].stress_gpa[0]) / (2.0 * eps);
-    anyhow::ensure!(c11_gpa > 0.0 && c11_gpa.is_finite(), "the {lattice} lattice at a0 = {a0} A is not stable under this potential (C11 = {c11_gpa} GPa)");
+    anyhow::ensure!(
+        c11_gpa > 0.0 && c11_gpa.is_finite(),
+        "the {lattice} lattice at a0 = {a0} A is not stable under this potential (C11 = {c11_gpa} GPa)"
+    );
     Ok(LatticeProperties { density, c11_gpa, wave_speed: (c11_gpa * 1e9 / density).sqrt(), vibration })
 }
 

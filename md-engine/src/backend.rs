@@ -497,7 +497,11 @@ pub fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
             }
             orient.validate()?;
             let n = kind.atoms_per_cell(orient) as f64 * cells.iter().map(|&c| c as f64).product::<f64>();
-            (std::array::from_fn::<f64, 3, _>(|k| cells[k] as f64 * a0 * orient.period(k)), n, format!("lattice constant {} A, {cells:?} cells", crate::error::show(*a0)))
+            (
+                std::array::from_fn::<f64, 3, _>(|k| cells[k] as f64 * a0 * orient.period(k)),
+                n,
+                format!("lattice constant {} A, {cells:?} cells", crate::error::show(*a0)),
+            )
         }
         InitialAtoms::Explicit { lo, lengths, types, x, v } => {
             if lengths.iter().any(|l| !(l.is_finite() && *l > 0.0)) {
@@ -557,7 +561,9 @@ pub fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
     }
     let density = natoms / (lengths[0] * lengths[1] * lengths[2]);
     if !(density <= MAX_NUMBER_DENSITY) {
-        return bad(format!("{natoms} atoms in a {lengths:?} A box ({source}) are {density:.3e} atoms/A^3; at most {MAX_NUMBER_DENSITY} (copper has 0.085)"));
+        return bad(format!(
+            "{natoms} atoms in a {lengths:?} A box ({source}) are {density:.3e} atoms/A^3; at most {MAX_NUMBER_DENSITY} (copper has 0.085)"
+        ));
     }
     if !(s.temperature_k >= 0.0 && s.temperature_k.is_finite()) {
         return bad(format!("temperature must be >= 0 K, got {}", s.temperature_k));
@@ -566,7 +572,8 @@ pub fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
         return bad(format!("relaxation time step must be > 0 ps, got {}", s.relax_dt_ps));
     }
     if s.relax_steps > 0 || s.relax_box_blocks > 0 {
-        check_time_step(pot, s.relax_dt_ps).map_err(|m| MdError::invalid(format!("box spec of point {}", s.id), format!("relaxation {m}")))?;
+        check_time_step(pot, s.relax_dt_ps)
+            .map_err(|m| MdError::invalid(format!("box spec of point {}", s.id), format!("relaxation {m}")))?;
     }
     Ok(())
 }
@@ -574,7 +581,9 @@ pub fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
 /// `Err(why)` when `dt` exceeds the potential's bound ([`Potential::max_time_step`]).
 fn check_time_step(pot: &Potential, dt: f64) -> Result<(), String> {
     match pot.vibration() {
-        Some(vib) if dt > vib.max_dt_ps() => Err(format!("time step {} ps exceeds {:.6} ps, {vib}; use a smaller time step", crate::error::show(dt), vib.max_dt_ps())),
+        Some(vib) if dt > vib.max_dt_ps() => {
+            Err(format!("time step {} ps exceeds {:.6} ps, {vib}; use a smaller time step", crate::error::show(dt), vib.max_dt_ps()))
+        }
         _ => Ok(()),
     }
 }
@@ -714,7 +723,14 @@ pub fn prepare_box(pot: &Potential, masses: &[f64], s: &BoxSpec) -> Result<BoxSt
 }
 
 /// Rescale box lengths towards zero mean normal stress, in blocks of 100 NVE steps.
-fn relax_box_lengths(pot: &Potential, masses: &[f64], b: &mut BoxView, s: &BoxSpec, rho: &mut Vec<f64>, fp: &mut Vec<f64>) -> Result<(), MdError> {
+fn relax_box_lengths(
+    pot: &Potential,
+    masses: &[f64],
+    b: &mut BoxView,
+    s: &BoxSpec,
+    rho: &mut Vec<f64>,
+    fp: &mut Vec<f64>,
+) -> Result<(), MdError> {
     const BLOCK: u64 = 100;
     // Assumed stiffnesses of the volumetric (C11 + 2 C12; Cu 415 GPa) and deviatoric
     // (C11 - C12; Cu 47 GPa) modes, set a little above cubic metals' values so the update
@@ -771,7 +787,8 @@ fn advance_box(pot: &Potential, masses: &[f64], b: &mut BoxView, w: &BoxWork) ->
         }
     };
     // Idle boxes keep no neighbour list nor build reference (memory: see kernel::with_fresh_list).
-    let wraps = kernel::with_fresh_list(pot, b, |b| kernel::run_steps_with(pot, masses, b, &def, w.steps, w.dt_ps, &mut rho, &mut fp, sample))?;
+    let wraps =
+        kernel::with_fresh_list(pot, b, |b| kernel::run_steps_with(pot, masses, b, &def, w.steps, w.dt_ps, &mut rho, &mut fp, sample))?;
     let mut r = measure(masses, b);
     if let Some(a) = sum {
         // The last sample is exactly `measure`'s stress, so one step gives `Last` bit for bit.

@@ -105,7 +105,11 @@ impl DataFile {
             let mut got = 0;
             if head == "Masses" && rows > lines.len() - k {
                 // Before the table is allocated: "4294967295 atom types" is a broken header.
-                return Err(perr(file, lines.len() + 1, format!("unexpected end of file: section Masses expects {rows} lines, the file has {} more", lines.len() - k)));
+                return Err(perr(
+                    file,
+                    lines.len() + 1,
+                    format!("unexpected end of file: section Masses expects {rows} lines, the file has {} more", lines.len() - k),
+                ));
             }
             let mut m = if head == "Masses" { vec![0.0; ntypes as usize] } else { Vec::new() };
             while got < rows {
@@ -127,7 +131,11 @@ impl DataFile {
                             return Err(perr(file, ln, format!("atom type {t} out of range 1..={ntypes}")));
                         }
                         let what = |c: &str| format!("{c} of atom {id}");
-                        let p: [f64; 3] = [real(file, ln, w.next(), &what("x"))?, real(file, ln, w.next(), &what("y"))?, real(file, ln, w.next(), &what("z"))?];
+                        let p: [f64; 3] = [
+                            real(file, ln, w.next(), &what("x"))?,
+                            real(file, ln, w.next(), &what("y"))?,
+                            real(file, ln, w.next(), &what("z"))?,
+                        ];
                         // optional image flags
                         let mut img = [0.0; 3];
                         for c in &mut img {
@@ -159,7 +167,14 @@ impl DataFile {
                     "Velocities" => {
                         let id: u64 = num(file, ln, w.next(), "atom id")?;
                         let what = |c: &str| format!("{c} of atom {id}");
-                        vels.push((id, [real(file, ln, w.next(), &what("vx"))?, real(file, ln, w.next(), &what("vy"))?, real(file, ln, w.next(), &what("vz"))?]));
+                        vels.push((
+                            id,
+                            [
+                                real(file, ln, w.next(), &what("vx"))?,
+                                real(file, ln, w.next(), &what("vy"))?,
+                                real(file, ln, w.next(), &what("vz"))?,
+                            ],
+                        ));
                     }
                     _ => {
                         let t: usize = num(file, ln, w.next(), "atom type")?;

@@ -340,16 +340,8 @@ impl BoxViewRef<'_> {
         let b = self.bar;
         let (mut meta, mut x, mut v, mut f, mut xb, mut img, mut list) =
             (b.meta.clone(), b.x.clone(), Vec::new(), Vec::new(), b.x_build.clone(), b.img.clone(), b.list.clone());
-        let view = BoxView {
-            meta: &mut meta,
-            types: &b.types,
-            x: &mut x,
-            v: &mut v,
-            f: &mut f,
-            x_build: &mut xb,
-            img: &mut img,
-            list: &mut list,
-        };
+        let view =
+            BoxView { meta: &mut meta, types: &b.types, x: &mut x, v: &mut v, f: &mut f, x_build: &mut xb, img: &mut img, list: &mut list };
         kernel::atom_virials(&b.pot, &view, &b.fp)
     }
 }
@@ -425,7 +417,10 @@ pub fn run_cli(a: &DirectArgs) -> Result<(), MdError> {
     if let Some(vib) = pot.vibration()
         && a.dt > vib.max_dt_ps()
     {
-        return Err(MdError::invalid("direct --dt", format!("time step {} ps exceeds {:.6} ps, {vib}; use a smaller time step", a.dt, vib.max_dt_ps())));
+        return Err(MdError::invalid(
+            "direct --dt",
+            format!("time step {} ps exceeds {:.6} ps, {vib}; use a smaller time step", a.dt, vib.max_dt_ps()),
+        ));
     }
     let spec = BarSpec {
         kind,

@@ -121,7 +121,9 @@ pub fn check_box(pot: &Potential, masses: &[f64], b: &BoxView) -> Result<(), cra
     for i in 0..b.x.len() {
         let (p, v, f) = (b.x[i], b.v[i], b.f[i]);
         if !(p.iter().chain(&v).chain(&f).all(|c| c.is_finite())) {
-            return fail(format!("atom {i} (index from 0) has a non-finite position {p:?}, velocity {v:?} or force {f:?}; use a smaller time step"));
+            return fail(format!(
+                "atom {i} (index from 0) has a non-finite position {p:?}, velocity {v:?} or force {f:?}; use a smaller time step"
+            ));
         }
         let ke = 0.5 * masses[b.types[i] as usize] * (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * MVV2E;
         if !(ke <= MAX_ATOM_KINETIC_EV) {
@@ -256,9 +258,11 @@ pub fn compute_forces(pot: &Potential, b: &mut BoxView, rho: &mut Vec<f64>, fp: 
         // Unwrapped positions and per-code shifts n * L: dx = xu_i - xu_j - shift[code].
         let l = b.meta.l;
         s.xu.clear();
-        s.xu.extend(b.x.iter().zip(b.img.iter()).map(|(p, im)| {
-            [p[0] + im[0] as f64 * l[0], p[1] + im[1] as f64 * l[1], p[2] + im[2] as f64 * l[2]]
-        }));
+        s.xu.extend(
+            b.x.iter()
+                .zip(b.img.iter())
+                .map(|(p, im)| [p[0] + im[0] as f64 * l[0], p[1] + im[1] as f64 * l[1], p[2] + im[2] as f64 * l[2]]),
+        );
         s.shift.clear();
         s.shift.extend(b.list.images.iter().map(|n| [n[0] as f64 * l[0], n[1] as f64 * l[1], n[2] as f64 * l[2]]));
         for f in b.f.iter_mut() {
@@ -731,7 +735,12 @@ mod tests {
         let (lo, l) = ([0.0; 3], [10.8, 10.8, 10.8]);
         let mut img = vec![[5i32; 3]; 4];
         // 1e308 used to hang the stepping loop (1e308 - 10.8 == 1e308).
-        let mut x = vec![[1e308, -1e308, 3.0], [-3.2 * 10.8 + 1.0, 2.0 * 10.8 + 0.5, 10.8], [f64::NAN, f64::INFINITY, -0.0], [1e12 + 0.25, 5.0, 5.0]];
+        let mut x = vec![
+            [1e308, -1e308, 3.0],
+            [-3.2 * 10.8 + 1.0, 2.0 * 10.8 + 0.5, 10.8],
+            [f64::NAN, f64::INFINITY, -0.0],
+            [1e12 + 0.25, 5.0, 5.0],
+        ];
         wrap_all(&mut x, &mut img, lo, l);
         for p in [x[0], x[1], x[3]] {
             assert!(p.iter().all(|c| *c >= 0.0 && *c < 10.8), "{p:?}");

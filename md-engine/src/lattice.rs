@@ -57,8 +57,17 @@ impl std::str::FromStr for Orientation {
     type Err = MdError;
     /// `X/Y/Z` with three integers each, e.g. `1,1,0/-1,1,0/0,0,1`; checked as [`Orientation::validate`].
     fn from_str(s: &str) -> Result<Self, MdError> {
-        let bad = || MdError::invalid("orientation", format!("{s:?}; expected three directions X/Y/Z of three integers each, e.g. 1,1,0/-1,1,0/0,0,1"));
-        let rows: Vec<Vec<i32>> = s.split('/').map(|r| r.split(',').map(|c| c.trim().parse::<i32>()).collect::<Result<_, _>>()).collect::<Result<_, _>>().map_err(|_| bad())?;
+        let bad = || {
+            MdError::invalid(
+                "orientation",
+                format!("{s:?}; expected three directions X/Y/Z of three integers each, e.g. 1,1,0/-1,1,0/0,0,1"),
+            )
+        };
+        let rows: Vec<Vec<i32>> = s
+            .split('/')
+            .map(|r| r.split(',').map(|c| c.trim().parse::<i32>()).collect::<Result<_, _>>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| bad())?;
         if rows.len() != 3 || rows.iter().any(|r| r.len() != 3) {
             return Err(bad());
         }
@@ -182,7 +191,10 @@ pub fn build_oriented(kind: LatticeKind, a0: f64, cells: [usize; 3], orient: &Or
     }
     let expected = kind.atoms_per_cell(orient) * cells.iter().map(|&c| c as u64).product::<u64>();
     if x.len() as u64 != expected {
-        return Err(MdError::invalid("lattice orientation", format!("{o:?} gave {} atoms for {cells:?} cells, expected {expected} (internal error)", x.len())));
+        return Err(MdError::invalid(
+            "lattice orientation",
+            format!("{o:?} gave {} atoms for {cells:?} cells, expected {expected} (internal error)", x.len()),
+        ));
     }
     Ok((x, lengths))
 }

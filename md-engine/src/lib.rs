@@ -27,8 +27,8 @@ pub mod potential;
 pub mod units;
 
 pub use backend::{
-    BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, Diagnostics, InitialAtoms, MdBackend, PointId, ReferenceBackend,
-    StressSampling, backend_by_name,
+    BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, Diagnostics, InitialAtoms, MdBackend, PointId, ReferenceBackend, StressSampling,
+    backend_by_name,
 };
 pub use error::MdError;
 pub use kernel::DeformMode;

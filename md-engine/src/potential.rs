@@ -210,7 +210,12 @@ fn einstein(
         trace += c * (d2(&psi, r) + 2.0 * d1(&psi, r) / r + fpp * d1(rho, r).powi(2));
     }
     let omega2 = trace / 3.0 / mass * crate::units::FTM2V;
-    (omega2.is_finite() && omega2 > 0.0 && mass > 0.0).then(|| Vibration { element, mass, nn_distance: r1, period_ps: 2.0 * std::f64::consts::PI / omega2.sqrt() })
+    (omega2.is_finite() && omega2 > 0.0 && mass > 0.0).then(|| Vibration {
+        element,
+        mass,
+        nn_distance: r1,
+        period_ps: 2.0 * std::f64::consts::PI / omega2.sqrt(),
+    })
 }
 
 /// The three LAMMPS EAM file formats.
@@ -280,19 +285,15 @@ impl<'a> Reader<'a> {
         let mut out = Vec::with_capacity(n.min(1 << 16));
         while out.len() < n {
             if self.next >= self.lines.len() {
-                return Err(self.err(
-                    self.next + 1,
-                    format!("unexpected end of file: expected {n} values of {what}, found {}", out.len()),
-                ));
+                return Err(self.err(self.next + 1, format!("unexpected end of file: expected {n} values of {what}, found {}", out.len())));
             }
             let (ln, text) = self.line(what)?;
             for tok in text.split_whitespace() {
                 if out.len() == n {
                     break;
                 }
-                let v: f64 = parse_f64(tok).ok_or_else(|| {
-                    self.err(ln, format!("expected a number ({what}, value {} of {n}), found {tok:?}", out.len() + 1))
-                })?;
+                let v: f64 = parse_f64(tok)
+                    .ok_or_else(|| self.err(ln, format!("expected a number ({what}, value {} of {n}), found {tok:?}", out.len() + 1)))?;
                 out.push(v);
             }
         }
@@ -344,7 +345,14 @@ fn read_grid(r: &mut Reader) -> Result<Grid, MdError> {
     // The tables must span a finite range: (N - 1) d = inf made funcfl's resampled table
     // length usize::MAX (found by fuzzing).
     if !((g.nrho - 1) as f64 * g.drho).is_finite() || !((g.nr - 1) as f64 * g.dr).is_finite() {
-        return Err(r.err(ln, format!("grid spans (Nrho - 1) drho = {:e} and (Nr - 1) dr = {:e}: not finite", (g.nrho - 1) as f64 * g.drho, (g.nr - 1) as f64 * g.dr)));
+        return Err(r.err(
+            ln,
+            format!(
+                "grid spans (Nrho - 1) drho = {:e} and (Nr - 1) dr = {:e}: not finite",
+                (g.nrho - 1) as f64 * g.drho,
+                (g.nr - 1) as f64 * g.dr
+            ),
+        ));
     }
     Ok(g)
 }
@@ -473,16 +481,20 @@ impl EamTables {
         let mut z2r = Vec::new();
         for i in 0..ne {
             for j in 0..=i {
-                z2r.push(one_indexed(
-                    r.values(g.nr, &format!("r*phi(r) of {}-{}", elements[i], elements[j]))?,
-                ));
+                z2r.push(one_indexed(r.values(g.nr, &format!("r*phi(r) of {}-{}", elements[i], elements[j]))?));
             }
         }
-        let type2rhor: Vec<Vec<usize>> = (0..ne)
-            .map(|i| (0..ne).map(|j| if format == EamFormat::FinnisSinclair { i * ne + j } else { i }).collect())
-            .collect();
+        let type2rhor: Vec<Vec<usize>> =
+            (0..ne).map(|i| (0..ne).map(|j| if format == EamFormat::FinnisSinclair { i * ne + j } else { i }).collect()).collect();
         let type2z2r: Vec<Vec<usize>> = (0..ne)
-            .map(|i| (0..ne).map(|j| { let (a, b) = (i.max(j), i.min(j)); a * (a + 1) / 2 + b }).collect())
+            .map(|i| {
+                (0..ne)
+                    .map(|j| {
+                        let (a, b) = (i.max(j), i.min(j));
+                        a * (a + 1) / 2 + b
+                    })
+                    .collect()
+            })
             .collect();
         let rhomax = (g.nrho - 1) as f64 * g.drho;
         Ok(Self::finish(format, elements, masses, (g.nrho, g.drho, g.nr, g.dr, rhomax, g.cut), frho, rhor, z2r, type2rhor, type2z2r))
@@ -631,7 +643,16 @@ mod tests {
         // The 7-coefficient scheme is exact for quadratics in the interior.
         let n = 20;
         let d = 0.1;
-        let f: Vec<f64> = (0..=n).map(|m| if m == 0 { 0.0 } else { let x = (m - 1) as f64 * d; 1.0 + 2.0 * x + 3.0 * x * x }).collect();
+        let f: Vec<f64> = (0..=n)
+            .map(|m| {
+                if m == 0 {
+                    0.0
+                } else {
+                    let x = (m - 1) as f64 * d;
+                    1.0 + 2.0 * x + 3.0 * x * x
+                }
+            })
+            .collect();
         let s = interpolate(n, d, &f);
         let m = 8;
         let p = 0.37;

@@ -8,7 +8,11 @@ use std::sync::Arc;
 
 /// Median wall time (s) of one step round trip of `points` boxes spread over `workers`
 /// `md-worker serve` instances with the null back end on loopback, over `reps` steps.
-pub fn coupling_round_trip(points: usize, workers: usize, reps: usize) -> Result<(f64, Vec<f64>), Box<dyn std::error::Error + Send + Sync>> {
+pub fn coupling_round_trip(
+    points: usize,
+    workers: usize,
+    reps: usize,
+) -> Result<(f64, Vec<f64>), Box<dyn std::error::Error + Send + Sync>> {
     let server_rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let mut addrs = Vec::new();
     for _ in 0..workers {
@@ -20,7 +24,10 @@ pub fn coupling_round_trip(points: usize, workers: usize, reps: usize) -> Result
         });
     }
     let client_rt = Arc::new(tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?);
-    let endpoints = addrs.iter().map(|a| Remote::connect(a, client_rt.clone()).map(|r| Box::new(r) as Box<dyn Endpoint>)).collect::<Result<Vec<_>, _>>()?;
+    let endpoints = addrs
+        .iter()
+        .map(|a| Remote::connect(a, client_rt.clone()).map(|r| Box::new(r) as Box<dyn Endpoint>))
+        .collect::<Result<Vec<_>, _>>()?;
     let mut pool = MdPool::new(endpoints)?;
     let potential = PotentialSource::from_bytes("null.eam.alloy".into(), b"no potential is parsed by the null back end".to_vec());
     let specs: Vec<BoxSpec> = (0..points as u64).map(|id| BoxSpec::lattice(id, LatticeKind::Fcc, 3.615, [5, 5, 5])).collect();

@@ -98,7 +98,11 @@ pub fn measure_throughput(kind: &WorkerKind) -> Result<f64> {
 
 fn memory_bytes() -> u64 {
     let meminfo = std::fs::read_to_string("/proc/meminfo").unwrap_or_default();
-    meminfo.lines().find_map(|l| l.strip_prefix("MemTotal:")).and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok()).map_or(0, |kb| kb * 1024)
+    meminfo
+        .lines()
+        .find_map(|l| l.strip_prefix("MemTotal:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        .map_or(0, |kb| kb * 1024)
 }
 
 /// A running membership: fails (see [`Join::failed`]) when the orchestrator refuses the worker
@@ -115,16 +119,28 @@ impl Join {
         let Some(url) = args.orchestrator.clone() else { return Ok(Join { error }) };
         let address = match &args.advertise {
             Some(a) => a.clone(),
-            None if bound.ip().is_unspecified() => bail!("--listen {bound} is a wildcard address; give --advertise HOST:PORT, the address the orchestrator reaches this worker at"),
+            None if bound.ip().is_unspecified() => bail!(
+                "--listen {bound} is a wildcard address; give --advertise HOST:PORT, the address the orchestrator reaches this worker at"
+            ),
             None => bound.to_string(),
         };
         let token = match &args.token_file {
-            Some(f) => std::fs::read_to_string(f).with_context(|| format!("cannot read the token file {}", f.display()))?.trim().to_string(),
+            Some(f) => {
+                std::fs::read_to_string(f).with_context(|| format!("cannot read the token file {}", f.display()))?.trim().to_string()
+            }
             None => std::env::var("MSCALE_TOKEN").unwrap_or_default().trim().to_string(),
         };
         anyhow::ensure!(!token.is_empty(), "--orchestrator needs the orchestrator's token: --token-file FILE or MSCALE_TOKEN");
-        anyhow::ensure!(args.heartbeat_every.is_finite() && args.heartbeat_every > 0.0, "--heartbeat-every {} must be a positive number of seconds", args.heartbeat_every);
-        let ca = args.ca_file.as_ref().map(|f| std::fs::read(f).with_context(|| format!("cannot read the CA file {}", f.display()))).transpose()?;
+        anyhow::ensure!(
+            args.heartbeat_every.is_finite() && args.heartbeat_every > 0.0,
+            "--heartbeat-every {} must be a positive number of seconds",
+            args.heartbeat_every
+        );
+        let ca = args
+            .ca_file
+            .as_ref()
+            .map(|f| std::fs::read(f).with_context(|| format!("cannot read the CA file {}", f.display())))
+            .transpose()?;
         let (configured, heartbeat) = (args.throughput, Duration::from_secs_f64(args.heartbeat_every));
         if let Some(t) = configured {
             anyhow::ensure!(t.is_finite() && t > 0.0, "--throughput {t} must be a positive number of atom-steps per second");
@@ -159,7 +175,8 @@ impl Join {
 
 fn authorized<T>(token: &str, msg: T) -> Result<tonic::Request<T>> {
     let mut req = tonic::Request::new(msg);
-    req.metadata_mut().insert("authorization", format!("Bearer {token}").parse().context("the token has characters a header cannot carry")?);
+    req.metadata_mut()
+        .insert("authorization", format!("Bearer {token}").parse().context("the token has characters a header cannot carry")?);
     Ok(req)
 }
 
@@ -169,15 +186,28 @@ fn fatal(s: &tonic::Status) -> bool {
 }
 
 async fn connect(url: &str, ca: Option<&[u8]>) -> Result<OrchestratorClient<tonic::transport::Channel>> {
-    let mut ep = tonic::transport::Endpoint::from_shared(url.to_string()).with_context(|| format!("bad orchestrator URL {url:?}"))?.connect_timeout(Duration::from_secs(5)).timeout(Duration::from_secs(10));
+    let mut ep = tonic::transport::Endpoint::from_shared(url.to_string())
+        .with_context(|| format!("bad orchestrator URL {url:?}"))?
+        .connect_timeout(Duration::from_secs(5))
+        .timeout(Duration::from_secs(10));
     if let Some(pem) = ca {
-        ep = ep.tls_config(tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(pem))).context("bad TLS settings")?;
+        ep = ep
+            .tls_config(tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(pem)))
+            .context("bad TLS settings")?;
     }
     Ok(OrchestratorClient::new(ep.connect_lazy()))
 }
 
 /// Registers, heartbeats, registers again when declared lost; returns only on a refusal.
-async fn member(url: String, address: String, token: String, ca: Option<Vec<u8>>, configured: Option<f64>, heartbeat: Duration, kind: WorkerKind) -> Result<()> {
+async fn member(
+    url: String,
+    address: String,
+    token: String,
+    ca: Option<Vec<u8>>,
+    configured: Option<f64>,
+    heartbeat: Duration,
+    kind: WorkerKind,
+) -> Result<()> {
     let (atom_steps_per_s, source) = match configured {
         Some(t) => (t, "configured (--throughput)".to_string()),
         None => {
@@ -218,10 +248,19 @@ async fn member(url: String, address: String, token: String, ca: Option<Vec<u8>>
         warned = false;
         DRAINING.store(false, Ordering::SeqCst);
         let every = heartbeat.min(Duration::from_secs_f64((reg.timeout_s / 3.0).max(0.05)));
-        tracing::info!("joined the pool of {url} as {} (epoch {}) at {address}; heartbeat every {:.2} s", reg.worker_id, reg.epoch, every.as_secs_f64());
+        tracing::info!(
+            "joined the pool of {url} as {} (epoch {}) at {address}; heartbeat every {:.2} s",
+            reg.worker_id,
+            reg.epoch,
+            every.as_secs_f64()
+        );
         loop {
             tokio::time::sleep(every).await;
-            let hb = pb::HeartbeatRequest { worker_id: reg.worker_id.clone(), epoch: reg.epoch, protocol_version: mscale_proto::COUPLING_PROTOCOL_VERSION };
+            let hb = pb::HeartbeatRequest {
+                worker_id: reg.worker_id.clone(),
+                epoch: reg.epoch,
+                protocol_version: mscale_proto::COUPLING_PROTOCOL_VERSION,
+            };
             match client.heartbeat(authorized(&token, hb)?).await {
                 Ok(r) => {
                     let drain = r.into_inner().drain;

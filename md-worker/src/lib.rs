@@ -23,8 +23,8 @@ pub use md_engine::cuda;
 pub use md_engine::{backend, data, direct, error, kernel, lattice, neighbor, potential, units};
 
 pub use md_engine::{
-    BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, DeformMode, Diagnostics, EamFormat, InitialAtoms, LatticeKind, LjCut, MdBackend, MdError,
-    Orientation, PointId, Potential, ReferenceBackend, StressSampling, backend_by_name,
+    BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, DeformMode, Diagnostics, EamFormat, InitialAtoms, LatticeKind, LjCut, MdBackend,
+    MdError, Orientation, PointId, Potential, ReferenceBackend, StressSampling, backend_by_name,
 };
 
 /// Cargo features this build was compiled with (programs report them in their provenance).

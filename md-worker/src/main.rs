@@ -145,7 +145,10 @@ fn main() {
     if let Err(e) = res {
         eprintln!("md-worker: error: {e:#}");
         // Bad input exits 2; a box whose MD diverged (an MD guard stopped it) exits 1.
-        let input = e.chain().any(|c| matches!(c.downcast_ref::<MdError>(), Some(m) if !matches!(m, MdError::Diverged { .. })) || c.downcast_ref::<InputError>().is_some());
+        let input = e.chain().any(|c| {
+            matches!(c.downcast_ref::<MdError>(), Some(m) if !matches!(m, MdError::Diverged { .. }))
+                || c.downcast_ref::<InputError>().is_some()
+        });
         std::process::exit(if input { 2 } else { 1 });
     }
 }
@@ -166,7 +169,13 @@ fn load(potential: &std::path::Path, data: &std::path::Path, mode: DeformMode) -
         return Err(bad(format!("{}: atom type {t}, but {} has {} element(s)", data.display(), potential.display(), pot.n_elements())));
     }
     let mut spec = BoxSpec::lattice(0, LatticeKind::Fcc, 1.0, [1, 1, 1]);
-    spec.atoms = InitialAtoms::Explicit { lo: d.lo, lengths: d.lengths, types: d.types.iter().map(|t| t - 1).collect(), x: d.x.clone(), v: d.v.clone() };
+    spec.atoms = InitialAtoms::Explicit {
+        lo: d.lo,
+        lengths: d.lengths,
+        types: d.types.iter().map(|t| t - 1).collect(),
+        x: d.x.clone(),
+        v: d.v.clone(),
+    };
     spec.mode = mode;
     Ok((pot, d, spec))
 }
@@ -253,7 +262,10 @@ fn run(
     let mut emit = |backend: &mut Box<dyn MdBackend>, r: &BoxResult, done: u64| -> Result<()> {
         let st = backend.snapshot(&[0])?.remove(0);
         let ke = kernel::total_kinetic(&st.types, &st.v, &m);
-        println!("{}", json!({"step": done, "energy_ev": r.potential_energy_ev, "kinetic_ev": ke, "stress_gpa": stress_json(&r.stress_gpa)}));
+        println!(
+            "{}",
+            json!({"step": done, "energy_ev": r.potential_energy_ev, "kinetic_ev": ke, "stress_gpa": stress_json(&r.stress_gpa)})
+        );
         if let Some(w) = dump_out.as_mut() {
             let types: Vec<u32> = st.types.iter().map(|t| t + 1).collect();
             w.write_all(dump_frame(done, st.meta.lo, st.meta.l, &d.ids, &types, &st.x, &st.v).as_bytes())?;
@@ -307,7 +319,9 @@ fn bench(
         None => None,
     };
     let mut b: Box<dyn MdBackend> = match (device, backend, pool) {
-        (None | Some("cpu"), "cpu", Some(pool)) | (Some("cpu"), _, Some(pool)) => Box::new(md_worker::CpuBackend::with_pool(pot.clone(), pool)),
+        (None | Some("cpu"), "cpu", Some(pool)) | (Some("cpu"), _, Some(pool)) => {
+            Box::new(md_worker::CpuBackend::with_pool(pot.clone(), pool))
+        }
         (None, _, _) => backend_by_name(backend, pot.clone())?,
         (Some(d), _, _) => md_worker::device::backend_for_device(d, precision, pot.clone())?,
     };
@@ -322,9 +336,8 @@ fn bench(
         .collect();
     b.open(&specs)?;
     let natoms = kind_atoms(kind) * cells * cells * cells * boxes;
-    let work: Vec<BoxWork> = (0..boxes as u64)
-        .map(|id| BoxWork::new(id, [[1e-3, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], steps, 0.001))
-        .collect();
+    let work: Vec<BoxWork> =
+        (0..boxes as u64).map(|id| BoxWork::new(id, [[1e-3, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], steps, 0.001)).collect();
     let mut out = vec![BoxResult::default(); boxes];
     let mut times = Vec::new();
     for _ in 0..reps.max(5) {
@@ -363,7 +376,12 @@ fn serve(listen: &str, device: &str, threads: Option<usize>, join: &md_worker::j
     #[cfg(feature = "mpi")]
     let mpi = md_worker::mpi::init()?;
     #[cfg(feature = "mpi")]
-    let (ranks, threads) = (mpi.size(), threads.or_else(|| (mpi.size() > 1).then(|| (std::thread::available_parallelism().map_or(1, |n| n.get()) / mpi.ranks_on_this_node()).max(1))));
+    let (ranks, threads) = (
+        mpi.size(),
+        threads.or_else(|| {
+            (mpi.size() > 1).then(|| (std::thread::available_parallelism().map_or(1, |n| n.get()) / mpi.ranks_on_this_node()).max(1))
+        }),
+    );
     #[cfg(not(feature = "mpi"))]
     let ranks = 1;
     let device = match device {
@@ -396,7 +414,8 @@ fn serve(listen: &str, device: &str, threads: Option<usize>, join: &md_worker::j
         _ if ranks > 1 => ("mpi", format!("cpu (mpi {ranks} ranks x {nthreads} threads)")),
         b => (b, format!("cpu ({nthreads} threads)")),
     };
-    let kind = md_worker::join::WorkerKind { backend: backend.into(), precision: "double".into(), device: device.clone(), threads: pool.clone() };
+    let kind =
+        md_worker::join::WorkerKind { backend: backend.into(), precision: "double".into(), device: device.clone(), threads: pool.clone() };
     let opts = md_worker::server::ServeOptions { backend: backend.into(), threads: pool, device };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     rt.block_on(async {

@@ -60,13 +60,32 @@ pub fn partition(ids: &[PointId], ranks: usize) -> Vec<usize> {
 enum Command {
     /// A new session on the potential named by its SHA-256; its bytes come along the first time
     /// the ranks see it.
-    Begin { session: u64, potential_name: String, potential_sha256: String, potential: Option<Vec<u8>> },
-    Open { session: u64, specs: Vec<BoxSpec> },
-    Step { session: u64, work: Vec<BoxWork> },
-    Snapshot { session: u64, ids: Vec<PointId> },
-    Restore { session: u64, states: Vec<BoxState> },
+    Begin {
+        session: u64,
+        potential_name: String,
+        potential_sha256: String,
+        potential: Option<Vec<u8>>,
+    },
+    Open {
+        session: u64,
+        specs: Vec<BoxSpec>,
+    },
+    Step {
+        session: u64,
+        work: Vec<BoxWork>,
+    },
+    Snapshot {
+        session: u64,
+        ids: Vec<PointId>,
+    },
+    Restore {
+        session: u64,
+        states: Vec<BoxState>,
+    },
     /// No reply.
-    Close { session: u64 },
+    Close {
+        session: u64,
+    },
     /// No reply: leave the loop.
     Shutdown,
 }
@@ -90,13 +109,23 @@ enum Reply {
 /// their kind).
 #[derive(Debug, Serialize, Deserialize)]
 enum RemoteError {
-    Invalid { what: String, msg: String },
-    Parse { file: String, line: usize, msg: String },
+    Invalid {
+        what: String,
+        msg: String,
+    },
+    Parse {
+        file: String,
+        line: usize,
+        msg: String,
+    },
     Unsupported(String),
     UnknownBox(u64),
     Other(String),
     /// A box whose MD diverged on its rank: stays a diverged box (not a failed rank).
-    Diverged { point: u64, msg: String },
+    Diverged {
+        point: u64,
+        msg: String,
+    },
 }
 
 impl From<MdError> for RemoteError {
@@ -226,7 +255,11 @@ impl Hub {
     /// Sends each rank its command (ranks > 0), runs `local` meanwhile, then gathers the
     /// replies of the ranks that were sent a command expecting one, in rank order. Every reply
     /// is received even when something failed, so the next call starts clean.
-    fn exchange<T>(&mut self, commands: Vec<(usize, Command)>, local: impl FnOnce() -> Result<T, MdError>) -> (Result<T, MdError>, Replies) {
+    fn exchange<T>(
+        &mut self,
+        commands: Vec<(usize, Command)>,
+        local: impl FnOnce() -> Result<T, MdError>,
+    ) -> (Result<T, MdError>, Replies) {
         let world = Self::world();
         let mut waiting = Vec::new();
         for (rank, cmd) in commands {
@@ -284,7 +317,8 @@ pub struct MpiWorld {
 /// Initialises MPI (once per process) with MPI_THREAD_SERIALIZED.
 pub fn init() -> Result<MpiWorld, MdError> {
     let mpi_err = |msg: String| MdError::Worker { worker: "mpi".into(), msg };
-    let (universe, level) = mpi::initialize_with_threading(mpi::Threading::Serialized).ok_or_else(|| mpi_err("MPI is already initialised".into()))?;
+    let (universe, level) =
+        mpi::initialize_with_threading(mpi::Threading::Serialized).ok_or_else(|| mpi_err("MPI is already initialised".into()))?;
     if matches!(level, mpi::Threading::Single | mpi::Threading::Funneled) {
         return Err(mpi_err(format!("the MPI library offers only {level:?} threading; serving needs MPI_THREAD_SERIALIZED")));
     }
@@ -351,7 +385,10 @@ fn with_hub<T>(f: impl FnOnce(&mut Hub) -> Result<T, MdError>) -> Result<T, MdEr
 }
 
 /// The ranks (0 included) whose part of an open or restore succeeded, and the first error.
-fn done_ranks(mine: Result<(), MdError>, replies: impl IntoIterator<Item = (usize, Result<Reply, MdError>)>) -> (HashSet<usize>, Option<MdError>) {
+fn done_ranks(
+    mine: Result<(), MdError>,
+    replies: impl IntoIterator<Item = (usize, Result<Reply, MdError>)>,
+) -> (HashSet<usize>, Option<MdError>) {
     let mut ok_ranks = HashSet::new();
     let mut first_err = None;
     match mine {
@@ -386,7 +423,10 @@ impl MpiBackend {
     /// run on `threads` (rayon's global pool if `None`).
     pub fn new(source: &PotentialSource, pot: Arc<Potential>, threads: Option<Arc<rayon::ThreadPool>>) -> Result<Self, MdError> {
         let mut guard = hub();
-        let h = guard.as_mut().filter(|h| !h.down).ok_or_else(|| MdError::invalid("back end", "mpi: not rank 0 of a running MPI job of more than one rank"))?;
+        let h = guard
+            .as_mut()
+            .filter(|h| !h.down)
+            .ok_or_else(|| MdError::invalid("back end", "mpi: not rank 0 of a running MPI job of more than one rank"))?;
         let session = h.next_session;
         h.next_session += 1;
         let ship = !h.shipped.contains(&source.sha256);
@@ -473,8 +513,13 @@ impl MdBackend for MpiBackend {
         });
         let session = self.session;
         let mine = std::mem::take(&mut parts[0]);
-        let commands: Vec<(usize, Command)> =
-            parts.iter_mut().enumerate().skip(1).filter(|(_, p)| !p.is_empty()).map(|(r, p)| (r, Command::Open { session, specs: std::mem::take(p) })).collect();
+        let commands: Vec<(usize, Command)> = parts
+            .iter_mut()
+            .enumerate()
+            .skip(1)
+            .filter(|(_, p)| !p.is_empty())
+            .map(|(r, p)| (r, Command::Open { session, specs: std::mem::take(p) }))
+            .collect();
         let local = &mut self.local;
         let (mine_result, replies) = with_hub(|h| Ok(h.exchange(commands, || if mine.is_empty() { Ok(()) } else { local.open(&mine) })))?;
         let (ok_ranks, first_err) = done_ranks(mine_result, replies);
@@ -503,8 +548,13 @@ impl MdBackend for MpiBackend {
         let (mut parts, slots) = self.split(work.to_vec(), |w| owner.get(&w.id).map_or(0, |o| o.0));
         let session = self.session;
         let mine = std::mem::take(&mut parts[0]);
-        let commands: Vec<(usize, Command)> =
-            parts.iter_mut().enumerate().skip(1).filter(|(_, p)| !p.is_empty()).map(|(r, p)| (r, Command::Step { session, work: std::mem::take(p) })).collect();
+        let commands: Vec<(usize, Command)> = parts
+            .iter_mut()
+            .enumerate()
+            .skip(1)
+            .filter(|(_, p)| !p.is_empty())
+            .map(|(r, p)| (r, Command::Step { session, work: std::mem::take(p) }))
+            .collect();
         let local = &mut self.local;
         let (mine_result, replies) = with_hub(|h| {
             Ok(h.exchange(commands, || {
@@ -544,10 +594,16 @@ impl MdBackend for MpiBackend {
         let (mut parts, slots) = self.split(ids.to_vec(), |id| owner.get(id).map_or(0, |o| o.0));
         let session = self.session;
         let mine = std::mem::take(&mut parts[0]);
-        let commands: Vec<(usize, Command)> =
-            parts.iter_mut().enumerate().skip(1).filter(|(_, p)| !p.is_empty()).map(|(r, p)| (r, Command::Snapshot { session, ids: std::mem::take(p) })).collect();
+        let commands: Vec<(usize, Command)> = parts
+            .iter_mut()
+            .enumerate()
+            .skip(1)
+            .filter(|(_, p)| !p.is_empty())
+            .map(|(r, p)| (r, Command::Snapshot { session, ids: std::mem::take(p) }))
+            .collect();
         let local = &self.local;
-        let (mine_result, replies) = with_hub(|h| Ok(h.exchange(commands, || if mine.is_empty() { Ok(Vec::new()) } else { local.snapshot(&mine) })))?;
+        let (mine_result, replies) =
+            with_hub(|h| Ok(h.exchange(commands, || if mine.is_empty() { Ok(Vec::new()) } else { local.snapshot(&mine) })))?;
         let mut out: Vec<Option<BoxState>> = (0..ids.len()).map(|_| None).collect();
         let mut first_err = None;
         let mut put = |rank: usize, states: Vec<BoxState>, first_err: &mut Option<MdError>| {
@@ -592,8 +648,13 @@ impl MdBackend for MpiBackend {
         let (mut parts, _) = self.split(states, |s| rank_of(s.meta.id));
         let session = self.session;
         let mine = std::mem::take(&mut parts[0]);
-        let commands: Vec<(usize, Command)> =
-            parts.iter_mut().enumerate().skip(1).filter(|(_, p)| !p.is_empty()).map(|(r, p)| (r, Command::Restore { session, states: std::mem::take(p) })).collect();
+        let commands: Vec<(usize, Command)> = parts
+            .iter_mut()
+            .enumerate()
+            .skip(1)
+            .filter(|(_, p)| !p.is_empty())
+            .map(|(r, p)| (r, Command::Restore { session, states: std::mem::take(p) }))
+            .collect();
         let local = &mut self.local;
         let (mine_result, replies) = with_hub(|h| Ok(h.exchange(commands, || if mine.is_empty() { Ok(()) } else { local.restore(mine) })))?;
         let (ok_ranks, first_err) = done_ranks(mine_result, replies);
@@ -654,11 +715,17 @@ pub fn serve_rank(world: &MpiWorld, threads: Option<Arc<rayon::ThreadPool>>) -> 
                 if let Some(bytes) = potential {
                     let src = PotentialSource::from_bytes(potential_name.clone(), bytes);
                     if src.sha256 != potential_sha256 {
-                        return Err(rank_error(me, format!("potential {potential_name}: bytes hash to {}, not {potential_sha256}", src.sha256)));
+                        return Err(rank_error(
+                            me,
+                            format!("potential {potential_name}: bytes hash to {}, not {potential_sha256}", src.sha256),
+                        ));
                     }
                     potentials.insert(potential_sha256.clone(), Arc::new(src.parse()?));
                 }
-                let pot = potentials.get(&potential_sha256).cloned().ok_or_else(|| rank_error(me, format!("potential {potential_name} ({potential_sha256}) never arrived")))?;
+                let pot = potentials
+                    .get(&potential_sha256)
+                    .cloned()
+                    .ok_or_else(|| rank_error(me, format!("potential {potential_name} ({potential_sha256}) never arrived")))?;
                 sessions.insert(session, cpu_backend(pot, threads.clone()));
                 Ok(Reply::Done)
             })(),

@@ -13,7 +13,9 @@ impl MdBackend for NullBackend {
     fn open(&mut self, specs: &[BoxSpec]) -> Result<(), MdError> {
         for s in specs {
             let l = match &s.atoms {
-                crate::InitialAtoms::Lattice { a0, cells, orient, .. } => std::array::from_fn(|k| a0 * orient.period(k) * cells[k] as f64 * (1.0 + s.strain[k])),
+                crate::InitialAtoms::Lattice { a0, cells, orient, .. } => {
+                    std::array::from_fn(|k| a0 * orient.period(k) * cells[k] as f64 * (1.0 + s.strain[k]))
+                }
                 crate::InitialAtoms::Explicit { lengths, .. } => *lengths,
             };
             self.lengths.insert(s.id, l);

@@ -46,7 +46,11 @@ impl PotentialSource {
 
     /// Parses the potential (the format follows the file name).
     pub fn parse(&self) -> Result<Potential, MdError> {
-        let text = std::str::from_utf8(&self.bytes).map_err(|_| MdError::Parse { file: self.name.clone(), line: 1, msg: "not a text file".into() })?;
+        let text = std::str::from_utf8(&self.bytes).map_err(|_| MdError::Parse {
+            file: self.name.clone(),
+            line: 1,
+            msg: "not a text file".into(),
+        })?;
         Potential::from_text(&self.name, text)
     }
 }
@@ -223,7 +227,9 @@ pub fn proportional_blocks(n: usize, weights: &[f64]) -> Vec<usize> {
 
 fn spec_atoms(s: &BoxSpec) -> u64 {
     match &s.atoms {
-        crate::InitialAtoms::Lattice { kind, cells, orient, .. } => kind.atoms_per_cell(orient) * cells.iter().map(|&c| c as u64).product::<u64>(),
+        crate::InitialAtoms::Lattice { kind, cells, orient, .. } => {
+            kind.atoms_per_cell(orient) * cells.iter().map(|&c| c as u64).product::<u64>()
+        }
         crate::InitialAtoms::Explicit { types, .. } => types.len() as u64,
     }
 }
@@ -311,7 +317,12 @@ impl MdPool {
 
     /// Boxes, atoms and step time of each endpoint, in endpoint order.
     pub fn endpoint_load(&self) -> Vec<EndpointLoad> {
-        let mut out: Vec<EndpointLoad> = self.endpoints.iter().zip(&self.load).map(|(e, l)| EndpointLoad { name: e.name(), step_seconds: l.0, atom_steps: l.1, ..Default::default() }).collect();
+        let mut out: Vec<EndpointLoad> = self
+            .endpoints
+            .iter()
+            .zip(&self.load)
+            .map(|(e, l)| EndpointLoad { name: e.name(), step_seconds: l.0, atom_steps: l.1, ..Default::default() })
+            .collect();
         for (id, &e) in &self.owner {
             out[e].boxes += 1;
             out[e].atoms += self.atoms.get(id).copied().unwrap_or(0);
@@ -332,7 +343,10 @@ impl MdPool {
     pub fn open(&mut self, potential: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
         let n = self.endpoints.len();
         if let Some(e) = self.alive.iter().position(|a| !a) {
-            return Err(MdError::Worker { worker: self.endpoints[e].name(), msg: "was lost before every box was opened; the run must start again".into() });
+            return Err(MdError::Worker {
+                worker: self.endpoints[e].name(),
+                msg: "was lost before every box was opened; the run must start again".into(),
+            });
         }
         let dest: Vec<usize> = if self.weights.is_empty() {
             (0..specs.len()).map(|k| k * n / specs.len().max(1)).collect()
@@ -413,7 +427,8 @@ impl MdPool {
             };
             slowest = slowest.max(secs);
             self.load[e].0 += secs;
-            self.load[e].1 += slot[e].iter().map(|&k| work[k].steps as f64 * self.atoms.get(&work[k].id).copied().unwrap_or(0) as f64).sum::<f64>();
+            self.load[e].1 +=
+                slot[e].iter().map(|&k| work[k].steps as f64 * self.atoms.get(&work[k].id).copied().unwrap_or(0) as f64).sum::<f64>();
             let name = self.endpoints[e].name();
             for (k, r) in check_results(&name, &slot[e], work, res)? {
                 out[k] = r;
@@ -454,22 +469,32 @@ impl MdPool {
                 m.sort_unstable();
                 m
             };
-            let survivors: Vec<usize> = (0..self.endpoints.len()).filter(|&e| self.alive[e] && (self.endpoints[e].kind() == kind || self.endpoints[e].kind().is_empty())).collect();
+            let survivors: Vec<usize> = (0..self.endpoints.len())
+                .filter(|&e| self.alive[e] && (self.endpoints[e].kind() == kind || self.endpoints[e].kind().is_empty()))
+                .collect();
             if survivors.is_empty() {
                 return Err(MdError::Worker {
                     worker: names,
-                    msg: format!("was lost during continuum step {step} ({why}); no surviving worker of back end {kind} holds this run to restore its {} boxes onto", moved.len()),
+                    msg: format!(
+                        "was lost during continuum step {step} ({why}); no surviving worker of back end {kind} holds this run to restore its {} boxes onto",
+                        moved.len()
+                    ),
                 });
             }
             if let Some(broken) = &self.log.broken {
-                return Err(MdError::Worker { worker: names, msg: format!("was lost during continuum step {step} ({why}); its boxes cannot be replayed: {broken}") });
+                return Err(MdError::Worker {
+                    worker: names,
+                    msg: format!("was lost during continuum step {step} ({why}); its boxes cannot be replayed: {broken}"),
+                });
             }
             let potential = self.potential.clone().ok_or_else(|| MdError::invalid("pool", "recovery before open"))?;
             let states = match &self.log.baseline {
                 Baseline::Opened => None,
                 Baseline::Checkpoint { boxes, step: at } => Some(boxes(&moved).map_err(|e| MdError::Worker {
                     worker: names.clone(),
-                    msg: format!("was lost during continuum step {step} ({why}); cannot read its boxes from the checkpoint of step {at}: {e}"),
+                    msg: format!(
+                        "was lost during continuum step {step} ({why}); cannot read its boxes from the checkpoint of step {at}: {e}"
+                    ),
                 })?),
             };
             // The moved boxes spread over the survivors by weight, in contiguous blocks.
@@ -498,7 +523,8 @@ impl MdPool {
                     .filter(|c| !c.1.is_empty())
                     .collect();
                 let current: Vec<BoxWork> = work.iter().filter(mine).copied().collect();
-                let open_atoms = ids.iter().map(|id| self.specs.get(id).map_or(0.0, |s| spec_atoms(s) as f64 * (s.relax_steps + 1) as f64)).sum();
+                let open_atoms =
+                    ids.iter().map(|id| self.specs.get(id).map_or(0.0, |s| spec_atoms(s) as f64 * (s.relax_steps + 1) as f64)).sum();
                 plans[e] = Some(ReplayPlan {
                     specs: ids.iter().map(|id| self.specs.get(id).cloned().ok_or(MdError::UnknownBox(*id))).collect::<Result<_, _>>()?,
                     states: states.as_ref().map(|all| all.iter().filter(|s| ids.binary_search(&s.meta.id).is_ok()).cloned().collect()),
@@ -513,7 +539,10 @@ impl MdPool {
             for (id, e) in &dest {
                 self.owner.insert(*id, *e);
             }
-            let expect: Vec<Vec<usize>> = plans.iter().map(|p| p.as_ref().map_or(Vec::new(), |p| p.current.iter().filter_map(|w| position.get(&w.id).copied()).collect())).collect();
+            let expect: Vec<Vec<usize>> = plans
+                .iter()
+                .map(|p| p.as_ref().map_or(Vec::new(), |p| p.current.iter().filter_map(|w| position.get(&w.id).copied()).collect()))
+                .collect();
             let results = self.on_every_endpoint(plans, |ep, plan| match plan {
                 None => Ok(Vec::new()),
                 Some(plan) => replay(ep, &potential, plan, step),
@@ -627,10 +656,15 @@ impl MdPool {
             return parts.into_iter().map(|p| f(&mut *self.endpoints[0], p)).collect();
         }
         std::thread::scope(|s| {
-            let handles: Vec<_> = self.endpoints.iter_mut().zip(parts).map(|(ep, p)| {
-                let f = &f;
-                s.spawn(move || f(&mut **ep, p))
-            }).collect();
+            let handles: Vec<_> = self
+                .endpoints
+                .iter_mut()
+                .zip(parts)
+                .map(|(ep, p)| {
+                    let f = &f;
+                    s.spawn(move || f(&mut **ep, p))
+                })
+                .collect();
             handles.into_iter().map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
         })
     }
@@ -656,7 +690,10 @@ fn replay(ep: &mut dyn Endpoint, potential: &PotentialSource, plan: ReplayPlan, 
     ep.set_deadline(plan.open_deadline);
     ep.open(potential, &plan.specs)?;
     if ep.kind() != plan.kind {
-        return Err(MdError::Worker { worker: ep.name(), msg: format!("holds {} boxes, not {} like the lost worker: it cannot take over at continuum step {step}", ep.kind(), plan.kind) });
+        return Err(MdError::Worker {
+            worker: ep.name(),
+            msg: format!("holds {} boxes, not {} like the lost worker: it cannot take over at continuum step {step}", ep.kind(), plan.kind),
+        });
     }
     if let Some(states) = plan.states {
         ep.restore(states)?;
@@ -737,13 +774,21 @@ fn status_error(s: &tonic::Status) -> CallError {
     let text = wire::status_text(s);
     match s.code() {
         // Transport failures, and a session the worker no longer has (it restarted).
-        Code::Unavailable | Code::Unknown | Code::Cancelled | Code::DeadlineExceeded | Code::Aborted | Code::NotFound => CallError::Lost(text),
+        Code::Unavailable | Code::Unknown | Code::Cancelled | Code::DeadlineExceeded | Code::Aborted | Code::NotFound => {
+            CallError::Lost(text)
+        }
         _ => CallError::Refused(text),
     }
 }
 
 /// Runs `call` unless the endpoint is aborted or `deadline` passes first.
-fn guarded<T>(rt: &tokio::runtime::Runtime, abort: &AbortHandle, deadline: Duration, what: &str, call: impl std::future::Future<Output = Result<T, CallError>>) -> Result<T, CallError> {
+fn guarded<T>(
+    rt: &tokio::runtime::Runtime,
+    abort: &AbortHandle,
+    deadline: Duration,
+    what: &str,
+    call: impl std::future::Future<Output = Result<T, CallError>>,
+) -> Result<T, CallError> {
     if let Some(why) = abort.reason() {
         return Err(CallError::Lost(format!("declared lost before {what} ({why})")));
     }
@@ -771,18 +816,45 @@ impl Remote {
                 .connect()
                 .await
                 .map_err(|e| worker(format!("cannot connect: {e}")))?;
-            Ok::<_, MdError>(pb::md_worker_client::MdWorkerClient::new(ch).max_decoding_message_size(wire::MAX_MESSAGE).max_encoding_message_size(wire::MAX_MESSAGE))
+            Ok::<_, MdError>(
+                pb::md_worker_client::MdWorkerClient::new(ch)
+                    .max_decoding_message_size(wire::MAX_MESSAGE)
+                    .max_encoding_message_size(wire::MAX_MESSAGE),
+            )
         })?;
         let deadline = StepDeadline::AUTO_MIN;
-        let remote = Remote { addr: addr.to_string(), rt, client, session: None, kind: String::new(), stream: None, abort: AbortHandle::default(), deadline, lost: false };
+        let remote = Remote {
+            addr: addr.to_string(),
+            rt,
+            client,
+            session: None,
+            kind: String::new(),
+            stream: None,
+            abort: AbortHandle::default(),
+            deadline,
+            lost: false,
+        };
         let mut c = remote.client.clone();
-        let info = guarded(&remote.rt, &remote.abort, deadline, "info", async move { c.info(pb::InfoRequest {}).await.map_err(|s| status_error(&s)) })
-            .map_err(|e| worker(match e {
-                CallError::Lost(m) | CallError::Refused(m) => m,
-            }))?
+        let info =
+            guarded(
+                &remote.rt,
+                &remote.abort,
+                deadline,
+                "info",
+                async move { c.info(pb::InfoRequest {}).await.map_err(|s| status_error(&s)) },
+            )
+            .map_err(|e| {
+                worker(match e {
+                    CallError::Lost(m) | CallError::Refused(m) => m,
+                })
+            })?
             .into_inner();
         if info.protocol_version != mscale_proto::COUPLING_PROTOCOL_VERSION {
-            return Err(worker(format!("speaks coupling protocol {}, this build speaks {}", info.protocol_version, mscale_proto::COUPLING_PROTOCOL_VERSION)));
+            return Err(worker(format!(
+                "speaks coupling protocol {}, this build speaks {}",
+                info.protocol_version,
+                mscale_proto::COUPLING_PROTOCOL_VERSION
+            )));
         }
         Ok(remote)
     }
@@ -808,7 +880,11 @@ impl Remote {
     }
 
     /// A unary call, guarded.
-    fn call<T, F>(&mut self, what: &str, f: impl FnOnce(pb::md_worker_client::MdWorkerClient<tonic::transport::Channel>) -> F) -> Result<T, MdError>
+    fn call<T, F>(
+        &mut self,
+        what: &str,
+        f: impl FnOnce(pb::md_worker_client::MdWorkerClient<tonic::transport::Channel>) -> F,
+    ) -> Result<T, MdError>
     where
         F: std::future::Future<Output = Result<tonic::Response<T>, tonic::Status>>,
     {
@@ -816,7 +892,9 @@ impl Remote {
             return Err(MdError::Worker { worker: self.addr.clone(), msg: "is lost".into() });
         }
         let fut = f(self.client.clone());
-        match guarded(&self.rt, &self.abort, self.deadline, what, async move { fut.await.map(tonic::Response::into_inner).map_err(|s| status_error(&s)) }) {
+        match guarded(&self.rt, &self.abort, self.deadline, what, async move {
+            fut.await.map(tonic::Response::into_inner).map_err(|s| status_error(&s))
+        }) {
             Ok(r) => Ok(r),
             Err(e) => Err(self.failed(e)),
         }
@@ -894,7 +972,10 @@ impl Endpoint for Remote {
     }
 
     fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
-        let states = states.iter().map(|s| serde_json::to_vec(s).map_err(|e| MdError::invalid("box state", e.to_string()))).collect::<Result<_, _>>()?;
+        let states = states
+            .iter()
+            .map(|s| serde_json::to_vec(s).map_err(|e| MdError::invalid("box state", e.to_string())))
+            .collect::<Result<_, _>>()?;
         let req = pb::RestoreRequest { session: self.session()?, states };
         self.call("restore", |mut c| async move { c.restore(req).await })?;
         Ok(())
@@ -933,7 +1014,9 @@ impl Drop for Remote {
             return;
         }
         let mut client = self.client.clone();
-        let _ = self.rt.block_on(async move { tokio::time::timeout(std::time::Duration::from_secs(2), client.close(pb::CloseRequest { session })).await });
+        let _ = self.rt.block_on(async move {
+            tokio::time::timeout(std::time::Duration::from_secs(2), client.close(pb::CloseRequest { session })).await
+        });
     }
 }
 
@@ -1018,7 +1101,10 @@ mod tests {
                 out.push(format!("{:?}", pool.step(step, &work)?));
                 if checkpoint == Some(step) {
                     let saved = pool.snapshot(&pool.box_ids())?;
-                    pool.mark_checkpoint(step, Arc::new(move |ids: &[PointId]| Ok(saved.iter().filter(|s| ids.contains(&s.meta.id)).cloned().collect())));
+                    pool.mark_checkpoint(
+                        step,
+                        Arc::new(move |ids: &[PointId]| Ok(saved.iter().filter(|s| ids.contains(&s.meta.id)).cloned().collect())),
+                    );
                 }
             }
             let states = pool.snapshot(&pool.box_ids())?;
@@ -1063,13 +1149,25 @@ mod tests {
     fn without_survivors_or_with_an_overflowed_log_the_loss_is_an_error() {
         let (r, _, _) = run(&[3], Some(1));
         let e = r.unwrap_err().to_string();
-        assert!(e.contains("flaky-3") && e.contains("lost during continuum step 3") && e.contains("no surviving worker of back end reference/double"), "{e}");
+        assert!(
+            e.contains("flaky-3")
+                && e.contains("lost during continuum step 3")
+                && e.contains("no surviving worker of back end reference/double"),
+            "{e}"
+        );
 
         let (eps, _): (Vec<_>, Vec<_>) = [u64::MAX, 2].iter().map(|&f| flaky(f)).unzip();
         let mut pool = MdPool::new(eps).unwrap();
         pool.set_log_limit(10);
         let pot = PotentialSource::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/potentials/Cu_u3.eam"))).unwrap();
-        pool.open(&pot, &[BoxSpec::lattice(0, crate::LatticeKind::Fcc, 3.615, [2, 2, 2]), BoxSpec::lattice(1, crate::LatticeKind::Fcc, 3.615, [2, 2, 2])]).unwrap();
+        pool.open(
+            &pot,
+            &[
+                BoxSpec::lattice(0, crate::LatticeKind::Fcc, 3.615, [2, 2, 2]),
+                BoxSpec::lattice(1, crate::LatticeKind::Fcc, 3.615, [2, 2, 2]),
+            ],
+        )
+        .unwrap();
         let work = [BoxWork::new(0, [[0.0; 3]; 3], 1, 0.001), BoxWork::new(1, [[0.0; 3]; 3], 1, 0.001)];
         pool.step(1, &work).unwrap();
         let e = pool.step(2, &work).unwrap_err().to_string();

@@ -59,7 +59,10 @@ impl WorkerService {
     }
 
     fn session(&self, id: u64) -> Result<Shared<Box<dyn MdBackend>>, Status> {
-        lock(&self.sessions).get(&id).cloned().ok_or_else(|| Status::not_found(format!("no session {id} on this worker (was it restarted?)")))
+        lock(&self.sessions)
+            .get(&id)
+            .cloned()
+            .ok_or_else(|| Status::not_found(format!("no session {id} on this worker (was it restarted?)")))
     }
 }
 
@@ -98,17 +101,32 @@ impl MdWorker for WorkerService {
         let pot = match known {
             Some(p) => p,
             None if req.potential_bytes.is_empty() => {
-                return Err(Status::failed_precondition(format!("this worker lacks potential {} ({}); send its bytes", pref.name, pref.sha256)));
+                return Err(Status::failed_precondition(format!(
+                    "this worker lacks potential {} ({}); send its bytes",
+                    pref.name, pref.sha256
+                )));
             }
             None => {
                 let src = PotentialSource::from_bytes(pref.name.clone(), req.potential_bytes);
                 if src.sha256 != pref.sha256 {
-                    return Err(Status::invalid_argument(format!("potential {}: bytes hash to {}, not {}", pref.name, src.sha256, pref.sha256)));
+                    return Err(Status::invalid_argument(format!(
+                        "potential {}: bytes hash to {}, not {}",
+                        pref.name, src.sha256, pref.sha256
+                    )));
                 }
                 #[cfg(feature = "mpi")]
                 lock(&self.sources).insert(pref.sha256.clone(), src.clone());
                 let null = self.opts.backend == "null";
-                let pot = Arc::new(blocking(move || if null { Ok(crate::Potential::LjCut(crate::LjCut { epsilon: 0.0, sigma: 1.0, cutoff: 1.0, mass: 1.0 })) } else { src.parse() }).await?);
+                let pot = Arc::new(
+                    blocking(move || {
+                        if null {
+                            Ok(crate::Potential::LjCut(crate::LjCut { epsilon: 0.0, sigma: 1.0, cutoff: 1.0, mass: 1.0 }))
+                        } else {
+                            src.parse()
+                        }
+                    })
+                    .await?,
+                );
                 lock(&self.potentials).insert(pref.sha256.clone(), pot.clone());
                 pot
             }
@@ -163,7 +181,10 @@ impl MdWorker for WorkerService {
             while let Some(batch) = inbound.next().await {
                 let reply = async {
                     let batch = batch?;
-                    let backend = lock(&sessions).get(&batch.session).cloned().ok_or_else(|| Status::not_found(format!("no session {}", batch.session)))?;
+                    let backend = lock(&sessions)
+                        .get(&batch.session)
+                        .cloned()
+                        .ok_or_else(|| Status::not_found(format!("no session {}", batch.session)))?;
                     let work = batch.work.iter().map(wire::work_from_pb).collect::<Result<Vec<_>, _>>().map_err(wire::status)?;
                     let (results, secs) = blocking(move || {
                         let t = std::time::Instant::now();
@@ -172,7 +193,11 @@ impl MdWorker for WorkerService {
                         Ok((out, t.elapsed().as_secs_f64()))
                     })
                     .await?;
-                    Ok(pb::StepResults { step: batch.step, results: results.iter().map(wire::result_to_pb).collect(), compute_seconds: secs })
+                    Ok(pb::StepResults {
+                        step: batch.step,
+                        results: results.iter().map(wire::result_to_pb).collect(),
+                        compute_seconds: secs,
+                    })
                 }
                 .await;
                 let failed = reply.is_err();
@@ -215,8 +240,14 @@ impl MdWorker for WorkerService {
 }
 
 /// Serves on an already bound listener until `shutdown` resolves.
-pub async fn serve(listener: tokio::net::TcpListener, opts: ServeOptions, shutdown: impl std::future::Future<Output = ()>) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
-    let service = MdWorkerServer::new(WorkerService::new(opts)).max_decoding_message_size(wire::MAX_MESSAGE).max_encoding_message_size(wire::MAX_MESSAGE);
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    opts: ServeOptions,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    let service = MdWorkerServer::new(WorkerService::new(opts))
+        .max_decoding_message_size(wire::MAX_MESSAGE)
+        .max_encoding_message_size(wire::MAX_MESSAGE);
     let settings = mscale_proto::server::Settings {
         timeout: None,
         stream_window: Some(wire::HTTP2_STREAM_WINDOW),

@@ -193,7 +193,11 @@ pub fn result_to_pb(r: &BoxResult) -> pb::ResultItem {
 pub fn result_from_pb(p: &pb::ResultItem) -> Result<BoxResult, MdError> {
     let id = p.point_id;
     if p.stress_gpa.len != 6 || p.lengths.len != 3 {
-        return Err(invalid(id, "stress_gpa", format!("{} stress and {} length values; expected 6 and 3", p.stress_gpa.len, p.lengths.len)));
+        return Err(invalid(
+            id,
+            "stress_gpa",
+            format!("{} stress and {} length values; expected 6 and 3", p.stress_gpa.len, p.lengths.len),
+        ));
     }
     Ok(BoxResult {
         id,

@@ -13,7 +13,15 @@ fn md_worker(args: &[&str]) -> std::process::Output {
 fn eval_matches_lammps_and_writes_forces() {
     let dir = tempfile::tempdir().unwrap();
     let forces = dir.path().join("f.txt");
-    let out = md_worker(&["eval", "--potential", "potentials/Cu_u3.eam", "--data", "tests/golden/cu256_hot.data", "--forces", forces.to_str().unwrap()]);
+    let out = md_worker(&[
+        "eval",
+        "--potential",
+        "potentials/Cu_u3.eam",
+        "--data",
+        "tests/golden/cu256_hot.data",
+        "--forces",
+        forces.to_str().unwrap(),
+    ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let g = golden("eval_u3_cu256_hot.golden");
@@ -30,8 +38,23 @@ fn run_prints_one_line_per_thermo_interval_and_dumps() {
     let dir = tempfile::tempdir().unwrap();
     let dump = dir.path().join("d.dump");
     let out = md_worker(&[
-        "run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", "tests/golden/cu108_hot.data", "--steps", "20",
-        "--dt", "0.001", "--thermo", "10", "--velocity-gradient", "xx=0.01,xy=0.02", "--remap", "seed", "--dump", dump.to_str().unwrap(),
+        "run",
+        "--potential",
+        "potentials/Cu_mishin1.eam.alloy",
+        "--data",
+        "tests/golden/cu108_hot.data",
+        "--steps",
+        "20",
+        "--dt",
+        "0.001",
+        "--thermo",
+        "10",
+        "--velocity-gradient",
+        "xx=0.01,xy=0.02",
+        "--remap",
+        "seed",
+        "--dump",
+        dump.to_str().unwrap(),
     ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
@@ -50,7 +73,19 @@ fn bad_input_exits_2_with_a_message() {
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("trunc.eam:") && err.contains("F(rho)"), "{err}");
-    let out = md_worker(&["run", "--potential", "potentials/Cu_u3.eam", "--data", "tests/golden/cu108_hot.data", "--steps", "1", "--dt", "0.001", "--velocity-gradient", "xq=1"]);
+    let out = md_worker(&[
+        "run",
+        "--potential",
+        "potentials/Cu_u3.eam",
+        "--data",
+        "tests/golden/cu108_hot.data",
+        "--steps",
+        "1",
+        "--dt",
+        "0.001",
+        "--velocity-gradient",
+        "xq=1",
+    ]);
     assert_eq!(out.status.code(), Some(2));
     let out = md_worker(&["eval", "--potential", "potentials/Cu_u3.eam", "--data", "no-such.data"]);
     assert_eq!(out.status.code(), Some(2));
@@ -63,14 +98,46 @@ fn direct_takes_the_documented_comma_lists_and_writes_slab_stresses() {
     let csv = dir.path().join("bar.csv");
     // The form of tests/golden/cu-shock-1d/README.md, on a small oriented bar.
     let out = md_worker(&[
-        "direct", "--potential", "potentials/Cu_mishin1.eam.alloy", "--a0", "3.615", "--cells", "8,2,2", "--orient", "1,1,0/-1,1,0/0,0,1",
-        "--region", "0:20:-0.02", "--steps", "4", "--dt", "0.001", "--every", "2", "--slab", "10.2", "--out", csv.to_str().unwrap(),
+        "direct",
+        "--potential",
+        "potentials/Cu_mishin1.eam.alloy",
+        "--a0",
+        "3.615",
+        "--cells",
+        "8,2,2",
+        "--orient",
+        "1,1,0/-1,1,0/0,0,1",
+        "--region",
+        "0:20:-0.02",
+        "--steps",
+        "4",
+        "--dt",
+        "0.001",
+        "--every",
+        "2",
+        "--slab",
+        "10.2",
+        "--out",
+        csv.to_str().unwrap(),
     ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let text = std::fs::read_to_string(&csv).unwrap();
-    let times: std::collections::BTreeSet<String> = text.lines().filter(|l| !l.starts_with('#') && !l.starts_with("time")).map(|l| l.split(',').next().unwrap().to_string()).collect();
+    let times: std::collections::BTreeSet<String> =
+        text.lines().filter(|l| !l.starts_with('#') && !l.starts_with("time")).map(|l| l.split(',').next().unwrap().to_string()).collect();
     assert_eq!(times.len(), 3, "{text}");
-    let out = md_worker(&["direct", "--potential", "potentials/Cu_mishin1.eam.alloy", "--a0", "3.615", "--cells", "8,2", "--steps", "1", "--out", csv.to_str().unwrap()]);
+    let out = md_worker(&[
+        "direct",
+        "--potential",
+        "potentials/Cu_mishin1.eam.alloy",
+        "--a0",
+        "3.615",
+        "--cells",
+        "8,2",
+        "--steps",
+        "1",
+        "--out",
+        csv.to_str().unwrap(),
+    ]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--cells NX,NY,NZ"), "{}", String::from_utf8_lossy(&out.stderr));
 }
@@ -155,7 +222,10 @@ fn eval_wraps_an_atom_a_few_box_lengths_out_to_the_same_energy() {
 
 #[test]
 fn run_with_a_5_ps_time_step_is_refused_naming_the_bound() {
-    let out = md_worker_within(60, &["run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", "tests/golden/cu108_hot.data", "--steps", "100", "--dt", "5"]);
+    let out = md_worker_within(
+        60,
+        &["run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", "tests/golden/cu108_hot.data", "--steps", "100", "--dt", "5"],
+    );
     let err = stderr_of(&out);
     assert_eq!(out.status.code(), Some(2), "{err}");
     assert!(err.contains("time step 5 ps exceeds") && err.contains("vibration period") && err.contains("point 0"), "{err}");
@@ -165,19 +235,47 @@ fn run_with_a_5_ps_time_step_is_refused_naming_the_bound() {
 #[test]
 fn run_with_a_velocity_gradient_of_1e6_is_refused() {
     for remap in ["affine", "seed"] {
-        let out = md_worker_within(60, &[
-            "run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", "tests/golden/cu108_hot.data", "--steps", "10", "--dt", "0.001",
-            "--velocity-gradient", "xx=1e6", "--remap", remap,
-        ]);
+        let out = md_worker_within(
+            60,
+            &[
+                "run",
+                "--potential",
+                "potentials/Cu_mishin1.eam.alloy",
+                "--data",
+                "tests/golden/cu108_hot.data",
+                "--steps",
+                "10",
+                "--dt",
+                "0.001",
+                "--velocity-gradient",
+                "xx=1e6",
+                "--remap",
+                remap,
+            ],
+        );
         let err = stderr_of(&out);
         assert_eq!(out.status.code(), Some(2), "{remap}: {err}");
         assert!(err.contains("velocity gradient xx = 1000000 1/ps") && err.contains("point 0"), "{remap}: {err}");
     }
     // Under the per-step bound but a box stretched by e^5 in one call of 1000 steps.
-    let out = md_worker_within(60, &[
-        "run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", "tests/golden/cu108_hot.data", "--steps", "1000", "--dt", "0.001",
-        "--velocity-gradient", "yy=-5", "--thermo", "1000",
-    ]);
+    let out = md_worker_within(
+        60,
+        &[
+            "run",
+            "--potential",
+            "potentials/Cu_mishin1.eam.alloy",
+            "--data",
+            "tests/golden/cu108_hot.data",
+            "--steps",
+            "1000",
+            "--dt",
+            "0.001",
+            "--velocity-gradient",
+            "yy=-5",
+            "--thermo",
+            "1000",
+        ],
+    );
     let err = stderr_of(&out);
     assert_eq!(out.status.code(), Some(2), "{err}");
     assert!(err.contains("yy = -5 1/ps over 1000 steps") && err.contains("factor 2"), "{err}");
@@ -193,10 +291,16 @@ fn run_of_a_runaway_atom_is_stopped_by_the_md_guard_with_exit_1() {
     let line = vels.lines().find(|l| l.starts_with("5 ")).unwrap();
     let data = dir.path().join("runaway.data");
     std::fs::write(&data, format!("{head}{}", vels.replacen(line, "5 3000 0 0", 1))).unwrap();
-    let out = md_worker_within(60, &["run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", data.to_str().unwrap(), "--steps", "10", "--dt", "0.001"]);
+    let out = md_worker_within(
+        60,
+        &["run", "--potential", "potentials/Cu_mishin1.eam.alloy", "--data", data.to_str().unwrap(), "--steps", "10", "--dt", "0.001"],
+    );
     let err = stderr_of(&out);
     assert_eq!(out.status.code(), Some(1), "{err}");
-    assert!(err.contains("point 0: MD diverged: at step 1: atom 4 (index from 0) has a kinetic energy of") && err.contains("energy blow-up"), "{err}");
+    assert!(
+        err.contains("point 0: MD diverged: at step 1: atom 4 (index from 0) has a kinetic energy of") && err.contains("energy blow-up"),
+        "{err}"
+    );
 }
 
 #[test]

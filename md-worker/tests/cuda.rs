@@ -10,7 +10,10 @@ use md_worker::cuda::{Precision, ShimBackend, nvrtc_compile, nvrtc_present};
 use md_worker::{BoxResult, BoxSpec, BoxWork, DeformMode, LatticeKind, MdBackend, ReferenceBackend};
 
 #[test]
-#[cfg_attr(not(require_nvrtc), ignore = "needs NVRTC (libnvrtc.so): bash deploy/setup.sh nvrtc, export what it prints; runs with MSCALE_REQUIRE_NVRTC=1 (CI) or -- --ignored")]
+#[cfg_attr(
+    not(require_nvrtc),
+    ignore = "needs NVRTC (libnvrtc.so): bash deploy/setup.sh nvrtc, export what it prints; runs with MSCALE_REQUIRE_NVRTC=1 (CI) or -- --ignored"
+)]
 fn kernels_compile_with_nvrtc_for_sm80_and_sm90_without_warnings() {
     assert!(nvrtc_present(), "NVRTC (libnvrtc.so) not found: run `bash deploy/setup.sh nvrtc` and export the LD_LIBRARY_PATH it prints");
     for arch in ["sm_80", "sm_90"] {
@@ -92,7 +95,10 @@ fn double_matches_reference_for_small_boxes_seed_mode_and_energy_addition() {
         let mut s = shim(Precision::Double);
         let (a, b) = (run(&mut s, &spec, g, steps), run(&mut r, &spec, g, steps));
         let (de, ds) = rel_diff(&a, &b);
-        eprintln!("box {}: {} wraps, {} rebuilds; energy {de:e}, stress {ds:e}", spec.id, a.diagnostics.wraps, a.diagnostics.neighbor_rebuilds);
+        eprintln!(
+            "box {}: {} wraps, {} rebuilds; energy {de:e}, stress {ds:e}",
+            spec.id, a.diagnostics.wraps, a.diagnostics.neighbor_rebuilds
+        );
         assert!(de < 1e-10 && ds < 1e-9, "box {}: energy {de:e}, stress {ds:e}", spec.id);
         assert_eq!(a.diagnostics.wraps, b.diagnostics.wraps);
         assert_eq!(a.diagnostics.lengths_a, b.diagnostics.lengths_a);
@@ -179,7 +185,6 @@ fn device_cuda_is_a_clear_error_and_auto_falls_back_without_a_gpu() {
     }
     assert!(md_worker::device::backend_for_device("tpu", "double", mishin()).is_err());
 }
-
 
 #[test]
 fn a_box_that_blows_up_on_the_shim_is_stopped_naming_the_point() {

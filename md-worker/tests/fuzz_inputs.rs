@@ -19,9 +19,40 @@ use std::time::{Duration, Instant};
 
 /// Numbers and words that broke parsers somewhere.
 const HOSTILE: &[&str] = &[
-    "nan", "NaN", "inf", "-inf", "0", "-0", "1e308", "-1e308", "1e-308", "5e-324", "-1", "1", "2", "5", "4294967295", "4294967296",
-    "18446744073709551615", "99999999999999999999", "100000000000", "0x10", "", "1e", "-", "+", ".", "3.615FCC", "1D5", "\u{fffd}",
-    "atoms", "Atoms", "Masses", "Velocities", "xlo", "xhi",
+    "nan",
+    "NaN",
+    "inf",
+    "-inf",
+    "0",
+    "-0",
+    "1e308",
+    "-1e308",
+    "1e-308",
+    "5e-324",
+    "-1",
+    "1",
+    "2",
+    "5",
+    "4294967295",
+    "4294967296",
+    "18446744073709551615",
+    "99999999999999999999",
+    "100000000000",
+    "0x10",
+    "",
+    "1e",
+    "-",
+    "+",
+    ".",
+    "3.615FCC",
+    "1D5",
+    "\u{fffd}",
+    "atoms",
+    "Atoms",
+    "Masses",
+    "Velocities",
+    "xlo",
+    "xhi",
 ];
 
 fn fuzz_secs() -> Duration {
@@ -129,8 +160,18 @@ fn exercise_potential(pot: Potential) {
 fn tables(nrho: usize, nr: usize) -> (f64, f64, f64, Vec<f64>, Vec<f64>, Vec<f64>) {
     let (drho, dr, cut) = (0.05, 0.03, 5.0);
     let f: Vec<f64> = (0..nrho).map(|k| -(k as f64 * drho).sqrt()).collect();
-    let rho: Vec<f64> = (0..nr).map(|k| { let r = k as f64 * dr; if r < cut { (-3.0 * (r / 2.55 - 1.0)).exp() * (1.0 - r / cut).powi(2) } else { 0.0 } }).collect();
-    let rphi: Vec<f64> = (0..nr).map(|k| { let r = k as f64 * dr; if r < cut { r * 0.5 * (-6.0 * (r / 2.55 - 1.0)).exp() * (1.0 - r / cut).powi(2) } else { 0.0 } }).collect();
+    let rho: Vec<f64> = (0..nr)
+        .map(|k| {
+            let r = k as f64 * dr;
+            if r < cut { (-3.0 * (r / 2.55 - 1.0)).exp() * (1.0 - r / cut).powi(2) } else { 0.0 }
+        })
+        .collect();
+    let rphi: Vec<f64> = (0..nr)
+        .map(|k| {
+            let r = k as f64 * dr;
+            if r < cut { r * 0.5 * (-6.0 * (r / 2.55 - 1.0)).exp() * (1.0 - r / cut).powi(2) } else { 0.0 }
+        })
+        .collect();
     (drho, dr, cut, f, rho, rphi)
 }
 
@@ -210,7 +251,13 @@ fn fuzz_lammps_data_files() {
         // And goes into the engine as `md-worker eval` puts it (types beyond the potential's
         // elements are refused there).
         let mut s = BoxSpec::lattice(0, LatticeKind::Fcc, 1.0, [1, 1, 1]);
-        s.atoms = InitialAtoms::Explicit { lo: d.lo, lengths: d.lengths, types: d.types.iter().map(|t| t - 1).collect(), x: d.x.clone(), v: d.v.clone() };
+        s.atoms = InitialAtoms::Explicit {
+            lo: d.lo,
+            lengths: d.lengths,
+            types: d.types.iter().map(|t| t - 1).collect(),
+            x: d.x.clone(),
+            v: d.v.clone(),
+        };
         if let Ok(st) = md_worker::backend::prepare_box(&pot, &masses, &s) {
             assert!(st.meta.pe.is_finite(), "a box was built with a non-finite energy");
         }

@@ -43,9 +43,7 @@ fn idle_box_memory(boxes: u64) -> (f64, f64) {
     let before = rss_bytes().unwrap();
     b.open(&specs).unwrap();
     let opened = rss_bytes().unwrap();
-    let work: Vec<BoxWork> = (0..boxes)
-        .map(|id| BoxWork::new(id, [[1e-3, 0.0, 0.0], [0.0; 3], [0.0; 3]], 2, 0.001))
-        .collect();
+    let work: Vec<BoxWork> = (0..boxes).map(|id| BoxWork::new(id, [[1e-3, 0.0, 0.0], [0.0; 3], [0.0; 3]], 2, 0.001)).collect();
     let mut out = vec![BoxResult::default(); work.len()];
     b.step(&work, &mut out).unwrap();
     let stepped = rss_bytes().unwrap();

@@ -184,9 +184,16 @@ fn bits(st: &BoxState) -> Vec<u64> {
 
 fn run_batch(backend: &str, order: &[u64]) -> (Vec<BoxResult>, Vec<BoxState>) {
     let mut b = make_backend(backend, mishin());
-    let specs: Vec<BoxSpec> = (0..4).map(|id| hot_box(id, 2, 400.0, if id % 2 == 0 { DeformMode::Seed } else { DeformMode::Affine })).collect();
+    let specs: Vec<BoxSpec> =
+        (0..4).map(|id| hot_box(id, 2, 400.0, if id % 2 == 0 { DeformMode::Seed } else { DeformMode::Affine })).collect();
     b.open(&specs).unwrap();
-    let g = |id: u64| if id.is_multiple_of(2) { [[0.01, 0.2, 0.0], [0.0, 0.0, 0.1], [0.0, 0.0, -0.01]] } else { [[0.03, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -0.01]] };
+    let g = |id: u64| {
+        if id.is_multiple_of(2) {
+            [[0.01, 0.2, 0.0], [0.0, 0.0, 0.1], [0.0, 0.0, -0.01]]
+        } else {
+            [[0.03, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -0.01]]
+        }
+    };
     let w: Vec<BoxWork> = order.iter().map(|&id| work(id, g(id), 60, 0.01 * id as f64)).collect();
     let mut out = vec![BoxResult::default(); w.len()];
     b.step(&w, &mut out).unwrap();

@@ -82,8 +82,12 @@ fn average_is_the_mean_of_the_per_step_stresses(backend: &str) {
         let scale = mean.iter().fold(0.0f64, |m, s| m.max(s.abs()));
         let off = (0..6).map(|c| (avg.stress_gpa[c] - mean[c]).abs()).fold(0.0, f64::max);
         let from_last = (0..6).map(|c| (avg.stress_gpa[c] - last.stress_gpa[c]).abs()).fold(0.0, f64::max);
-        let spread = (0..6).map(|c| each.iter().map(|s| s[c]).fold(f64::NEG_INFINITY, f64::max) - each.iter().map(|s| s[c]).fold(f64::INFINITY, f64::min)).fold(0.0, f64::max);
-        eprintln!("{backend} {mode:?}: |average - mean of steps| = {off:e} GPa, |average - last| = {from_last:e} GPa, per-step spread {spread:e} GPa (scale {scale:e})");
+        let spread = (0..6)
+            .map(|c| each.iter().map(|s| s[c]).fold(f64::NEG_INFINITY, f64::max) - each.iter().map(|s| s[c]).fold(f64::INFINITY, f64::min))
+            .fold(0.0, f64::max);
+        eprintln!(
+            "{backend} {mode:?}: |average - mean of steps| = {off:e} GPa, |average - last| = {from_last:e} GPa, per-step spread {spread:e} GPa (scale {scale:e})"
+        );
         assert!(off <= 1e-9 * scale, "{mode:?}: average {:?} vs per-step mean {mean:?}", avg.stress_gpa);
         assert!(from_last > 1e-4 * scale, "{mode:?}: the average of a deformed hot box should differ from the last stress");
         // The last stresses of both ways agree too (a check on the comparison itself).
@@ -114,7 +118,11 @@ fn the_two_samplings_mix_in_one_batch(backend: &str) {
     assert_eq!((out[0].stress_sampling, out[1].stress_sampling), (StressSampling::Average, StressSampling::Last));
 }
 
-for_each_backend!(one_step_and_zero_steps_average_equal_last, average_is_the_mean_of_the_per_step_stresses, the_two_samplings_mix_in_one_batch);
+for_each_backend!(
+    one_step_and_zero_steps_average_equal_last,
+    average_is_the_mean_of_the_per_step_stresses,
+    the_two_samplings_mix_in_one_batch
+);
 
 #[test]
 fn reference_and_cpu_averages_agree_bit_for_bit() {

@@ -161,7 +161,10 @@ fn nve_10k_steps_energy_drift_and_momentum() {
     let spread = e.iter().fold(0.0f64, |a, v| a.max((v - e[0]).abs()));
     let st = b.snapshot(&[1]).unwrap().remove(0);
     let p: [f64; 3] = std::array::from_fn(|d| st.v.iter().map(|v| v[d]).sum::<f64>());
-    eprintln!("NVE 10^4 steps: drift {drift:e} eV/atom (trend), max |E - E0| {spread:e} eV/atom, T = {} K, momentum {p:?}", out[0].temperature_k);
+    eprintln!(
+        "NVE 10^4 steps: drift {drift:e} eV/atom (trend), max |E - E0| {spread:e} eV/atom, T = {} K, momentum {p:?}",
+        out[0].temperature_k
+    );
     assert!(drift.abs() < 1e-5 && spread < 1e-4, "drift {drift}, spread {spread}");
     assert!(p.iter().all(|c| c.abs() < 1e-9), "{p:?}");
 }

@@ -159,7 +159,12 @@ fn start_workers(rt: &tokio::runtime::Runtime, server: &str, token_file: &Path, 
                 heartbeat_every: 2.0,
                 ..Default::default()
             };
-            let kind = md_worker::join::WorkerKind { backend: "null".into(), precision: "double".into(), device: "null (load benchmark)".into(), threads: None };
+            let kind = md_worker::join::WorkerKind {
+                backend: "null".into(),
+                precision: "double".into(),
+                device: "null (load benchmark)".into(),
+                threads: None,
+            };
             joins.push(md_worker::join::Join::start(&args, bound, kind)?);
         }
         let mut client = pb::orchestrator_client::OrchestratorClient::connect(url.clone()).await?;
@@ -250,7 +255,10 @@ fn main() -> Result<()> {
         watchers.push(std::thread::spawn(move || watch(server, job)));
         jobs.push(id);
     }
-    let seen: Vec<Seen> = watchers.into_iter().map(|w| w.join().unwrap_or_else(|_| Seen { error: Some("watcher panicked".into()), ..Seen::default() })).collect();
+    let seen: Vec<Seen> = watchers
+        .into_iter()
+        .map(|w| w.join().unwrap_or_else(|_| Seen { error: Some("watcher panicked".into()), ..Seen::default() }))
+        .collect();
     let total_s = t0.elapsed().as_secs_f64();
 
     let mut problems = Vec::new();
@@ -279,7 +287,10 @@ fn main() -> Result<()> {
         // Numbered 1, 2, 3, ... from the first event to the final one: nothing skipped.
         let contiguous = s.not_retained == 0 && !s.sequences.is_empty() && s.sequences.iter().zip(1u64..).all(|(q, k)| *q == k);
         if !contiguous {
-            problems.push(format!("{id}: events not numbered 1..n without a gap ({} reported not retained): {:?}", s.not_retained, s.sequences));
+            problems.push(format!(
+                "{id}: events not numbered 1..n without a gap ({} reported not retained): {:?}",
+                s.not_retained, s.sequences
+            ));
         }
         let running = s.events.iter().any(|e| e.0 == pb::JobState::Running as i32);
         if !running {
@@ -296,11 +307,13 @@ fn main() -> Result<()> {
         if s.workers_with_boxes < a.workers {
             problems.push(format!("{id}: boxes on {} of {} registered workers", s.workers_with_boxes, a.workers));
         }
-        let summary: serde_json::Value = client.fetch(id, "summary.json").ok().and_then(|b| serde_json::from_slice(&b).ok()).unwrap_or_default();
+        let summary: serde_json::Value =
+            client.fetch(id, "summary.json").ok().and_then(|b| serde_json::from_slice(&b).ok()).unwrap_or_default();
         let steps_run = summary["steps"].as_f64().unwrap_or(0.0).max(1.0);
         let t = &summary["time_breakdown_s"];
         let wall = summary["wall_seconds"].as_f64().unwrap_or(f64::NAN);
-        let (setup, md, output) = (t["setup"].as_f64().unwrap_or(0.0), t["md"].as_f64().unwrap_or(0.0), t["output"].as_f64().unwrap_or(0.0));
+        let (setup, md, output) =
+            (t["setup"].as_f64().unwrap_or(0.0), t["md"].as_f64().unwrap_or(0.0), t["output"].as_f64().unwrap_or(0.0));
         let transfer = t["serialisation_transfer_idle"].as_f64().unwrap_or(f64::NAN);
         let step_ms = (wall - setup - output - md) / steps_run * 1e3;
         wall_total += wall;
@@ -343,7 +356,11 @@ fn main() -> Result<()> {
     println!("{report}");
     drop(rt);
     if !report["problems"].as_array().is_some_and(|p| p.is_empty()) {
-        eprintln!("load: {} problem(s):\n  {}", problems_len(&report), report["problems"].as_array().map(|p| p.iter().filter_map(|x| x.as_str()).collect::<Vec<_>>().join("\n  ")).unwrap_or_default());
+        eprintln!(
+            "load: {} problem(s):\n  {}",
+            problems_len(&report),
+            report["problems"].as_array().map(|p| p.iter().filter_map(|x| x.as_str()).collect::<Vec<_>>().join("\n  ")).unwrap_or_default()
+        );
         std::process::exit(1);
     }
     Ok(())

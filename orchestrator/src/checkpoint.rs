@@ -15,10 +15,10 @@
 //! the solver recomputes its scratch (stencils, nodal fields) from the points every step.
 
 use anyhow::{Context, Result, bail, ensure};
-use coupling::{MdPointState, MdShared};
 use continuum::diagnostics::Totals;
 use continuum::tensor::Mat3;
 use continuum::{Particles, Simulation};
+use coupling::{MdPointState, MdShared};
 use md_worker::{BoxResult, BoxState};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -194,13 +194,22 @@ pub fn scene_sha256(resolved_toml: &str) -> String {
 
 impl Checkpoint {
     /// Captures a simulation (and its MD boxes) at the end of a step.
-    pub fn capture<const D: usize>(sim: &Simulation<D>, scene_sha256: &str, md: Option<&mut MdShared>, driver: DriverState) -> Result<Self> {
+    pub fn capture<const D: usize>(
+        sim: &Simulation<D>,
+        scene_sha256: &str,
+        md: Option<&mut MdShared>,
+        driver: DriverState,
+    ) -> Result<Self> {
         let md = match md {
             None => None,
             Some(m) => {
                 let ids = m.pool.box_ids();
                 let boxes = m.pool.snapshot(&ids).context("cannot snapshot the MD boxes")?;
-                let points = m.points.iter().map(|p| p.as_ref().map(|s| SavedMdPoint { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev })).collect();
+                let points = m
+                    .points
+                    .iter()
+                    .map(|p| p.as_ref().map(|s| SavedMdPoint { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev }))
+                    .collect();
                 Some(SavedMd { step: m.step, points, boxes })
             }
         };
@@ -226,7 +235,12 @@ impl Checkpoint {
     /// boxes, opened from the same specs, into `md`).
     pub fn restore_into<const D: usize>(&self, sim: &mut Simulation<D>, md: Option<&mut MdShared>) -> Result<()> {
         ensure!(self.dimension == D, "the checkpoint is of a {}D run, the scene is {D}D", self.dimension);
-        ensure!(self.dt.to_bits() == sim.dt.to_bits(), "the checkpoint's time step {:e} s differs from the scene's {:e} s", self.dt, sim.dt);
+        ensure!(
+            self.dt.to_bits() == sim.dt.to_bits(),
+            "the checkpoint's time step {:e} s differs from the scene's {:e} s",
+            self.dt,
+            sim.dt
+        );
         let points = self.points.to_particles::<D>()?;
         ensure!(points.len() == sim.points.len(), "the checkpoint has {} material points, the scene {}", points.len(), sim.points.len());
         ensure!(points.body == sim.points.body, "the checkpoint's points belong to other bodies than the scene's");
@@ -234,14 +248,28 @@ impl Checkpoint {
             ensure!(v.len() == D, "checkpoint field {name} has {} components, expected {D}", v.len());
             Ok(std::array::from_fn(|a| v[a]))
         };
-        let initial = Totals { mass: self.initial.mass, momentum: vec_d("initial.momentum", &self.initial.momentum)?, kinetic: self.initial.kinetic, internal: self.initial.internal };
+        let initial = Totals {
+            mass: self.initial.mass,
+            momentum: vec_d("initial.momentum", &self.initial.momentum)?,
+            kinetic: self.initial.kinetic,
+            internal: self.initial.internal,
+        };
         let wall_impulse = vec_d("wall_impulse", &self.wall_impulse)?;
         match (md, &self.md) {
             (None, None) => {}
             (Some(m), Some(saved)) => {
-                ensure!(saved.points.len() == m.points.len(), "the checkpoint has MD state for {} points, the scene {}", saved.points.len(), m.points.len());
+                ensure!(
+                    saved.points.len() == m.points.len(),
+                    "the checkpoint has MD state for {} points, the scene {}",
+                    saved.points.len(),
+                    m.points.len()
+                );
                 m.pool.restore(saved.boxes.clone()).context("cannot restore the MD boxes")?;
-                m.points = saved.points.iter().map(|p| p.as_ref().map(|s| MdPointState { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev })).collect();
+                m.points = saved
+                    .points
+                    .iter()
+                    .map(|p| p.as_ref().map(|s| MdPointState { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev }))
+                    .collect();
                 m.step = saved.step;
             }
             (None, Some(_)) => bail!("the checkpoint has MD boxes but the scene has no md bodies"),
@@ -361,8 +389,10 @@ pub fn write(run_dir: &Path, ck: &Checkpoint) -> Result<PathBuf> {
 /// to replay them elsewhere): nothing is kept in memory meanwhile.
 pub fn boxes_of(path: PathBuf) -> md_worker::recovery::CheckpointBoxes {
     std::sync::Arc::new(move |ids: &[u64]| {
-        let ck = std::fs::read(&path).map_err(anyhow::Error::from).and_then(|b| decode(&b)).map_err(|e| format!("{}: {e:#}", path.display()))?;
-        let mut saved: std::collections::HashMap<u64, BoxState> = ck.md.map(|m| m.boxes).unwrap_or_default().into_iter().map(|b| (b.meta.id, b)).collect();
+        let ck =
+            std::fs::read(&path).map_err(anyhow::Error::from).and_then(|b| decode(&b)).map_err(|e| format!("{}: {e:#}", path.display()))?;
+        let mut saved: std::collections::HashMap<u64, BoxState> =
+            ck.md.map(|m| m.boxes).unwrap_or_default().into_iter().map(|b| (b.meta.id, b)).collect();
         ids.iter().map(|id| saved.remove(id).ok_or_else(|| format!("{} holds no box of point {id}", path.display()))).collect()
     })
 }
@@ -424,7 +454,9 @@ mod tests {
         let ck = sample();
         let back = decode(&encode(&ck).unwrap()).unwrap();
         let (a, b) = (ck.points.to_particles::<2>().unwrap(), back.points.to_particles::<2>().unwrap());
-        let bits = |p: &Particles<2>| -> Vec<u64> { p.v.iter().flatten().chain(p.stress.iter().flatten().flatten()).chain(&p.volume).map(|v| v.to_bits()).collect() };
+        let bits = |p: &Particles<2>| -> Vec<u64> {
+            p.v.iter().flatten().chain(p.stress.iter().flatten().flatten()).chain(&p.volume).map(|v| v.to_bits()).collect()
+        };
         assert_eq!(bits(&a), bits(&b));
         assert_eq!(ck.time.to_bits(), back.time.to_bits());
         assert_eq!(ck.dt.to_bits(), back.dt.to_bits());

@@ -51,7 +51,9 @@ impl Client {
         let mut endpoint = tonic::transport::Endpoint::from_shared(url.clone())?.connect_timeout(std::time::Duration::from_secs(10));
         if let Some(ca) = ca {
             let pem = std::fs::read(ca).with_context(|| format!("cannot read the CA file {}", ca.display()))?;
-            endpoint = endpoint.tls_config(tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(pem))).context("bad TLS settings")?;
+            endpoint = endpoint
+                .tls_config(tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(pem)))
+                .context("bad TLS settings")?;
         }
         let channel = rt.block_on(endpoint.connect()).with_context(|| format!("cannot reach the orchestrator at {server}"))?;
         let inner = OrchestratorClient::new(channel.clone()).max_decoding_message_size(MAX_MESSAGE).max_encoding_message_size(MAX_MESSAGE);
@@ -61,7 +63,8 @@ impl Client {
     fn authorized<T>(&self, msg: T) -> Result<tonic::Request<T>> {
         let mut req = tonic::Request::new(msg);
         if let Some(t) = &self.token {
-            req.metadata_mut().insert("authorization", format!("Bearer {t}").parse().context("the token has characters a header cannot carry")?);
+            req.metadata_mut()
+                .insert("authorization", format!("Bearer {t}").parse().context("the token has characters a header cannot carry")?);
         }
         Ok(req)
     }
@@ -183,7 +186,10 @@ impl Client {
                     Instant::now()
                 });
                 if since.elapsed() >= opts.reconnect_for {
-                    bail!("lost the watch of job {id} at {server} after event {after} ({why}) and could not resume it within {:.0} s", opts.reconnect_for.as_secs_f64());
+                    bail!(
+                        "lost the watch of job {id} at {server} after event {after} ({why}) and could not resume it within {:.0} s",
+                        opts.reconnect_for.as_secs_f64()
+                    );
                 }
                 tokio::time::sleep(pause).await;
                 pause = (pause * 2).min(Duration::from_secs(1));
@@ -197,7 +203,8 @@ impl Client {
         let mut writer = RunWriter::new(out)?;
         let mut inner = self.inner.clone();
         self.rt.block_on(async move {
-            let mut stream = inner.fetch_run(pb::FetchRunRequest { job_id: id.into(), chunk_bytes: 0 }).await.map_err(Refused)?.into_inner();
+            let mut stream =
+                inner.fetch_run(pb::FetchRunRequest { job_id: id.into(), chunk_bytes: 0 }).await.map_err(Refused)?.into_inner();
             while let Some(c) = stream.message().await.map_err(Refused).with_context(|| format!("fetch of job {id}"))? {
                 writer.chunk(&c)?;
             }
@@ -206,7 +213,11 @@ impl Client {
     }
 
     pub fn fetch(&mut self, id: &str, file: &str) -> Result<Vec<u8>> {
-        let r = self.rt.block_on(self.inner.fetch_result(pb::FetchResultRequest { job_id: id.into(), path: file.into() })).map_err(Refused)?.into_inner();
+        let r = self
+            .rt
+            .block_on(self.inner.fetch_result(pb::FetchResultRequest { job_id: id.into(), path: file.into() }))
+            .map_err(Refused)?
+            .into_inner();
         let actual = hex::encode(Sha256::digest(&r.content));
         anyhow::ensure!(actual == r.sha256, "{file} arrived damaged: SHA-256 {actual}, sent as {}", r.sha256);
         Ok(r.content)
@@ -328,7 +339,8 @@ impl RunWriter {
                 let sent = hex::encode(p.hasher.clone().finalize());
                 anyhow::ensure!(sent == c.sha256, "{} arrived damaged: SHA-256 {sent}, sent as {}", c.path, c.sha256);
                 p.file.sync_all().with_context(|| format!("cannot write {}", p.tmp.display()))?;
-                let on_disk = hex::encode(Sha256::digest(std::fs::read(&p.tmp).with_context(|| format!("cannot read back {}", p.tmp.display()))?));
+                let on_disk =
+                    hex::encode(Sha256::digest(std::fs::read(&p.tmp).with_context(|| format!("cannot read back {}", p.tmp.display()))?));
                 anyhow::ensure!(on_disk == c.sha256, "{} reads back with SHA-256 {on_disk}, not {}", p.tmp.display(), c.sha256);
                 crate::atomic::commit(&p.tmp, &p.dest)
             })();
@@ -351,9 +363,20 @@ impl RunWriter {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         // A directory on the way that is a link must not lead out of the destination.
         let real = dir.canonicalize().with_context(|| format!("cannot resolve {}", dir.display()))?;
-        anyhow::ensure!(real.starts_with(&self.root), "{path} would be written to {}, outside {}; refusing", real.display(), self.root.display());
+        anyhow::ensure!(
+            real.starts_with(&self.root),
+            "{path} would be written to {}, outside {}; refusing",
+            real.display(),
+            self.root.display()
+        );
         let tmp = real.join(format!(".{}.fetch-{}", name.to_string_lossy(), std::process::id()));
-        let file = std::fs::OpenOptions::new().write(true).create(true).truncate(true).custom_flags(libc::O_NOFOLLOW).open(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?;
+        let file = std::fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .custom_flags(libc::O_NOFOLLOW)
+            .open(&tmp)
+            .with_context(|| format!("cannot create {}", tmp.display()))?;
         Ok(Partial { path: path.to_string(), tmp, dest: real.join(name), file, hasher: Sha256::new(), written: 0 })
     }
 
@@ -408,7 +431,17 @@ pub fn submit(server: &str, token_file: Option<&Path>, scene: &Path, sets: &[Str
 fn line(j: &pb::Job) -> String {
     let digest = if j.state_digest.is_empty() { String::new() } else { format!("  digest {}", j.state_digest) };
     let error = if j.error.is_empty() { String::new() } else { format!("  ({})", j.error) };
-    format!("{}  {:<9} {:<20} step {}/{}  t = {:.4e} s  priority {}{}{digest}{error}", j.id, state_name(j.state), j.scene, j.step, j.steps, j.sim_time_s, j.priority, if j.resumes > 0 { format!("  resumed {}x", j.resumes) } else { String::new() })
+    format!(
+        "{}  {:<9} {:<20} step {}/{}  t = {:.4e} s  priority {}{}{digest}{error}",
+        j.id,
+        state_name(j.state),
+        j.scene,
+        j.step,
+        j.steps,
+        j.sim_time_s,
+        j.priority,
+        if j.resumes > 0 { format!("  resumed {}x", j.resumes) } else { String::new() }
+    )
 }
 
 /// A worker state's name (`live`, `draining`, `lost`), `unknown` for none.
@@ -479,7 +512,10 @@ pub fn watch(server: &str, token_file: Option<&Path>, job: &str, events: bool, r
     let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
     let bar = std::io::stderr().is_terminal().then(|| {
         let b = indicatif::ProgressBar::new(1);
-        b.set_style(indicatif::ProgressStyle::with_template("{spinner} {bar:40} step {pos}/{len}  {msg}").unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()));
+        b.set_style(
+            indicatif::ProgressStyle::with_template("{spinner} {bar:40} step {pos}/{len}  {msg}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
         b
     });
     let mut last_line = std::time::Instant::now() - std::time::Duration::from_secs(2);
@@ -493,7 +529,13 @@ pub fn watch(server: &str, token_file: Option<&Path>, job: &str, events: bool, r
             return;
         }
         let eta = if ev.eta_s >= 0.0 { format!("ETA {:.0} s", ev.eta_s) } else { "ETA -".into() };
-        let msg = format!("{}  t = {:.4e} s  {:.1} %  energy drift {:.2e}  {eta}", state_name(ev.state), ev.sim_time_s, ev.percent, ev.energy_drift);
+        let msg = format!(
+            "{}  t = {:.4e} s  {:.1} %  energy drift {:.2e}  {eta}",
+            state_name(ev.state),
+            ev.sim_time_s,
+            ev.percent,
+            ev.energy_drift
+        );
         match &bar {
             Some(b) => {
                 b.set_length(ev.steps.max(1));
@@ -517,7 +559,9 @@ pub fn watch(server: &str, token_file: Option<&Path>, job: &str, events: bool, r
 
 /// One event as `mscale watch --events` prints it.
 pub fn event_line(ev: &pb::JobEvent) -> String {
-    let kind = pb::JobEventKind::try_from(ev.kind).map(|k| k.as_str_name().trim_start_matches("JOB_EVENT_KIND_").to_lowercase()).unwrap_or_else(|_| ev.kind.to_string());
+    let kind = pb::JobEventKind::try_from(ev.kind)
+        .map(|k| k.as_str_name().trim_start_matches("JOB_EVENT_KIND_").to_lowercase())
+        .unwrap_or_else(|_| ev.kind.to_string());
     if ev.kind == pb::JobEventKind::NotRetained as i32 {
         return format!("event {}..{} {kind}  {}", ev.not_retained_from, ev.sequence, ev.message);
     }
@@ -562,7 +606,14 @@ mod tests {
 
     fn chunk(path: &str, offset: u64, data: &[u8], last: bool) -> pb::FetchRunChunk {
         let sha256 = if last { hex::encode(Sha256::digest(data)) } else { String::new() };
-        pb::FetchRunChunk { path: path.into(), offset, data: data.to_vec(), last, size: if last { offset + data.len() as u64 } else { 0 }, sha256 }
+        pb::FetchRunChunk {
+            path: path.into(),
+            offset,
+            data: data.to_vec(),
+            last,
+            size: if last { offset + data.len() as u64 } else { 0 },
+            sha256,
+        }
     }
 
     #[test]
@@ -603,7 +654,12 @@ mod tests {
         assert_eq!(w.finish().unwrap(), (2, 2500));
         assert_eq!(std::fs::read(dir.path().join("snapshots/a.csv")).unwrap(), data);
         assert!(!dir.path().join("summary.json").exists());
-        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name()).filter(|n| n.to_string_lossy().starts_with('.')).collect();
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name())
+            .filter(|n| n.to_string_lossy().starts_with('.'))
+            .collect();
         assert!(left.is_empty(), "temporary files left: {left:?}");
         // A stream cut in the middle of a file is an error, and leaves no partial file.
         let mut w = RunWriter::new(dir.path()).unwrap();

@@ -33,7 +33,13 @@ mod tests {
         assert_eq!(code_of(&refused(tonic::Code::InvalidArgument).context("submit")), BAD_INPUT);
         assert_eq!(code_of(&refused(tonic::Code::Unauthenticated)), RUN_FAILED);
         assert_eq!(code_of(&refused(tonic::Code::NotFound)), RUN_FAILED);
-        let scene = crate::scene::SceneError { file: "s.toml".into(), location: String::new(), key: "k".into(), value: String::new(), problem: "p".into() };
+        let scene = crate::scene::SceneError {
+            file: "s.toml".into(),
+            location: String::new(),
+            key: "k".into(),
+            value: String::new(),
+            problem: "p".into(),
+        };
         assert_eq!(code_of(&Err::<(), _>(scene).context("loading").unwrap_err()), BAD_INPUT);
         assert_eq!(code_of(&anyhow::Error::from(crate::setup::SetupError::EmptyBody("b".into()))), BAD_INPUT);
         assert_eq!(code_of(&anyhow::anyhow!("InvalidArgument")), RUN_FAILED, "no string matching");

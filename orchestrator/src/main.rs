@@ -229,16 +229,37 @@ fn dispatch(cli: Cli) -> i32 {
             let pool = orchestrator::service::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline };
             report(orchestrator::service::serve_command(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key), pool))
         }
-        Command::Workers { conn } => report(conn.ca().and_then(|_| orchestrator::client::workers(&conn.server, conn.token_file.as_deref()))),
-        Command::Drain { worker, conn } => report(conn.ca().and_then(|_| orchestrator::client::drain(&conn.server, conn.token_file.as_deref(), &worker))),
-        Command::Submit { scene, set, priority, checkpoint_every, conn } => report(conn.ca().and_then(|_| orchestrator::client::submit(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every))),
-        Command::Status { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::status(&conn.server, conn.token_file.as_deref(), job.as_deref()))),
-        Command::Watch { job, events, reconnect_for, conn } => report(conn.ca().and_then(|_| {
-            anyhow::ensure!(reconnect_for.is_finite() && reconnect_for >= 0.0, "--reconnect-for {reconnect_for} must be a number of seconds >= 0");
-            orchestrator::client::watch(&conn.server, conn.token_file.as_deref(), &job, events, std::time::Duration::from_secs_f64(reconnect_for))
+        Command::Workers { conn } => {
+            report(conn.ca().and_then(|_| orchestrator::client::workers(&conn.server, conn.token_file.as_deref())))
+        }
+        Command::Drain { worker, conn } => {
+            report(conn.ca().and_then(|_| orchestrator::client::drain(&conn.server, conn.token_file.as_deref(), &worker)))
+        }
+        Command::Submit { scene, set, priority, checkpoint_every, conn } => report(conn.ca().and_then(|_| {
+            orchestrator::client::submit(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every)
         })),
-        Command::Cancel { job, conn } => report(conn.ca().and_then(|_| orchestrator::client::cancel(&conn.server, conn.token_file.as_deref(), &job))),
-        Command::Fetch { job, file, out, conn } => report(conn.ca().and_then(|_| orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, file.as_deref(), &out))),
+        Command::Status { job, conn } => {
+            report(conn.ca().and_then(|_| orchestrator::client::status(&conn.server, conn.token_file.as_deref(), job.as_deref())))
+        }
+        Command::Watch { job, events, reconnect_for, conn } => report(conn.ca().and_then(|_| {
+            anyhow::ensure!(
+                reconnect_for.is_finite() && reconnect_for >= 0.0,
+                "--reconnect-for {reconnect_for} must be a number of seconds >= 0"
+            );
+            orchestrator::client::watch(
+                &conn.server,
+                conn.token_file.as_deref(),
+                &job,
+                events,
+                std::time::Duration::from_secs_f64(reconnect_for),
+            )
+        })),
+        Command::Cancel { job, conn } => {
+            report(conn.ca().and_then(|_| orchestrator::client::cancel(&conn.server, conn.token_file.as_deref(), &job)))
+        }
+        Command::Fetch { job, file, out, conn } => report(
+            conn.ca().and_then(|_| orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, file.as_deref(), &out)),
+        ),
         Command::Health { conn } => report(conn.ca().and_then(|_| orchestrator::client::health(&conn.server, conn.token_file.as_deref()))),
         Command::Check { scene, set, estimate } => match scene::load(&scene, &set) {
             Ok(loaded) => {
@@ -251,7 +272,14 @@ fn dispatch(cli: Cli) -> i32 {
                     match orchestrator::md::estimate(&loaded, &per_body) {
                         Ok(Some(e)) => println!(
                             "# md_points = {}\n# atoms = {}\n# atom_steps = {:.3e}\n# measured_ns_per_atom_step = {:.1} (cpu back end, {} threads, this machine)\n# memory_bytes = {:.3e} ({:.0} bytes/atom measured)\n# predicted_md_wall_seconds = {:.0}",
-                            e.md_points, e.atoms, e.atom_steps, e.ns_per_atom_step, rayon::current_num_threads(), e.memory_bytes, e.bytes_per_atom, e.wall_seconds
+                            e.md_points,
+                            e.atoms,
+                            e.atom_steps,
+                            e.ns_per_atom_step,
+                            rayon::current_num_threads(),
+                            e.memory_bytes,
+                            e.bytes_per_atom,
+                            e.wall_seconds
                         ),
                         Ok(None) => println!("# no md bodies: nothing to estimate beyond the continuum work above"),
                         Err(e) => {
@@ -320,15 +348,30 @@ fn dispatch(cli: Cli) -> i32 {
             }
             match run::run(&loaded, &opts) {
                 Ok(run::Outcome::Completed(summary)) => {
-                    println!("completed {} steps in {:.2} s; outputs in {}", summary["steps"], summary["wall_seconds"].as_f64().unwrap_or(0.0), out.display());
+                    println!(
+                        "completed {} steps in {:.2} s; outputs in {}",
+                        summary["steps"],
+                        summary["wall_seconds"].as_f64().unwrap_or(0.0),
+                        out.display()
+                    );
                     // (A direct-MD reference's errors are in the run's last log line.)
                     if let Some(e) = summary.get("errors").filter(|e| e["reference"] == "isothermal-riemann") {
-                        println!("pressure error vs {}: L1 {:.4e}, L2 {:.4e}, spike {:.4e} (of the jump)", e["reference"], e["pressure_l1"].as_f64().unwrap_or(f64::NAN), e["pressure_l2"].as_f64().unwrap_or(f64::NAN), e["pressure_spike"].as_f64().unwrap_or(f64::NAN));
+                        println!(
+                            "pressure error vs {}: L1 {:.4e}, L2 {:.4e}, spike {:.4e} (of the jump)",
+                            e["reference"],
+                            e["pressure_l1"].as_f64().unwrap_or(f64::NAN),
+                            e["pressure_l2"].as_f64().unwrap_or(f64::NAN),
+                            e["pressure_spike"].as_f64().unwrap_or(f64::NAN)
+                        );
                     }
                     exit::OK
                 }
                 Ok(run::Outcome::Cancelled { checkpoint, step }) => {
-                    eprintln!("mscale: cancelled after step {step}; checkpoint {}\n(continue with: mscale run --resume {})", checkpoint.display(), out.display());
+                    eprintln!(
+                        "mscale: cancelled after step {step}; checkpoint {}\n(continue with: mscale run --resume {})",
+                        checkpoint.display(),
+                        out.display()
+                    );
                     exit::RUN_FAILED
                 }
                 Ok(run::Outcome::Failed(_, why)) => {

@@ -18,7 +18,8 @@ pub fn atoms_per_box(m: &MdMaterial) -> Result<u64> {
 /// The box of one material point of an md body.
 pub fn box_spec(id: u64, body: &Body, md: &MdMaterial) -> Result<BoxSpec> {
     let n = md.cells_per_side;
-    let mut s = BoxSpec::lattice(id, lattice_kind(&md.lattice)?, md.lattice_constant_angstrom, [n, n, n]).oriented(Orientation(md.orientation));
+    let mut s =
+        BoxSpec::lattice(id, lattice_kind(&md.lattice)?, md.lattice_constant_angstrom, [n, n, n]).oriented(Orientation(md.orientation));
     s.strain = [body.initial_strain[0], body.initial_strain[1], body.initial_strain[2]];
     s.temperature_k = body.temperature_k;
     s.seed = md.seed;
@@ -34,8 +35,13 @@ pub fn pool(workers: &[String]) -> Result<MdPool> {
     let endpoints: Vec<Box<dyn Endpoint>> = if workers.is_empty() {
         vec![Box::new(InProcess::new("cpu", None))]
     } else {
-        let rt = Arc::new(tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("cannot start the gRPC runtime")?);
-        workers.iter().map(|w| Remote::connect(w, rt.clone()).map(|r| Box::new(r) as Box<dyn Endpoint>).map_err(anyhow::Error::from)).collect::<Result<_>>()?
+        let rt = Arc::new(
+            tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("cannot start the gRPC runtime")?,
+        );
+        workers
+            .iter()
+            .map(|w| Remote::connect(w, rt.clone()).map(|r| Box::new(r) as Box<dyn Endpoint>).map_err(anyhow::Error::from))
+            .collect::<Result<_>>()?
     };
     Ok(MdPool::new(endpoints)?)
 }
@@ -88,7 +94,8 @@ pub fn estimate(loaded: &crate::scene::LoadedScene, md_points_per_body: &[(Strin
     let specs: Vec<BoxSpec> = (0..boxes as u64).map(|id| box_spec(id, &body, &m)).collect::<Result<_>>()?;
     md.open(&specs)?;
     let l = 1e-3 * if m.deformation == "affine" { 1.0 } else { 0.5 };
-    let work: Vec<BoxWork> = (0..boxes as u64).map(|id| BoxWork::new(id, [[-l, 0.0, 0.0], [0.0; 3], [0.0; 3]], 20, m.timestep_fs * 1e-3)).collect();
+    let work: Vec<BoxWork> =
+        (0..boxes as u64).map(|id| BoxWork::new(id, [[-l, 0.0, 0.0], [0.0; 3], [0.0; 3]], 20, m.timestep_fs * 1e-3)).collect();
     let mut out = vec![BoxResult::default(); boxes];
     md.step(&work, &mut out)?;
     let t = std::time::Instant::now();

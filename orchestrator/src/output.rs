@@ -94,7 +94,10 @@ pub fn particles_csv<const D: usize>(pts: &Particles<D>, extra: &[(&str, Vec<f64
 pub fn particles_vtu<const D: usize>(pts: &Particles<D>) -> String {
     let n = pts.len();
     let mut s = String::with_capacity(n * 300);
-    let _ = writeln!(s, "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">\n<UnstructuredGrid>\n<Piece NumberOfPoints=\"{n}\" NumberOfCells=\"{n}\">");
+    let _ = writeln!(
+        s,
+        "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">\n<UnstructuredGrid>\n<Piece NumberOfPoints=\"{n}\" NumberOfCells=\"{n}\">"
+    );
     let vec3 = |s: &mut String, v: &[f64]| {
         for a in 0..3 {
             num(s, v.get(a).copied().unwrap_or(0.0));
@@ -124,7 +127,9 @@ pub fn particles_vtu<const D: usize>(pts: &Particles<D>) -> String {
         vec3(&mut s, &pts.v[p]);
     }
     s.push_str("</DataArray>\n");
-    for (name, f) in [("density", &(|p| pts.density(p)) as &dyn Fn(usize) -> f64), ("pressure", &|p| pts.pressure(p)), ("mass", &|p| pts.mass[p])] {
+    for (name, f) in
+        [("density", &(|p| pts.density(p)) as &dyn Fn(usize) -> f64), ("pressure", &|p| pts.pressure(p)), ("mass", &|p| pts.mass[p])]
+    {
         let _ = writeln!(s, "<DataArray type=\"Float64\" Name=\"{name}\" format=\"ascii\">");
         for p in 0..n {
             num(&mut s, f(p));
@@ -234,7 +239,12 @@ pub fn plot_profile(path: &Path, title: &str, xlabel: &str, ylabel: &str, series
                     .legend(move |(x, y)| Circle::new((x + 10, y), 3, color.filled()));
             }
         }
-        chart.configure_series_labels().border_style(BLACK).background_style(WHITE.mix(0.8)).draw().map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+        chart
+            .configure_series_labels()
+            .border_style(BLACK)
+            .background_style(WHITE.mix(0.8))
+            .draw()
+            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
         root.present().map_err(|e| anyhow::anyhow!("plot: {e}"))?;
     }
     write_atomic(path, &encode_png(&buf, w, hgt)?)

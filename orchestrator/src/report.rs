@@ -91,22 +91,37 @@ pub struct Row {
 /// `replicas` names one of the sweeps (typically the MD seeds, `a.seed+b.seed=1,2,3`) whose
 /// runs are replicas of one setting: `replicas.csv` then gives, per combination of the other
 /// sweeps, the mean and sample standard deviation over them.
-pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: &Path, workers: &[String], reference: Option<&ReferenceSpec>, replicas: Option<&str>) -> Result<Vec<Row>, ReportError> {
+pub fn error_vs_time(
+    scene_path: &Path,
+    sets: &[String],
+    sweeps: &[Sweep],
+    out: &Path,
+    workers: &[String],
+    reference: Option<&ReferenceSpec>,
+    replicas: Option<&str>,
+) -> Result<Vec<Row>, ReportError> {
     let replica_sweep = match replicas {
         None => None,
         Some(key) => Some(sweeps.iter().position(|s| s.key == key).ok_or_else(|| {
-            ReportError::Input(format!("--replicas {key}: no --sweep has this key (sweeps: {}); give the replica sweep's key exactly", sweeps.iter().map(|s| s.key.as_str()).collect::<Vec<_>>().join(", ")))
+            ReportError::Input(format!(
+                "--replicas {key}: no --sweep has this key (sweeps: {}); give the replica sweep's key exactly",
+                sweeps.iter().map(|s| s.key.as_str()).collect::<Vec<_>>().join(", ")
+            ))
         })?),
     };
     let combos = combinations(sweeps);
     let value_rows = value_combinations(sweeps);
     let mut loaded = Vec::new();
     for combo in &combos {
-        let mut all: Vec<String> = sets.iter().cloned().chain(REPORT_OUTPUT.iter().map(|s| s.to_string())).chain(combo.iter().cloned()).collect();
+        let mut all: Vec<String> =
+            sets.iter().cloned().chain(REPORT_OUTPUT.iter().map(|s| s.to_string())).chain(combo.iter().cloned()).collect();
         if let Some(r) = reference {
             let own = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
             if let Some(scene::Reference::IsothermalRiemann(_)) = own.scene.reference {
-                return Err(ReportError::Input(format!("--reference: scene `{}` names an isothermal-riemann reference; a direct-MD reference scores the stress of md or elastic bars", own.scene.name)));
+                return Err(ReportError::Input(format!(
+                    "--reference: scene `{}` names an isothermal-riemann reference; a direct-MD reference scores the stress of md or elastic bars",
+                    own.scene.name
+                )));
             }
             all.extend(r.overrides());
             let l = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
@@ -136,7 +151,11 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
         };
         let scores = if summary["status"] == "completed" { scores_of_summary(&summary, &times) } else { Vec::new() };
         if summary["status"] == "completed" && !times.is_empty() && scores.is_empty() {
-            return Err(ReportError::Io(anyhow::anyhow!("report run {} was not scored against its direct-MD reference: {}", k + 1, summary["errors"]["failure"].as_str().unwrap_or("no errors in its summary.json"))));
+            return Err(ReportError::Io(anyhow::anyhow!(
+                "report run {} was not scored against its direct-MD reference: {}",
+                k + 1,
+                summary["errors"]["failure"].as_str().unwrap_or("no errors in its summary.json")
+            )));
         }
         for (t, (e, n)) in times.iter().zip(&scores) {
             tracing::info!("report run {}: eq. 7.12 error of {component} at {} ps = {:.2} % over {n} points", k + 1, t * 1e12, 100.0 * e);
@@ -307,7 +326,13 @@ fn plot(rows: &[Row], path: &Path, times: &[f64], component: &str) -> Result<()>
     match times.last() {
         Some(t) => {
             let sigma = format!("sigma_{}", component.trim_start_matches('s'));
-            output::plot_loglog(path, &format!("{sigma} error against direct MD at {} ps", t * 1e12), "wall time (s)", &format!("eq. 7.12 error of {sigma}"), &refs)
+            output::plot_loglog(
+                path,
+                &format!("{sigma} error against direct MD at {} ps", t * 1e12),
+                "wall time (s)",
+                &format!("eq. 7.12 error of {sigma}"),
+                &refs,
+            )
         }
         None => output::plot_loglog(path, "pressure error against wall time", "wall time (s)", "pressure L1 error / jump", &refs),
     }
@@ -368,16 +393,25 @@ impl DirectProfile {
     pub fn parse_component(text: &str, component: &str) -> Result<DirectProfile> {
         let column = format!("{component}_gpa");
         let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
-        let (_, header) = lines.next().ok_or_else(|| anyhow::anyhow!("is empty; expected a header time_ps,slab_center_nm,sxx_gpa,... (`md-worker direct --slab` output)"))?;
+        let (_, header) = lines.next().ok_or_else(|| {
+            anyhow::anyhow!("is empty; expected a header time_ps,slab_center_nm,sxx_gpa,... (`md-worker direct --slab` output)")
+        })?;
         let cols: Vec<&str> = header.split(',').map(str::trim).collect();
-        let col = |name: &str| cols.iter().position(|c| *c == name).ok_or_else(|| anyhow::anyhow!("line 1: no column `{name}` (found {}); expected `md-worker direct --slab` output", cols.join(",")));
+        let col = |name: &str| {
+            cols.iter().position(|c| *c == name).ok_or_else(|| {
+                anyhow::anyhow!("line 1: no column `{name}` (found {}); expected `md-worker direct --slab` output", cols.join(","))
+            })
+        };
         let (ct, cx, cs) = (col("time_ps")?, col("slab_center_nm")?, col(&column)?);
         let mut frames: Vec<(f64, Vec<(f64, f64)>)> = Vec::new();
         for (k, line) in lines {
             let f: Vec<&str> = line.split(',').map(str::trim).collect();
             let num = |c: usize, name: &str| -> Result<f64> {
                 let v = f.get(c).ok_or_else(|| anyhow::anyhow!("line {}: missing column `{name}`", k + 1))?;
-                v.parse::<f64>().ok().filter(|x| x.is_finite()).ok_or_else(|| anyhow::anyhow!("line {}: `{name}` = {v:?} is not a finite number", k + 1))
+                v.parse::<f64>()
+                    .ok()
+                    .filter(|x| x.is_finite())
+                    .ok_or_else(|| anyhow::anyhow!("line {}: `{name}` = {v:?} is not a finite number", k + 1))
             };
             let (t, x, s) = (num(ct, "time_ps")? * 1e-12, num(cx, "slab_center_nm")? * 1e-9, num(cs, &column)? * 1e9);
             match frames.iter_mut().find(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S) {
@@ -399,7 +433,11 @@ impl DirectProfile {
 
     /// The slabs at time `t` (s), if the reference has that time.
     pub fn at(&self, t: f64) -> Option<&[(f64, f64)]> {
-        self.frames.iter().filter(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S).min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs())).map(|(_, r)| r.as_slice())
+        self.frames
+            .iter()
+            .filter(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S)
+            .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+            .map(|(_, r)| r.as_slice())
     }
 
     /// First and last time of the profile (s).
@@ -456,9 +494,15 @@ pub fn eq_7_12(reference: &[(f64, f64)], points: &[(f64, f64)], wall: f64) -> Re
     let n = reference.len();
     let lo = reference[0].0 - 0.5 * (reference[1].0 - reference[0].0);
     let hi = reference[n - 1].0 + 0.5 * (reference[n - 1].0 - reference[n - 2].0);
-    let pairs: Vec<(f64, f64)> = points.iter().filter(|&&(x, _)| x >= lo + wall && x <= hi - wall).map(|&(x, s)| (interpolate(reference, x), s)).collect();
+    let pairs: Vec<(f64, f64)> =
+        points.iter().filter(|&&(x, _)| x >= lo + wall && x <= hi - wall).map(|&(x, s)| (interpolate(reference, x), s)).collect();
     if pairs.is_empty() {
-        anyhow::bail!("no material point lies inside the reference bar ({:.4} to {:.4} nm, less {} nm at each end)", lo * 1e9, hi * 1e9, wall * 1e9);
+        anyhow::bail!(
+            "no material point lies inside the reference bar ({:.4} to {:.4} nm, less {} nm at each end)",
+            lo * 1e9,
+            hi * 1e9,
+            wall * 1e9
+        );
     }
     eq_7_12_sum(pairs)
 }
@@ -497,8 +541,11 @@ pub fn score_run(profile: &DirectProfile, component: &str, times: &[f64], map: &
         let path = run_dir.join("snapshots").join(file);
         let points = read_x0_component(&path, component)?;
         let pts: Vec<(f64, f64)> = points.iter().map(|&(x0, s)| (map.x_ref(x0), s)).collect();
-        let reference = profile.at(t).ok_or_else(|| anyhow::anyhow!("the direct-MD reference has no frame at t = {} ps (it has {} ps)", t * 1e12, profile.times_ps()))?;
-        let (error, n) = eq_7_12(reference, &pts, REFERENCE_WALL_M).with_context(|| format!("eq. 7.12 of {component} of {} at t = {} ps", path.display(), t * 1e12))?;
+        let reference = profile.at(t).ok_or_else(|| {
+            anyhow::anyhow!("the direct-MD reference has no frame at t = {} ps (it has {} ps)", t * 1e12, profile.times_ps())
+        })?;
+        let (error, n) = eq_7_12(reference, &pts, REFERENCE_WALL_M)
+            .with_context(|| format!("eq. 7.12 of {component} of {} at t = {} ps", path.display(), t * 1e12))?;
         out.push(Score { time: t, snapshot_step: *step, snapshot_time: *ts, error, points: n });
     }
     Ok(out)
@@ -537,7 +584,11 @@ pub fn direct_md_log_line(component: &str, scores: &[Score]) -> String {
     let parts: Vec<String> = scores
         .iter()
         .map(|s| {
-            let at = if (s.snapshot_time - s.time).abs() > TIME_TOLERANCE_S { format!(" (snapshot at {} ps)", ps(s.snapshot_time)) } else { String::new() };
+            let at = if (s.snapshot_time - s.time).abs() > TIME_TOLERANCE_S {
+                format!(" (snapshot at {} ps)", ps(s.snapshot_time))
+            } else {
+                String::new()
+            };
             format!("{:.2} % at {} ps{at}", 100.0 * s.error, ps(s.time))
         })
         .collect();
@@ -573,14 +624,17 @@ impl ReferenceMap {
         if scene.domain.dimension != 1 {
             anyhow::bail!("--reference scores sigma_xx along a 1D bar; scene `{}` has dimension {}", scene.name, scene.domain.dimension);
         }
-        let mut b: Vec<(f64, f64, f64)> = scene.bodies.values().map(|b| (b.min[0], b.max[0], 1.0 + b.initial_strain.first().copied().unwrap_or(0.0))).collect();
+        let mut b: Vec<(f64, f64, f64)> =
+            scene.bodies.values().map(|b| (b.min[0], b.max[0], 1.0 + b.initial_strain.first().copied().unwrap_or(0.0))).collect();
         b.sort_by(|p, q| p.0.total_cmp(&q.0));
         let mut bodies = Vec::new();
         let mut prev: Option<(f64, f64)> = None; // (x0 max, X max) of the body before
         for (lo, hi, stretch) in b {
             let start = match prev {
                 None => lo,
-                Some((pmax, _)) if lo < pmax - 1e-9 * (hi - lo) => anyhow::bail!("bodies of scene `{}` overlap along x at {lo:e} m: cannot map them to one reference bar", scene.name),
+                Some((pmax, _)) if lo < pmax - 1e-9 * (hi - lo) => {
+                    anyhow::bail!("bodies of scene `{}` overlap along x at {lo:e} m: cannot map them to one reference bar", scene.name)
+                }
                 Some((pmax, pxmax)) => pxmax + (lo - pmax).max(0.0),
             };
             bodies.push((lo, hi, start, stretch));
@@ -623,7 +677,11 @@ impl ReferenceSpec {
                 anyhow::bail!("--reference-times: {t} ps is not a positive time");
             }
             if profile.at(t * 1e-12).is_none() {
-                anyhow::bail!("--reference-times: the direct-MD reference {} has no rows at t = {t} ps (it has {} ps)", path.display(), profile.times_ps());
+                anyhow::bail!(
+                    "--reference-times: the direct-MD reference {} has no rows at t = {t} ps (it has {} ps)",
+                    path.display(),
+                    profile.times_ps()
+                );
             }
             times.push(t * 1e-12);
         }
@@ -638,10 +696,20 @@ impl ReferenceSpec {
         for &t in &self.times {
             let n = (t / loaded.dt).round();
             if (n * loaded.dt - t).abs() > 1e-6 * loaded.dt {
-                anyhow::bail!("--reference-times: {} ps is not a whole number of continuum steps of {} ps in scene `{}`; choose scheme.timestep dividing it", t * 1e12, loaded.dt * 1e12, loaded.scene.name);
+                anyhow::bail!(
+                    "--reference-times: {} ps is not a whole number of continuum steps of {} ps in scene `{}`; choose scheme.timestep dividing it",
+                    t * 1e12,
+                    loaded.dt * 1e12,
+                    loaded.scene.name
+                );
             }
             if n as u64 > loaded.steps {
-                anyhow::bail!("--reference-times: {} ps lies after the end time {} ps of scene `{}`", t * 1e12, loaded.steps as f64 * loaded.dt * 1e12, loaded.scene.name);
+                anyhow::bail!(
+                    "--reference-times: {} ps lies after the end time {} ps of scene `{}`",
+                    t * 1e12,
+                    loaded.steps as f64 * loaded.dt * 1e12,
+                    loaded.scene.name
+                );
             }
             every = gcd(every, n as u64);
         }
@@ -682,7 +750,11 @@ fn read_x0_component(path: &Path, component: &str) -> Result<Vec<(f64, f64)>> {
         .enumerate()
         .map(|(k, l)| {
             let f: Vec<&str> = l.split(',').collect();
-            let get = |c: usize| f.get(c).and_then(|v| v.parse::<f64>().ok()).ok_or_else(|| anyhow::anyhow!("{} line {}: unreadable x0 or {component}", path.display(), k + 2));
+            let get = |c: usize| {
+                f.get(c)
+                    .and_then(|v| v.parse::<f64>().ok())
+                    .ok_or_else(|| anyhow::anyhow!("{} line {}: unreadable x0 or {component}", path.display(), k + 2))
+            };
             Ok((get(cx)?, get(cs)?))
         })
         .collect()
@@ -791,7 +863,13 @@ mod tests {
     /// 51.11 nm), then `sets`.
     fn elastic_bar(sets: &[&str]) -> scene::LoadedScene {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/cu-shock-1d-elastic.toml");
-        let pinned = ["domain.cells=[60]", "scheme.timestep=0.25e-12", "scheme.integrator=dhakal", "bodies.compressed.max=[51.11e-9]", "bodies.relaxed.min=[51.11e-9]"];
+        let pinned = [
+            "domain.cells=[60]",
+            "scheme.timestep=0.25e-12",
+            "scheme.integrator=dhakal",
+            "bodies.compressed.max=[51.11e-9]",
+            "bodies.relaxed.min=[51.11e-9]",
+        ];
         scene::load(&path, &pinned.iter().chain(sets).map(|s| s.to_string()).collect::<Vec<_>>()).expect("scene")
     }
 

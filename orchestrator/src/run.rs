@@ -8,14 +8,14 @@ use crate::output::{self, Series};
 use crate::scene::{LoadedScene, Material, Reference, Scene};
 use crate::{checkpoint, setup};
 use anyhow::{Context, Result};
-use continuum::exact::{IsothermalRiemann, PressureErrors, State};
 use continuum::Simulation;
+use continuum::exact::{IsothermalRiemann, PressureErrors, State};
 use coupling::MdShared;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
-use serde_json::{json, Value};
+use serde_json::{Value, json};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 /// How a run ended.
@@ -24,7 +24,10 @@ pub enum Outcome {
     /// The solver stopped the run (divergence guard, closure failure); outputs so far are kept.
     Failed(Value, String),
     /// Stopped on request at the end of `step`; the state is in `checkpoint`.
-    Cancelled { checkpoint: PathBuf, step: u64 },
+    Cancelled {
+        checkpoint: PathBuf,
+        step: u64,
+    },
 }
 
 /// Progress of a run after a step (for the job service's watch stream).
@@ -82,7 +85,20 @@ pub type LossFn = Arc<dyn Fn(&md_worker::recovery::Recovery) + Send + Sync>;
 
 impl RunOptions {
     pub fn new(out: PathBuf, command_line: Vec<String>) -> Self {
-        RunOptions { out, command_line, progress_bar: std::io::stderr().is_terminal(), workers: Vec::new(), checkpoint_every: 0, resume: false, cancel: None, progress: None, worker_weights: Vec::new(), md_hook: None, step_deadline: Default::default(), on_worker_lost: None }
+        RunOptions {
+            out,
+            command_line,
+            progress_bar: std::io::stderr().is_terminal(),
+            workers: Vec::new(),
+            checkpoint_every: 0,
+            resume: false,
+            cancel: None,
+            progress: None,
+            worker_weights: Vec::new(),
+            md_hook: None,
+            step_deadline: Default::default(),
+            on_worker_lost: None,
+        }
     }
 }
 
@@ -117,7 +133,16 @@ fn md_shared(loaded: &LoadedScene, opts: &RunOptions) -> Result<Option<Arc<Mutex
 /// Default run directory: `runs/<scene>-<UTC timestamp>`.
 pub fn default_out_dir(scene: &Scene) -> PathBuf {
     let t = time::OffsetDateTime::now_utc();
-    PathBuf::from("runs").join(format!("{}-{:04}{:02}{:02}T{:02}{:02}{:02}Z", scene.name, t.year(), u8::from(t.month()), t.day(), t.hour(), t.minute(), t.second()))
+    PathBuf::from("runs").join(format!(
+        "{}-{:04}{:02}{:02}T{:02}{:02}{:02}Z",
+        scene.name,
+        t.year(),
+        u8::from(t.month()),
+        t.day(),
+        t.hour(),
+        t.minute(),
+        t.second()
+    ))
 }
 
 pub fn run(loaded: &LoadedScene, opts: &RunOptions) -> Result<Outcome> {
@@ -150,7 +175,9 @@ struct Snapshots {
 /// Per-point MD columns of the particle files (empty without MD).
 fn md_columns(md: Option<&Arc<Mutex<MdShared>>>, n: usize) -> Vec<(&'static str, Vec<f64>)> {
     let Some(m) = md.and_then(|m| m.lock().ok()) else { return Vec::new() };
-    let col = |f: &dyn Fn(&coupling::MdPointState) -> f64| (0..n).map(|p| m.points.get(p).and_then(|s| s.as_ref()).map_or(f64::NAN, f)).collect::<Vec<_>>();
+    let col = |f: &dyn Fn(&coupling::MdPointState) -> f64| {
+        (0..n).map(|p| m.points.get(p).and_then(|s| s.as_ref()).map_or(f64::NAN, f)).collect::<Vec<_>>()
+    };
     vec![
         ("md_temperature_k", col(&|s| s.last.temperature_k)),
         ("md_potential_ev", col(&|s| s.last.potential_energy_ev)),
@@ -176,18 +203,28 @@ fn dump_boxes(md: &Arc<Mutex<MdShared>>, ids: &[u64], step: u64, dir: &Path) -> 
     Ok(())
 }
 
-fn write_snapshot<const D: usize>(sim: &Simulation<D>, scene: &Scene, dir: &Path, snaps: &mut Snapshots, md: Option<&Arc<Mutex<MdShared>>>) -> Result<()> {
+fn write_snapshot<const D: usize>(
+    sim: &Simulation<D>,
+    scene: &Scene,
+    dir: &Path,
+    snaps: &mut Snapshots,
+    md: Option<&Arc<Mutex<MdShared>>>,
+) -> Result<()> {
     let step = sim.step;
     if scene.output.particles {
         let file = format!("particles_{step:08}.csv");
-        output::write_atomic(&dir.join("snapshots").join(&file), output::particles_csv(&sim.points, &md_columns(md, sim.points.len())).as_bytes())?;
+        output::write_atomic(
+            &dir.join("snapshots").join(&file),
+            output::particles_csv(&sim.points, &md_columns(md, sim.points.len())).as_bytes(),
+        )?;
         snaps.index.push_str(&format!("{step},{:e},{file}\n", sim.time));
         output::write_atomic(&dir.join("snapshots/index.csv"), snaps.index.as_bytes())?;
     }
     if !scene.output.dump_points.is_empty()
-        && let Some(md) = md {
-            dump_boxes(md, &scene.output.dump_points, step, dir)?;
-        }
+        && let Some(md) = md
+    {
+        dump_boxes(md, &scene.output.dump_points, step, dir)?;
+    }
     if scene.output.vtk {
         let file = format!("particles_{step:08}.vtu");
         output::write_atomic(&dir.join("vtk").join(&file), output::particles_vtu(&sim.points).as_bytes())?;
@@ -206,7 +243,11 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     // A resumed run reads its checkpoint before anything in the directory is rewritten.
     let saved = if opts.resume { Some(checkpoint::load_latest(dir)?) } else { None };
     if let Some((ck, path)) = &saved {
-        anyhow::ensure!(ck.scene_sha256 == scene_sha, "the checkpoint {} was written for another scene (or other --set overrides) than the one given", path.display());
+        anyhow::ensure!(
+            ck.scene_sha256 == scene_sha,
+            "the checkpoint {} was written for another scene (or other --set overrides) than the one given",
+            path.display()
+        );
     }
     output::write_atomic(&dir.join("scene.resolved.toml"), resolved.as_bytes())?;
     let wall = Instant::now();
@@ -228,16 +269,19 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     let setup_s = before.setup_s + wall.elapsed().as_secs_f64();
     // The MD of setup (relaxation, initial stresses) counts as setup, not as step time.
     if let Some(m) = &md
-        && let Ok(mut m) = m.lock() {
-            m.pool.times = Default::default();
-        }
+        && let Ok(mut m) = m.lock()
+    {
+        m.pool.times = Default::default();
+    }
     tracing::info!(points = sim.points.len(), nodes = sim.grid.node_count(), steps = loaded.steps, dt = sim.dt, "running {}", scene.name);
 
     let every = (loaded.steps / scene.output.snapshots.max(1) as u64).max(1);
     // A direct-MD reference is scored from the snapshots: one lands on the step nearest to each
     // of its times.
     let reference_steps: Vec<u64> = match &scene.reference {
-        Some(Reference::DirectMd(r)) => r.times_ps.iter().map(|t| ((t * 1e-12 / loaded.dt).round().max(0.0) as u64).min(loaded.steps)).collect(),
+        Some(Reference::DirectMd(r)) => {
+            r.times_ps.iter().map(|t| ((t * 1e-12 / loaded.dt).round().max(0.0) as u64).min(loaded.steps)).collect()
+        }
         _ => Vec::new(),
     };
     let checkpoint_every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { scene.output.checkpoint_every_steps };
@@ -262,7 +306,13 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     let mut failure = None;
     let (session_start, first_step) = (Instant::now(), sim.step);
     let cancelled = || opts.cancel.as_ref().is_some_and(|c| c.load(Ordering::SeqCst));
-    let save = |sim: &Simulation<D>, snaps: &Snapshots, max_kinetic: f64, max_abs_momentum: f64, continuum_s: f64, output_s: f64| -> Result<PathBuf> {
+    let save = |sim: &Simulation<D>,
+                snaps: &Snapshots,
+                max_kinetic: f64,
+                max_abs_momentum: f64,
+                continuum_s: f64,
+                output_s: f64|
+     -> Result<PathBuf> {
         let driver = checkpoint::DriverState {
             max_kinetic,
             max_abs_momentum,
@@ -294,9 +344,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
             return Ok(Outcome::Cancelled { checkpoint: path, step: sim.step });
         }
         if let Some(md) = &md
-            && let Ok(mut m) = md.lock() {
-                m.step = sim.step + 1;
-            }
+            && let Ok(mut m) = md.lock()
+        {
+            m.step = sim.step + 1;
+        }
         let t = Instant::now();
         let result = sim.step();
         continuum_s += t.elapsed().as_secs_f64();
@@ -325,7 +376,13 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
             }
             None if last_log.elapsed() > Duration::from_secs(5) || sim.step == loaded.steps => {
                 last_log = Instant::now();
-                tracing::info!("step {}/{} ({:.0} %), t = {:.4e} s", sim.step, loaded.steps, 100.0 * sim.step as f64 / loaded.steps as f64, sim.time);
+                tracing::info!(
+                    "step {}/{} ({:.0} %), t = {:.4e} s",
+                    sim.step,
+                    loaded.steps,
+                    100.0 * sim.step as f64 / loaded.steps as f64,
+                    sim.time
+                );
             }
             None => {}
         }
@@ -338,7 +395,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
     }
     if scene.output.particles {
-        output::write_atomic(&dir.join("particles_final.csv"), output::particles_csv(&sim.points, &md_columns(md.as_ref(), sim.points.len())).as_bytes())?;
+        output::write_atomic(
+            &dir.join("particles_final.csv"),
+            output::particles_csv(&sim.points, &md_columns(md.as_ref(), sim.points.len())).as_bytes(),
+        )?;
     }
     let reference = reference(scene);
     let errors = reference.as_ref().map(|(rp, jump)| pressure_errors(&sim, rp, *jump));
@@ -348,7 +408,8 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     }
     output_s += t.elapsed().as_secs_f64();
 
-    let times = SummaryTimes { wall: before.wall_s + wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s };
+    let times =
+        SummaryTimes { wall: before.wall_s + wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s };
     let direct_json = direct.as_ref().map(|d| d.json.clone());
     let summary = summary(loaded, opts, &sim, times, max_kinetic, max_abs_momentum, errors, direct_json, failure.as_deref(), md.as_ref())?;
     output::write_atomic(&dir.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
@@ -365,7 +426,15 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     })
 }
 
-fn report_progress<const D: usize>(opts: &RunOptions, sim: &Simulation<D>, loaded: &LoadedScene, session_start: Instant, first_step: u64, max_kinetic: f64, done: bool) {
+fn report_progress<const D: usize>(
+    opts: &RunOptions,
+    sim: &Simulation<D>,
+    loaded: &LoadedScene,
+    session_start: Instant,
+    first_step: u64,
+    max_kinetic: f64,
+    done: bool,
+) {
     let Some(f) = &opts.progress else { return };
     let (init, now) = (sim.initial, sim.totals());
     let energy_scale = init.energy().abs().max(max_kinetic).max(f64::MIN_POSITIVE);
@@ -449,12 +518,19 @@ fn direct_md_errors(scene: &Scene, dir: &Path, reached: f64) -> Option<DirectSco
             if times.len() < r.times_ps.len() {
                 json["not_reached_ps"] = json!(r.times_ps.iter().filter(|t| **t * 1e-12 > reached).collect::<Vec<_>>());
             }
-            let line = if scores.is_empty() { Err(format!("the run ended at t = {reached:e} s, before every time of its direct-MD reference: not scored")) } else { Ok(crate::report::direct_md_log_line(&r.component, &scores)) };
+            let line = if scores.is_empty() {
+                Err(format!("the run ended at t = {reached:e} s, before every time of its direct-MD reference: not scored"))
+            } else {
+                Ok(crate::report::direct_md_log_line(&r.component, &scores))
+            };
             DirectScore { json, line }
         }
         Err(e) => {
             let why = format!("cannot score the run against its direct-MD reference {}: {e:#}", r.profile.display());
-            DirectScore { json: json!({"reference": "direct-md", "profile": r.profile.display().to_string(), "component": r.component, "failure": why}), line: Err(why) }
+            DirectScore {
+                json: json!({"reference": "direct-md", "profile": r.profile.display().to_string(), "component": r.component, "failure": why}),
+                line: Err(why),
+            }
         }
     })
 }
@@ -502,7 +578,8 @@ fn summary<const D: usize>(
     let scene = &loaded.scene;
     let (init, now) = (sim.initial, sim.totals());
     let energy_scale = init.energy().abs().max(max_kinetic).max(f64::MIN_POSITIVE);
-    let momentum_drift = (0..D).map(|a| (now.momentum[a] - init.momentum[a] - sim.wall_impulse[a]).abs()).fold(0.0, f64::max) / momentum_scale.max(sim.wall_impulse_magnitude).max(f64::MIN_POSITIVE);
+    let momentum_drift = (0..D).map(|a| (now.momentum[a] - init.momentum[a] - sim.wall_impulse[a]).abs()).fold(0.0, f64::max)
+        / momentum_scale.max(sim.wall_impulse_magnitude).max(f64::MIN_POSITIVE);
     let mut inputs = serde_json::Map::new();
     inputs.insert(loaded.path.display().to_string(), json!(output::sha256_file(&loaded.path)?));
     for f in &loaded.files {

@@ -383,7 +383,14 @@ fn default_snapshots() -> usize {
 
 impl Default for Output {
     fn default() -> Self {
-        Output { snapshots: default_snapshots(), particles: true, vtk: true, plots: true, checkpoint_every_steps: 0, dump_points: Vec::new() }
+        Output {
+            snapshots: default_snapshots(),
+            particles: true,
+            vtk: true,
+            plots: true,
+            checkpoint_every_steps: 0,
+            dump_points: Vec::new(),
+        }
     }
 }
 
@@ -459,14 +466,21 @@ impl Locator<'_> {
         }
         // An element of an overridden array (`output.dump_points[1]`): the --set of the array.
         if let Some((array, _)) = key.split_once('[')
-            && let Some(v) = self.overrides.get(array) {
-                return format!("--set {array}={v}");
-            }
+            && let Some(v) = self.overrides.get(array)
+        {
+            return format!("--set {array}={v}");
+        }
         line_of(self.text, key).map(|l| format!("line {l}")).unwrap_or_default()
     }
 
     fn err(&self, key: &str, value: impl fmt::Display, problem: impl Into<String>) -> SceneError {
-        SceneError { file: self.file.clone(), location: self.location(key), key: key.into(), value: value.to_string(), problem: problem.into() }
+        SceneError {
+            file: self.file.clone(),
+            location: self.location(key),
+            key: key.into(),
+            value: value.to_string(),
+            problem: problem.into(),
+        }
     }
 }
 
@@ -485,9 +499,10 @@ fn line_of(text: &str, key: &str) -> Option<usize> {
         span = k.span().or(span);
         item = next;
         if let Some(i) = index
-            && let Some(v) = item.as_array().and_then(|a| a.get(i)) {
-                span = v.span().or(span);
-            }
+            && let Some(v) = item.as_array().and_then(|a| a.get(i))
+        {
+            span = v.span().or(span);
+        }
         if let Some(s) = item.span() {
             span = Some(span.map_or(s.clone(), |old: std::ops::Range<usize>| old.start.min(s.start)..s.end));
         }
@@ -520,10 +535,7 @@ pub fn apply_overrides(file: &str, text: &str, sets: &[String]) -> Result<(Strin
         if key.is_empty() || key.split('.').any(str::is_empty) {
             return Err(bad("the key is empty or has an empty part; expected for example bodies.left.temperature_k=300"));
         }
-        let value: toml_edit::Value = raw
-            .trim()
-            .parse()
-            .unwrap_or_else(|_| toml_edit::Value::from(raw.trim()));
+        let value: toml_edit::Value = raw.trim().parse().unwrap_or_else(|_| toml_edit::Value::from(raw.trim()));
         let parts: Vec<&str> = key.split('.').collect();
         let mut table = doc.as_table_mut() as &mut dyn toml_edit::TableLike;
         for part in &parts[..parts.len() - 1] {
@@ -636,7 +648,11 @@ impl Scene {
         }
         for a in 0..dim {
             if d.max[a] <= d.min[a] {
-                return Err(loc.err("domain.max", vec_str(&d.max), format!("must exceed domain.min along every axis (axis {a}: {} <= {})", d.max[a], d.min[a])));
+                return Err(loc.err(
+                    "domain.max",
+                    vec_str(&d.max),
+                    format!("must exceed domain.min along every axis (axis {a}: {} <= {})", d.max[a], d.min[a]),
+                ));
             }
         }
         match (d.cells.is_empty(), d.cell_size.is_empty()) {
@@ -646,7 +662,11 @@ impl Scene {
                     && d.cell_size.len() == dim
                     && (0..dim).all(|a| ((d.max[a] - d.min[a]) / d.cells[a] as f64 - d.cell_size[a]).abs() <= 1e-9 * d.cell_size[a].abs());
                 if !agree {
-                    return Err(loc.err("domain.cell_size", vec_str(&d.cell_size), format!("disagrees with cells = {:?}; give `cells` or `cell_size`, not both", d.cells)));
+                    return Err(loc.err(
+                        "domain.cell_size",
+                        vec_str(&d.cell_size),
+                        format!("disagrees with cells = {:?}; give `cells` or `cell_size`, not both", d.cells),
+                    ));
                 }
             }
             (true, true) => return Err(loc.err("domain", "", "missing `cells` (cells per axis) or `cell_size` (m per axis)")),
@@ -663,7 +683,14 @@ impl Scene {
                 for a in 0..dim {
                     let n = (d.max[a] - d.min[a]) / d.cell_size[a];
                     if (n - n.round()).abs() > 1e-9 * n.max(1.0) {
-                        return Err(loc.err("domain.cell_size", vec_str(&d.cell_size), format!("must divide the domain length along axis {a} ({} m) into a whole number of cells", d.max[a] - d.min[a])));
+                        return Err(loc.err(
+                            "domain.cell_size",
+                            vec_str(&d.cell_size),
+                            format!(
+                                "must divide the domain length along axis {a} ({} m) into a whole number of cells",
+                                d.max[a] - d.min[a]
+                            ),
+                        ));
                     }
                     cells.push(n.round() as usize);
                 }
@@ -694,11 +721,17 @@ impl Scene {
                 return Err(loc.err(&k("max"), vec_str(&b.max), format!("must exceed `min` along every axis (axis {a})")));
             }
             if b.min[a] < dmin[a] - 1e-12 || b.max[a] > dmax[a] + 1e-12 {
-                return Err(loc.err(&k("max"), format!("min {:?} max {:?}", b.min, b.max), format!("the body must lie inside the domain {dmin:?} .. {dmax:?}")));
+                return Err(loc.err(
+                    &k("max"),
+                    format!("min {:?} max {:?}", b.min, b.max),
+                    format!("the body must lie inside the domain {dmin:?} .. {dmax:?}"),
+                ));
             }
         }
         match (b.shape, &b.notch) {
-            (Shape::NotchedBlock, None) => return Err(loc.err(&k("notch"), "", "a notched-block needs [bodies.NAME.notch] with center, width and depth (m)")),
+            (Shape::NotchedBlock, None) => {
+                return Err(loc.err(&k("notch"), "", "a notched-block needs [bodies.NAME.notch] with center, width and depth (m)"));
+            }
             (Shape::NotchedBlock, Some(n)) => {
                 if dim < 2 {
                     return Err(loc.err(&k("shape"), "\"notched-block\"", "a notch needs a 2D or 3D domain"));
@@ -724,7 +757,11 @@ impl Scene {
             b.initial_strain = vec![0.0; 3];
         }
         if b.initial_strain.len() > 3 || b.initial_strain.iter().any(|e| !(e.is_finite() && *e > -0.5 && *e < 1.0)) {
-            return Err(loc.err(&k("initial_strain"), vec_str(&b.initial_strain), "up to 3 diagonal engineering strains (xx, yy, zz), each between -0.5 and 1"));
+            return Err(loc.err(
+                &k("initial_strain"),
+                vec_str(&b.initial_strain),
+                "up to 3 diagonal engineering strains (xx, yy, zz), each between -0.5 and 1",
+            ));
         }
         b.initial_strain.resize(3, 0.0);
         if !(b.temperature_k.is_finite() && b.temperature_k >= 0.0) {
@@ -747,14 +784,22 @@ impl Scene {
             Material::Md(md) => {
                 let file = base.join(&md.potential);
                 if !file.is_file() {
-                    return Err(loc.err(&k("material.potential"), format!("{:?}", md.potential), format!("no such file ({}); paths are relative to the scene file", file.display())));
+                    return Err(loc.err(
+                        &k("material.potential"),
+                        format!("{:?}", md.potential),
+                        format!("no such file ({}); paths are relative to the scene file", file.display()),
+                    ));
                 }
                 if !["fcc", "bcc", "sc"].contains(&md.lattice.as_str()) {
                     return Err(loc.err(&k("material.lattice"), format!("{:?}", md.lattice), "allowed: \"fcc\", \"bcc\", \"sc\""));
                 }
                 finite_positive(loc, &k("material.lattice_constant_angstrom"), md.lattice_constant_angstrom, "the lattice constant (A)")?;
                 if md.lattice_constant_angstrom > MAX_LATTICE_CONSTANT {
-                    return Err(loc.err(&k("material.lattice_constant_angstrom"), md_worker::error::show(md.lattice_constant_angstrom), format!("the lattice constant must be at most {MAX_LATTICE_CONSTANT} A")));
+                    return Err(loc.err(
+                        &k("material.lattice_constant_angstrom"),
+                        md_worker::error::show(md.lattice_constant_angstrom),
+                        format!("the lattice constant must be at most {MAX_LATTICE_CONSTANT} A"),
+                    ));
                 }
                 if !(1..=40).contains(&md.cells_per_side) {
                     return Err(loc.err(&k("material.cells_per_side"), md.cells_per_side, "allowed: 1 to 40 lattice cells per box side"));
@@ -762,9 +807,14 @@ impl Scene {
                 if let Err(e) = md_worker::Orientation(md.orientation).validate() {
                     return Err(loc.err(&k("material.orientation"), format!("{:?}", md.orientation), e.to_string()));
                 }
-                let atoms = crate::md::atoms_per_box(md).map_err(|e| loc.err(&k("material.lattice"), format!("{:?}", md.lattice), e.to_string()))?;
+                let atoms = crate::md::atoms_per_box(md)
+                    .map_err(|e| loc.err(&k("material.lattice"), format!("{:?}", md.lattice), e.to_string()))?;
                 if atoms > MAX_ATOMS_PER_BOX {
-                    return Err(loc.err(&k("material.cells_per_side"), md.cells_per_side, format!("{atoms} atoms per box; at most {MAX_ATOMS_PER_BOX} (fewer cells, or an orientation with smaller indices)")));
+                    return Err(loc.err(
+                        &k("material.cells_per_side"),
+                        md.cells_per_side,
+                        format!("{atoms} atoms per box; at most {MAX_ATOMS_PER_BOX} (fewer cells, or an orientation with smaller indices)"),
+                    ));
                 }
                 if !(md.timestep_fs > 0.0 && md.timestep_fs <= 5.0) {
                     return Err(loc.err(&k("material.timestep_fs"), md.timestep_fs, "the MD time step must lie in (0, 5] fs"));
@@ -773,13 +823,21 @@ impl Scene {
                     return Err(loc.err(&k("material.stress_sampling"), format!("{:?}", md.stress_sampling), "allowed: \"last\" (the stress after the last MD step of a continuum step, the seed's choice), \"average\" (the mean over the continuum step's MD steps)"));
                 }
                 if md.precision != "double" {
-                    return Err(loc.err(&k("material.precision"), format!("{:?}", md.precision), "allowed: \"double\" (the CPU back ends compute in double; \"mixed\" belongs to the CUDA back end)"));
+                    return Err(loc.err(
+                        &k("material.precision"),
+                        format!("{:?}", md.precision),
+                        "allowed: \"double\" (the CPU back ends compute in double; \"mixed\" belongs to the CUDA back end)",
+                    ));
                 }
                 if md.deformation == "auto" {
                     md.deformation = if dim == 1 { "affine".into() } else { "seed".into() };
                 }
                 if !["affine", "seed"].contains(&md.deformation.as_str()) || (md.deformation == "affine" && dim > 1) {
-                    return Err(loc.err(&k("material.deformation"), format!("{:?}", md.deformation), "allowed: \"seed\" (any dimension), \"affine\" (1D only: it takes diagonal gradients), \"auto\""));
+                    return Err(loc.err(
+                        &k("material.deformation"),
+                        format!("{:?}", md.deformation),
+                        "allowed: \"seed\" (any dimension), \"affine\" (1D only: it takes diagonal gradients), \"auto\"",
+                    ));
                 }
                 if md.relax_steps > 1_000_000 {
                     return Err(loc.err(&k("material.relax_steps"), md.relax_steps, "at most 1e6 relaxation steps"));
@@ -787,15 +845,23 @@ impl Scene {
                 // From here on the path is absolute, so the resolved scene reads back anywhere.
                 let file = file.canonicalize().unwrap_or(file);
                 md.potential = file.clone();
-                let props = crate::md::lattice_properties(&file, &md.lattice, md.lattice_constant_angstrom, md_worker::Orientation(md.orientation))
-                    .map_err(|e| loc.err(&k("material.potential"), format!("{:?}", md.potential), format!("{e}")))?;
+                let props =
+                    crate::md::lattice_properties(&file, &md.lattice, md.lattice_constant_angstrom, md_worker::Orientation(md.orientation))
+                        .map_err(|e| loc.err(&k("material.potential"), format!("{:?}", md.potential), format!("{e}")))?;
                 if let Some(v) = props.vibration
                     && md.timestep_fs > v.max_dt_ps() * 1e3
                 {
                     return Err(loc.err(&k("material.timestep_fs"), md.timestep_fs, format!("exceeds {:.3} fs, {v}", v.max_dt_ps() * 1e3)));
                 }
                 if (rho - props.density).abs() > 0.01 * props.density {
-                    return Err(loc.err(&k("density"), rho, format!("an md body's density must match its lattice: {:.1} kg/m^3 for {} at a0 = {} A", props.density, md.lattice, md.lattice_constant_angstrom)));
+                    return Err(loc.err(
+                        &k("density"),
+                        rho,
+                        format!(
+                            "an md body's density must match its lattice: {:.1} kg/m^3 for {} at a0 = {} A",
+                            props.density, md.lattice, md.lattice_constant_angstrom
+                        ),
+                    ));
                 }
                 Ok((props.wave_speed, Some(file)))
             }
@@ -816,16 +882,31 @@ impl Scene {
                     return Err(loc.err(&key, format!("{n:?}"), format!("a {dim}D scene has no {face} face")));
                 }
                 FaceSpec::Piston { piston } if axis >= dim || piston.len() != dim || piston.iter().any(|v| !v.is_finite()) => {
-                    return Err(loc.err(&key, vec_str(piston), format!("a piston needs {dim} finite velocity value(s) (m/s) on an existing face")));
+                    return Err(loc.err(
+                        &key,
+                        vec_str(piston),
+                        format!("a piston needs {dim} finite velocity value(s) (m/s) on an existing face"),
+                    ));
                 }
                 _ => {}
             }
         }
-        for (axis, (lo, hi)) in [(&self.boundary.x_min, &self.boundary.x_max), (&self.boundary.y_min, &self.boundary.y_max), (&self.boundary.z_min, &self.boundary.z_max)].into_iter().enumerate() {
+        for (axis, (lo, hi)) in [
+            (&self.boundary.x_min, &self.boundary.x_max),
+            (&self.boundary.y_min, &self.boundary.y_max),
+            (&self.boundary.z_min, &self.boundary.z_max),
+        ]
+        .into_iter()
+        .enumerate()
+        {
             let periodic = |f: &FaceSpec| matches!(f, FaceSpec::Named(n) if n == "periodic");
             if periodic(lo) != periodic(hi) {
                 let face = ["x", "y", "z"][axis];
-                return Err(loc.err(&format!("boundary.{face}_max"), format!("{hi:?}"), format!("periodic must be set on both {face}_min and {face}_max")));
+                return Err(loc.err(
+                    &format!("boundary.{face}_max"),
+                    format!("{hi:?}"),
+                    format!("periodic must be set on both {face}_min and {face}_max"),
+                ));
             }
         }
         Ok(())
@@ -840,7 +921,11 @@ impl Scene {
         };
         if !kind.supports_dimension(dim) {
             let ok: Vec<&str> = continuum::SchemeKind::NAMES.iter().filter(|(_, k)| k.supports_dimension(dim)).map(|(n, _)| *n).collect();
-            return Err(loc.err("scheme.method", format!("{:?}", s.method), format!("`{}` is the 1D CPDI; a {dim}D scene allows: {}", s.method, ok.join(", "))));
+            return Err(loc.err(
+                "scheme.method",
+                format!("{:?}", s.method),
+                format!("`{}` is the 1D CPDI; a {dim}D scene allows: {}", s.method, ok.join(", ")),
+            ));
         }
         if !(1..=64).contains(&s.particles_per_cell) {
             return Err(loc.err("scheme.particles_per_cell", s.particles_per_cell, "allowed: 1 to 64 per axis"));
@@ -850,13 +935,21 @@ impl Scene {
                 return Err(loc.err("scheme.sub_points", s.sub_points, "allowed: 1 to 64 sub-points per particle"));
             }
         } else if s.sub_points != 1 {
-            return Err(loc.err("scheme.sub_points", s.sub_points, format!("sub-points need method \"ddmp-subpoints\"; `{}` uses 1", s.method)));
+            return Err(loc.err(
+                "scheme.sub_points",
+                s.sub_points,
+                format!("sub-points need method \"ddmp-subpoints\"; `{}` uses 1", s.method),
+            ));
         }
         if !["dhakal", "leapfrog"].contains(&s.integrator.as_str()) {
             return Err(loc.err("scheme.integrator", format!("{:?}", s.integrator), "allowed: \"dhakal\" (Ch. 3.1 cycle), \"leapfrog\""));
         }
         if !["none", "linear", "tensor"].contains(&s.artificial_viscosity.as_str()) {
-            return Err(loc.err("scheme.artificial_viscosity", format!("{:?}", s.artificial_viscosity), "allowed: \"none\", \"linear\", \"tensor\""));
+            return Err(loc.err(
+                "scheme.artificial_viscosity",
+                format!("{:?}", s.artificial_viscosity),
+                "allowed: \"none\", \"linear\", \"tensor\"",
+            ));
         }
         if !(s.viscosity_coefficient.is_finite() && s.viscosity_coefficient >= 0.0) {
             return Err(loc.err("scheme.viscosity_coefficient", s.viscosity_coefficient, "must be finite and >= 0"));
@@ -871,14 +964,17 @@ impl Scene {
         }
         finite_positive(loc, "scheme.end_time", s.end_time, "the end time (s)")?;
         let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
-        let speed = max_speed
-            + self.bodies.values().flat_map(|b| b.velocity.iter()).fold(0.0_f64, |m, v| m.max(v.abs()));
+        let speed = max_speed + self.bodies.values().flat_map(|b| b.velocity.iter()).fold(0.0_f64, |m, v| m.max(v.abs()));
         let bound = CFL_LIMIT * h / speed;
         let dt = match (s.cfl, s.timestep) {
             (Some(c), Some(dt)) => {
                 // Both given (as in a resolved scene): they must agree.
                 if (c - dt * speed / h).abs() > 1e-9 * c.abs() {
-                    return Err(loc.err("scheme.timestep", dt, format!("disagrees with cfl = {c} (which gives {:e} s); give `cfl` or `timestep`, not both", c * h / speed)));
+                    return Err(loc.err(
+                        "scheme.timestep",
+                        dt,
+                        format!("disagrees with cfl = {c} (which gives {:e} s); give `cfl` or `timestep`, not both", c * h / speed),
+                    ));
                 }
                 if !(c > 0.0 && c <= CFL_LIMIT) {
                     return Err(loc.err("scheme.cfl", c, format!("allowed: 0 < cfl <= {CFL_LIMIT} (explicit stability bound)")));
@@ -934,11 +1030,23 @@ impl Scene {
             ));
         }
         if !REFERENCE_COMPONENTS.contains(&r.component.as_str()) {
-            return Err(loc.err("reference.component", format!("{:?}", r.component), format!("allowed: {} (sxx: the shock direction of a 1D bar)", REFERENCE_COMPONENTS.iter().map(|c| format!("\"{c}\"")).collect::<Vec<_>>().join(", "))));
+            return Err(loc.err(
+                "reference.component",
+                format!("{:?}", r.component),
+                format!(
+                    "allowed: {} (sxx: the shock direction of a 1D bar)",
+                    REFERENCE_COMPONENTS.iter().map(|c| format!("\"{c}\"")).collect::<Vec<_>>().join(", ")
+                ),
+            ));
         }
         let file = base.join(&r.profile);
-        let profile = crate::report::DirectProfile::read_component(&file, &r.component)
-            .map_err(|e| loc.err("reference.profile", format!("{:?}", r.profile), format!("{e:#}; the profile is the CSV of `md-worker direct --slab`, its path relative to the scene file")))?;
+        let profile = crate::report::DirectProfile::read_component(&file, &r.component).map_err(|e| {
+            loc.err(
+                "reference.profile",
+                format!("{:?}", r.profile),
+                format!("{e:#}; the profile is the CSV of `md-worker direct --slab`, its path relative to the scene file"),
+            )
+        })?;
         if r.times_ps.is_empty() {
             return Err(loc.err("reference.times_ps", "[]", "give at least one time (ps) to score at, e.g. [5.0, 10.0]"));
         }
@@ -946,7 +1054,16 @@ impl Scene {
         for (k, &t) in r.times_ps.iter().enumerate() {
             let key = format!("reference.times_ps[{k}]");
             if !t.is_finite() || t * 1e-12 < first - crate::report::TIME_TOLERANCE_S || t * 1e-12 > last + crate::report::TIME_TOLERANCE_S {
-                return Err(loc.err(&key, t, format!("outside the profile's range {} to {} ps ({})", (first * 1e15).round() / 1e3, (last * 1e15).round() / 1e3, file.display())));
+                return Err(loc.err(
+                    &key,
+                    t,
+                    format!(
+                        "outside the profile's range {} to {} ps ({})",
+                        (first * 1e15).round() / 1e3,
+                        (last * 1e15).round() / 1e3,
+                        file.display()
+                    ),
+                ));
             }
             if profile.at(t * 1e-12).is_none() {
                 return Err(loc.err(&key, t, format!("the profile has no frame at t = {t} ps (it has {} ps)", profile.times_ps())));
@@ -956,7 +1073,11 @@ impl Scene {
             }
         }
         if !self.output.particles {
-            return Err(loc.err("output.particles", "false", "a direct-md reference scores the particle snapshots: needs output.particles = true"));
+            return Err(loc.err(
+                "output.particles",
+                "false",
+                "a direct-md reference scores the particle snapshots: needs output.particles = true",
+            ));
         }
         if let Err(e) = crate::report::ReferenceMap::of(self) {
             return Err(loc.err("reference.solution", "\"direct-md\"", format!("{e:#}")));
@@ -971,11 +1092,23 @@ impl Scene {
         let mut speeds = BTreeSet::new();
         for (key, name) in [("reference.left", &r.left), ("reference.right", &r.right)] {
             match self.bodies.get(name).map(|b| &b.material) {
-                None => return Err(loc.err(key, format!("{name:?}"), format!("no such body; bodies: {}", self.bodies.keys().cloned().collect::<Vec<_>>().join(", ")))),
+                None => {
+                    return Err(loc.err(
+                        key,
+                        format!("{name:?}"),
+                        format!("no such body; bodies: {}", self.bodies.keys().cloned().collect::<Vec<_>>().join(", ")),
+                    ));
+                }
                 Some(Material::IdealGasIsothermal(g)) => {
                     speeds.insert(g.sound_speed.to_bits());
                 }
-                Some(m) => return Err(loc.err(key, format!("{name:?}"), format!("the isothermal Riemann solution needs ideal-gas-isothermal bodies, this one is {}", m.law()))),
+                Some(m) => {
+                    return Err(loc.err(
+                        key,
+                        format!("{name:?}"),
+                        format!("the isothermal Riemann solution needs ideal-gas-isothermal bodies, this one is {}", m.law()),
+                    ));
+                }
             }
         }
         if speeds.len() != 1 {
@@ -1003,16 +1136,28 @@ impl Scene {
             .filter(|(name, r)| !r.is_empty() && matches!(self.bodies[name].material, Material::Md(_)))
             .map(|(name, r)| format!("{}..={} (body `{name}`)", r.start, r.end - 1))
             .collect();
-        let md_ids = if md_ranges.is_empty() { "the scene has no md body".to_string() } else { format!("md points: {}", md_ranges.join(", ")) };
+        let md_ids =
+            if md_ranges.is_empty() { "the scene has no md body".to_string() } else { format!("md points: {}", md_ranges.join(", ")) };
         let mut seen = BTreeSet::new();
         for (k, &id) in ids.iter().enumerate() {
             let key = format!("output.dump_points[{k}]");
             let Some((name, _)) = ranges.iter().find(|(_, r)| r.contains(&id)) else {
-                return Err(loc.err(&key, id, format!("no such material point: the scene has {first} material points (ids 0..={}); {md_ids}", first.saturating_sub(1))));
+                return Err(loc.err(
+                    &key,
+                    id,
+                    format!(
+                        "no such material point: the scene has {first} material points (ids 0..={}); {md_ids}",
+                        first.saturating_sub(1)
+                    ),
+                ));
             };
             let body = &self.bodies[name];
             if !matches!(body.material, Material::Md(_)) {
-                return Err(loc.err(&key, id, format!("point {id} belongs to body `{name}` (law {}), which has no MD box; {md_ids}", body.material.law())));
+                return Err(loc.err(
+                    &key,
+                    id,
+                    format!("point {id} belongs to body `{name}` (law {}), which has no MD box; {md_ids}", body.material.law()),
+                ));
             }
             if !seen.insert(id) {
                 return Err(loc.err(&key, id, "listed twice"));
@@ -1028,7 +1173,11 @@ impl Scene {
             if let Material::Md(m) = &b.material {
                 match &step {
                     Some((first, fs)) if *fs != m.timestep_fs => {
-                        return Err(loc.err(&format!("bodies.{name}.material.timestep_fs"), m.timestep_fs, format!("every md body must use the same MD time step; body `{first}` uses {fs} fs")));
+                        return Err(loc.err(
+                            &format!("bodies.{name}.material.timestep_fs"),
+                            m.timestep_fs,
+                            format!("every md body must use the same MD time step; body `{first}` uses {fs} fs"),
+                        ));
                     }
                     Some(_) => {}
                     None => step = Some((name.clone(), m.timestep_fs)),
@@ -1040,14 +1189,25 @@ impl Scene {
 
     /// A continuum step is a whole number of MD steps: a step from `cfl` is rounded down to
     /// one; a given `timestep` must be one.
-    fn fit_to_md_step(&mut self, loc: &Locator<'_>, dt: f64, md_step: f64, user_timestep: bool, speed: f64) -> Result<(f64, u64), SceneError> {
+    fn fit_to_md_step(
+        &mut self,
+        loc: &Locator<'_>,
+        dt: f64,
+        md_step: f64,
+        user_timestep: bool,
+        speed: f64,
+    ) -> Result<(f64, u64), SceneError> {
         let n = dt / md_step;
         let whole = (n + 1e-9).floor();
         if whole < 1.0 {
             return Err(loc.err("scheme.timestep", dt, format!("the continuum step is shorter than one MD step ({md_step:e} s)")));
         }
         if user_timestep && (n - n.round()).abs() > 1e-6 * n {
-            return Err(loc.err("scheme.timestep", dt, format!("must be a whole number of MD steps ({md_step:e} s); e.g. {:e} s", whole * md_step)));
+            return Err(loc.err(
+                "scheme.timestep",
+                dt,
+                format!("must be a whole number of MD steps ({md_step:e} s); e.g. {:e} s", whole * md_step),
+            ));
         }
         let dt = if user_timestep { n.round() * md_step } else { whole * md_step };
         let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);

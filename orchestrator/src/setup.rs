@@ -5,9 +5,9 @@ use crate::scene::{Body, FaceSpec, Material, Scene, Shape};
 use continuum::closure::{IdealGasIsothermal, LinearElastic, NeoHookean};
 use continuum::solver::{TimeIntegrator, Viscosity};
 use continuum::tensor::IDENTITY;
+use continuum::{Closure, Face, Grid, Particles, SchemeKind, Simulation};
 use coupling::{MdClosure, MdSettings, MdShared};
 use std::sync::{Arc, Mutex};
-use continuum::{Closure, Face, Grid, Particles, SchemeKind, Simulation};
 
 /// Why a validated scene still cannot be built in this build.
 #[derive(Debug, thiserror::Error)]
@@ -63,18 +63,37 @@ fn inside<const D: usize>(body: &Body, x: &[f64; D]) -> bool {
     }
 }
 
-fn closure(body: &Body, name: &str, points: std::ops::Range<usize>, md: Option<&Arc<Mutex<MdShared>>>) -> Result<Box<dyn Closure>, SetupError> {
+fn closure(
+    body: &Body,
+    name: &str,
+    points: std::ops::Range<usize>,
+    md: Option<&Arc<Mutex<MdShared>>>,
+) -> Result<Box<dyn Closure>, SetupError> {
     Ok(match &body.material {
         Material::IdealGasIsothermal(g) => Box::new(IdealGasIsothermal { sound_speed: g.sound_speed }),
-        Material::LinearElastic(e) => Box::new(LinearElastic { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio, density0: body.density }),
-        Material::NeoHookean(e) => Box::new(NeoHookean { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio, density0: body.density }),
+        Material::LinearElastic(e) => {
+            Box::new(LinearElastic { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio, density0: body.density })
+        }
+        Material::NeoHookean(e) => {
+            Box::new(NeoHookean { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio, density0: body.density })
+        }
         Material::Md(m) => {
             let shared = md.ok_or_else(|| SetupError::MdUnavailable(name.to_string()))?;
             let md_err = |e: String| SetupError::Md(name.to_string(), e);
-            let specs = points.map(|p| crate::md::box_spec(p as u64, body, m)).collect::<anyhow::Result<Vec<_>>>().map_err(|e| md_err(format!("{e:#}")))?;
-            let props = crate::md::lattice_properties(&m.potential, &m.lattice, m.lattice_constant_angstrom, md_worker::Orientation(m.orientation)).map_err(|e| md_err(format!("{e:#}")))?;
+            let specs = points
+                .map(|p| crate::md::box_spec(p as u64, body, m))
+                .collect::<anyhow::Result<Vec<_>>>()
+                .map_err(|e| md_err(format!("{e:#}")))?;
+            let props =
+                crate::md::lattice_properties(&m.potential, &m.lattice, m.lattice_constant_angstrom, md_worker::Orientation(m.orientation))
+                    .map_err(|e| md_err(format!("{e:#}")))?;
             let stress_sampling = m.stress_sampling.parse().map_err(|e: md_worker::MdError| md_err(e.to_string()))?;
-            let settings = MdSettings { dt_ps: m.timestep_fs * 1e-3, energy_consistency: m.energy_consistency, wave_speed: props.wave_speed, stress_sampling };
+            let settings = MdSettings {
+                dt_ps: m.timestep_fs * 1e-3,
+                energy_consistency: m.energy_consistency,
+                wave_speed: props.wave_speed,
+                stress_sampling,
+            };
             Box::new(MdClosure::open(shared.clone(), settings, &specs).map_err(|e| md_err(e.to_string()))?)
         }
     })

@@ -84,7 +84,8 @@ fn run_writes_every_output() {
         assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
     }
     // No temporary file is left behind by the atomic writes.
-    let leftovers: Vec<_> = walk(&out).into_iter().filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().contains(".tmp"))).collect();
+    let leftovers: Vec<_> =
+        walk(&out).into_iter().filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().contains(".tmp"))).collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }
 
@@ -166,7 +167,17 @@ fn a_run_stopped_by_the_guard_exits_1_and_keeps_its_outputs() {
 fn report_error_vs_time_runs_every_combination() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("rep");
-    let o = mscale(&["report", "error-vs-time", &small(), "--sweep", "scheme.method=mpm,ugimp", "--sweep", "scheme.particles_per_cell=2,4", "--out", out.to_str().expect("utf8")]);
+    let o = mscale(&[
+        "report",
+        "error-vs-time",
+        &small(),
+        "--sweep",
+        "scheme.method=mpm,ugimp",
+        "--sweep",
+        "scheme.particles_per_cell=2,4",
+        "--out",
+        out.to_str().expect("utf8"),
+    ]);
     assert_eq!(o.status.code(), Some(0), "stderr: {}", text(&o.stderr));
     let csv = std::fs::read_to_string(out.join("report.csv")).expect("report.csv");
     let rows: Vec<Vec<&str>> = csv.lines().map(|l| l.split(',').collect()).collect();
@@ -199,8 +210,13 @@ fn report_scores_against_a_direct_md_reference() {
     let (scene, reference) = (scene.to_str().expect("utf8"), reference.to_str().expect("utf8"));
     let args = |extra: &[&str], dir: &str| -> Vec<String> {
         // The twin as this test was written for: dhakal, the interface at 51.11 nm.
-        let pinned = ["--set", "scheme.integrator=dhakal", "--set", "bodies.compressed.max=[51.11e-9]", "--set", "bodies.relaxed.min=[51.11e-9]"];
-        let mut a: Vec<String> = ["report", "error-vs-time", scene, "--set", "scheme.timestep=0.05e-12", "--sweep", "domain.cells=[60]"].iter().chain(&pinned).map(|s| s.to_string()).collect();
+        let pinned =
+            ["--set", "scheme.integrator=dhakal", "--set", "bodies.compressed.max=[51.11e-9]", "--set", "bodies.relaxed.min=[51.11e-9]"];
+        let mut a: Vec<String> = ["report", "error-vs-time", scene, "--set", "scheme.timestep=0.05e-12", "--sweep", "domain.cells=[60]"]
+            .iter()
+            .chain(&pinned)
+            .map(|s| s.to_string())
+            .collect();
         a.extend(extra.iter().map(|s| s.to_string()));
         a.extend(["--out".to_string(), out.join(dir).to_str().expect("utf8").to_string()]);
         a
@@ -226,7 +242,10 @@ fn report_scores_against_a_direct_md_reference() {
     // Refused before anything runs, with the reason.
     for (extra, needle) in [
         (vec!["--reference", reference, "--reference-times", "7.25"], "no rows at t = 7.25 ps"),
-        (vec!["--reference", reference, "--reference-times", "5", "--set", "scheme.timestep=0.3e-12"], "not a whole number of continuum steps"),
+        (
+            vec!["--reference", reference, "--reference-times", "5", "--set", "scheme.timestep=0.3e-12"],
+            "not a whole number of continuum steps",
+        ),
         (vec!["--reference", reference, "--reference-times", "10", "--set", "scheme.end_time=8e-12"], "after the end time"),
         (vec!["--reference", "/nonexistent.csv", "--reference-times", "5"], "/nonexistent.csv"),
         (vec!["--reference-times", "5"], "--reference"),
@@ -258,11 +277,13 @@ fn a_run_with_a_direct_md_reference_scores_itself() {
         "output.vtk=false",
         "output.plots=false",
     ];
-    let mut args: Vec<String> = vec!["run".into(), scene.to_str().expect("utf8").into(), "--out".into(), out.to_str().expect("utf8").into()];
+    let mut args: Vec<String> =
+        vec!["run".into(), scene.to_str().expect("utf8").into(), "--out".into(), out.to_str().expect("utf8").into()];
     for s in sets {
         args.extend(["--set".to_string(), s.to_string()]);
     }
-    let o = Command::new(env!("CARGO_BIN_EXE_mscale")).args(&args).current_dir(repo()).env("RUST_LOG", "info").output().expect("run mscale");
+    let o =
+        Command::new(env!("CARGO_BIN_EXE_mscale")).args(&args).current_dir(repo()).env("RUST_LOG", "info").output().expect("run mscale");
     assert_eq!(o.status.code(), Some(0), "stderr: {}", text(&o.stderr));
     let s = summary(&out);
     let e = &s["errors"];
@@ -286,7 +307,12 @@ fn a_run_with_a_direct_md_reference_scores_itself() {
     // The last log line carries the errors.
     let log = text(&o.stderr);
     let last = log.lines().last().expect("a log line");
-    assert!(last.contains("eq. 7.12 error of sxx against direct MD") && last.contains(&format!("{:.2} % at 5 ps", 100.0 * e5)) && last.contains(&format!("{:.2} % at 10 ps", 100.0 * e10)), "{last}");
+    assert!(
+        last.contains("eq. 7.12 error of sxx against direct MD")
+            && last.contains(&format!("{:.2} % at 5 ps", 100.0 * e5))
+            && last.contains(&format!("{:.2} % at 10 ps", 100.0 * e10)),
+        "{last}"
+    );
     // The resolved scene reads back with its reference (the profile made absolute).
     let o = mscale(&["check", out.join("scene.resolved.toml").to_str().expect("utf8")]);
     assert_eq!(o.status.code(), Some(0), "{}", text(&o.stderr));

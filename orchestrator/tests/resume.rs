@@ -28,7 +28,9 @@ fn summary(dir: &Path) -> Value {
 }
 
 fn checkpoints(dir: &Path) -> Vec<PathBuf> {
-    let mut v: Vec<PathBuf> = std::fs::read_dir(dir.join("checkpoints")).map(|r| r.flatten().map(|e| e.path()).filter(|p| p.extension().is_some_and(|e| e == "ckpt")).collect()).unwrap_or_default();
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir.join("checkpoints"))
+        .map(|r| r.flatten().map(|e| e.path()).filter(|p| p.extension().is_some_and(|e| e == "ckpt")).collect())
+        .unwrap_or_default();
     v.sort();
     v
 }
@@ -71,7 +73,9 @@ fn resume_matches(scene: &str, sets: &[&str], every: &str) -> Value {
         }
         a
     };
-    let args = |dir: &Path, extra: &[&str]| with_sets(["run", scene, "--out", dir.to_str().unwrap()].iter().chain(extra).map(|s| s.to_string()).collect());
+    let args = |dir: &Path, extra: &[&str]| {
+        with_sets(["run", scene, "--out", dir.to_str().unwrap()].iter().chain(extra).map(|s| s.to_string()).collect())
+    };
     let run = |a: Vec<String>| ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
     run(args(&straight, &[]));
     let reference = summary(&straight);

@@ -35,7 +35,18 @@ impl Server {
 
     fn start_on(state: &Path, token_file: &Path, log: &Path, listen: &str) -> Server {
         let mut cmd = Command::new(bin());
-        cmd.args(["serve", "--state", state.to_str().unwrap(), "--listen", listen, "--token-file", token_file.to_str().unwrap(), "--checkpoint-every", "100"]).env("RUST_LOG", "info");
+        cmd.args([
+            "serve",
+            "--state",
+            state.to_str().unwrap(),
+            "--listen",
+            listen,
+            "--token-file",
+            token_file.to_str().unwrap(),
+            "--checkpoint-every",
+            "100",
+        ])
+        .env("RUST_LOG", "info");
         let Listening { proc, addr } = Listening::start(&mut cmd, "mscale serve: listening on ", Some(log));
         Server { proc, addr }
     }
@@ -97,13 +108,18 @@ fn contiguous_events(o: &Output) -> (Vec<Event>, String) {
     let mut events = Vec::new();
     for l in stdout.lines().filter(|l| l.starts_with("event ")) {
         let f: Vec<&str> = l.splitn(7, ' ').collect();
-        let seq = f[1].parse::<u64>().unwrap_or_else(|_| panic!("event line {l:?} has no plain sequence number (events not retained?): {}", text(o)));
+        let seq = f[1]
+            .parse::<u64>()
+            .unwrap_or_else(|_| panic!("event line {l:?} has no plain sequence number (events not retained?): {}", text(o)));
         events.push((seq, f[2].to_string(), f[3].to_string(), f.get(6).map(|m| m.trim().to_string()).unwrap_or_default()));
     }
     let seqs: Vec<u64> = events.iter().map(|e| e.0).collect();
     assert_eq!(seqs, (1..=seqs.len() as u64).collect::<Vec<_>>(), "events not numbered 1..n without gaps: {}", text(o));
     let last = events.last().unwrap_or_else(|| panic!("no events: {}", text(o)));
-    assert!(["completed", "failed", "cancelled"].contains(&last.2.as_str()) && last.1 == "state", "the last event is not a final state: {last:?}");
+    assert!(
+        ["completed", "failed", "cancelled"].contains(&last.2.as_str()) && last.1 == "state",
+        "the last event is not a final state: {last:?}"
+    );
     assert_eq!((events[0].1.as_str(), events[0].2.as_str(), events[0].3.as_str()), ("state", "queued", "submitted"), "{}", text(o));
     let status = stdout.lines().rfind(|l| !l.starts_with("event ")).unwrap_or_default().to_string();
     (events, status)
@@ -127,7 +143,12 @@ fn files_under(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
 }
 
 fn digest_of(status_line: &str) -> String {
-    status_line.split("digest ").nth(1).and_then(|s| s.split_whitespace().next()).unwrap_or_else(|| panic!("no digest in {status_line:?}")).to_string()
+    status_line
+        .split("digest ")
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .unwrap_or_else(|| panic!("no digest in {status_line:?}"))
+        .to_string()
 }
 
 #[test]
@@ -174,7 +195,8 @@ fn submitted_jobs_end_with_the_digest_of_mscale_run() {
 
     // Watching again from a sequence number gets the events after it, the same ones; beyond
     // the newest is refused.
-    let job = String::from_utf8_lossy(&server.client(&["status"]).stdout).lines().next().unwrap().split_whitespace().next().unwrap().to_string();
+    let job =
+        String::from_utf8_lossy(&server.client(&["status"]).stdout).lines().next().unwrap().split_whitespace().next().unwrap().to_string();
     let mut c = orchestrator::client::Client::connect(&server.addr, None).unwrap();
     let mut all = Vec::new();
     let last = c.watch(&job, |e| all.push(e.clone())).unwrap();
@@ -230,7 +252,8 @@ fn wait_for_checkpoint(state: &Path, job: &str) {
     let dir = state.join("jobs").join(job).join("run/checkpoints");
     let start = Instant::now();
     // Only finished checkpoints count, not the temporary file of one being written.
-    let done = || std::fs::read_dir(&dir).map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".ckpt")).count()).unwrap_or(0);
+    let done =
+        || std::fs::read_dir(&dir).map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".ckpt")).count()).unwrap_or(0);
     while done() == 0 {
         assert!(start.elapsed() < Duration::from_secs(120), "no checkpoint of job {job} after 120 s");
         std::thread::sleep(Duration::from_millis(10));
@@ -255,7 +278,11 @@ fn a_job_survives_the_orchestrator_killed_mid_run() {
     assert!(line.contains("resumed 1x"), "{line}");
     // Every state change and checkpoint before the kill is there, then the restart.
     let states: Vec<(&str, &str)> = events.iter().filter(|e| e.1 == "state").map(|e| (e.2.as_str(), e.3.as_str())).collect();
-    assert_eq!(states[..3], [("queued", "submitted"), ("running", "started"), ("queued", "the orchestrator restarted; resumes from its last checkpoint")], "{states:?}");
+    assert_eq!(
+        states[..3],
+        [("queued", "submitted"), ("running", "started"), ("queued", "the orchestrator restarted; resumes from its last checkpoint")],
+        "{states:?}"
+    );
     assert_eq!(states[3..], [("running", "resumed"), ("completed", "")], "{states:?}");
     assert!(events.iter().any(|e| e.1 == "checkpoint"), "no checkpoint event: {events:?}");
     assert!(server.log().contains("resuming small at step"), "the job did not resume from a checkpoint:\n{}", server.log());
@@ -318,7 +345,13 @@ struct Watcher {
 
 impl Watcher {
     fn start(server: &Server, job: &str, extra: &[&str]) -> Watcher {
-        let mut child = Command::new(bin()).args(["watch", job, "--events", "--server", &server.addr]).args(extra).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+        let mut child = Command::new(bin())
+            .args(["watch", job, "--events", "--server", &server.addr])
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
         let mut out = BufReader::new(child.stdout.take().unwrap());
         let mut first = String::new();
         out.read_line(&mut first).unwrap();
@@ -380,7 +413,15 @@ fn sigterm_stops_the_orchestrator_with_a_checkpoint_and_the_job_resumes() {
 fn a_non_loopback_listen_address_is_refused_without_tls() {
     let (tmp, token) = setup();
     let o = Command::new(bin())
-        .args(["serve", "--state", tmp.path().join("state").to_str().unwrap(), "--listen", "0.0.0.0:0", "--token-file", token.to_str().unwrap()])
+        .args([
+            "serve",
+            "--state",
+            tmp.path().join("state").to_str().unwrap(),
+            "--listen",
+            "0.0.0.0:0",
+            "--token-file",
+            token.to_str().unwrap(),
+        ])
         .output()
         .unwrap();
     assert_eq!(o.status.code(), Some(1), "{}", text(&o));
@@ -393,10 +434,40 @@ fn certificates(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
         let o = Command::new("openssl").args(args).current_dir(dir).output().expect("openssl is needed for the TLS test");
         assert!(o.status.success(), "openssl {args:?}: {}", text(&o));
     };
-    run(&["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=mscale test CA"]);
+    run(&[
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=mscale test CA",
+    ]);
     run(&["req", "-newkey", "rsa:2048", "-nodes", "-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=localhost"]);
     std::fs::write(dir.join("san.ext"), "subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n").unwrap();
-    run(&["x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out", "server.pem", "-days", "2", "-extfile", "san.ext"]);
+    run(&[
+        "x509",
+        "-req",
+        "-in",
+        "server.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-out",
+        "server.pem",
+        "-days",
+        "2",
+        "-extfile",
+        "san.ext",
+    ]);
     (dir.join("ca.pem"), dir.join("server.pem"), dir.join("server.key"))
 }
 
@@ -406,8 +477,16 @@ fn tls_serves_clients_that_trust_its_authority() {
     let (ca, cert, key) = certificates(tmp.path());
     let log = tmp.path().join("serve.log");
     let mut cmd = Command::new(bin());
-    cmd.args(["serve", "--state", tmp.path().join("state").to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token.to_str().unwrap()])
-        .args(["--tls-cert", cert.to_str().unwrap(), "--tls-key", key.to_str().unwrap()]);
+    cmd.args([
+        "serve",
+        "--state",
+        tmp.path().join("state").to_str().unwrap(),
+        "--listen",
+        "127.0.0.1:0",
+        "--token-file",
+        token.to_str().unwrap(),
+    ])
+    .args(["--tls-cert", cert.to_str().unwrap(), "--tls-key", key.to_str().unwrap()]);
     let Listening { proc, addr } = Listening::start(&mut cmd, "mscale serve: listening on ", Some(&log));
     let server = Server { proc, addr };
     let with_ca = |args: &[&str]| server.client(&[args, &["--ca-file", ca.to_str().unwrap()]].concat());

@@ -5,7 +5,7 @@
 //!
 //! Runs are shared between tests through a cache (one run per configuration per process).
 
-use continuum::exact::{pressure_errors, spike_measure, IsothermalRiemann, State};
+use continuum::exact::{IsothermalRiemann, State, pressure_errors, spike_measure};
 use orchestrator::scene::{self, Material};
 use std::collections::HashMap;
 use std::path::Path;
@@ -47,7 +47,9 @@ fn run_uncached(scene_file: &str, sets: &[&str]) -> Outcome {
             break;
         }
     }
-    let Some(orchestrator::scene::Reference::IsothermalRiemann(r)) = sc.reference.as_ref() else { panic!("the scene names no isothermal-riemann reference") };
+    let Some(orchestrator::scene::Reference::IsothermalRiemann(r)) = sc.reference.as_ref() else {
+        panic!("the scene names no isothermal-riemann reference")
+    };
     let state = |name: &str| {
         let b = &sc.bodies[name];
         let Material::IdealGasIsothermal(g) = &b.material else { panic!("gas") };
@@ -78,7 +80,10 @@ fn weak(method: &str, ppc: usize, sub: usize, viscosity: &str) -> Outcome {
     ];
     let refs: Vec<&str> = sets.iter().map(String::as_str).collect();
     let o = run(WEAK, &refs);
-    eprintln!("weak {method} {ppc} x {sub} {viscosity}: L1 {:.4e} spike {:.4e} (away from the contact {:.4e}) {:?}", o.l1, o.spike, o.spike_away, o.failure);
+    eprintln!(
+        "weak {method} {ppc} x {sub} {viscosity}: L1 {:.4e} spike {:.4e} (away from the contact {:.4e}) {:?}",
+        o.l1, o.spike, o.spike_away, o.failure
+    );
     o
 }
 
@@ -95,7 +100,12 @@ fn test1_mpm_fails_where_every_other_method_works() {
     let worst_other = others.iter().map(|o| o.1).fold(0.0, f64::max);
     for viscosity in ["linear", "none"] {
         let mpm = weak("mpm", 8, 1, viscosity);
-        assert!(mpm.l1 >= 5.0 * worst_other, "mpm ({viscosity}) L1 {:.4e} is not 5x the worst other method's {:.4e}: {others:?}", mpm.l1, worst_other);
+        assert!(
+            mpm.l1 >= 5.0 * worst_other,
+            "mpm ({viscosity}) L1 {:.4e} is not 5x the worst other method's {:.4e}: {others:?}",
+            mpm.l1,
+            worst_other
+        );
     }
 }
 

@@ -44,7 +44,9 @@ struct Server {
 impl Server {
     fn start(state: &Path, token_file: &Path, log: &Path, extra: &[&str]) -> Server {
         let mut cmd = Command::new(bin());
-        cmd.args(["serve", "--state", state.to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token_file.to_str().unwrap()]).args(extra).env("RUST_LOG", "info");
+        cmd.args(["serve", "--state", state.to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token_file.to_str().unwrap()])
+            .args(extra)
+            .env("RUST_LOG", "info");
         let Listening { proc, addr } = Listening::start(&mut cmd, "mscale serve: listening on ", Some(log));
         Server { proc, addr }
     }
@@ -61,7 +63,8 @@ impl Server {
     fn wait_live(&self, n: usize) -> Vec<pb::Worker> {
         let start = Instant::now();
         loop {
-            let live: Vec<pb::Worker> = self.client(false).workers().unwrap().into_iter().filter(|w| w.state == pb::WorkerState::Live as i32).collect();
+            let live: Vec<pb::Worker> =
+                self.client(false).workers().unwrap().into_iter().filter(|w| w.state == pb::WorkerState::Live as i32).collect();
             if live.len() >= n {
                 return live;
             }
@@ -117,7 +120,8 @@ fn watch(server: &Server, job: &str) -> Vec<pb::JobEvent> {
 
 fn wait_for_checkpoint(state: &Path, job: &str) {
     let dir = state.join("jobs").join(job).join("run/checkpoints");
-    let done = || std::fs::read_dir(&dir).map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".ckpt")).count()).unwrap_or(0);
+    let done =
+        || std::fs::read_dir(&dir).map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".ckpt")).count()).unwrap_or(0);
     mscale_testkit::wait_until(&format!("a checkpoint of job {job}"), Duration::from_secs(120), || done() > 0);
 }
 
@@ -133,7 +137,10 @@ fn local_workers_take_a_job_spread_by_throughput_and_die_with_the_orchestrator()
     let workers = server.wait_live(2);
     for w in &workers {
         assert!(w.atom_steps_per_s > 0.0 && w.throughput_source.starts_with("measured"), "{w:?}");
-        assert_eq!((w.backend.as_str(), w.precision.as_str(), w.protocol_version), ("cpu", "double", mscale_proto::COUPLING_PROTOCOL_VERSION));
+        assert_eq!(
+            (w.backend.as_str(), w.precision.as_str(), w.protocol_version),
+            ("cpu", "double", mscale_proto::COUPLING_PROTOCOL_VERSION)
+        );
     }
     let job = server.submit(&token, &[], 0);
     let events = watch(&server, &job);
@@ -150,7 +157,10 @@ fn local_workers_take_a_job_spread_by_throughput_and_die_with_the_orchestrator()
     let weights: Vec<f64> = seen.workers.iter().map(|w| w.advertised_atom_steps_per_s).collect();
     let expected: Vec<u32> = md_worker::pool::proportional_blocks(6, &weights).into_iter().map(|b| b as u32).collect();
     assert_eq!(boxes, expected, "{seen:?}");
-    assert!(seen.workers.iter().all(|w| w.state == pb::WorkerState::Live as i32 && (w.boxes == 0 || w.measured_atom_steps_per_s > 0.0)), "{seen:?}");
+    assert!(
+        seen.workers.iter().all(|w| w.state == pb::WorkerState::Live as i32 && (w.boxes == 0 || w.measured_atom_steps_per_s > 0.0)),
+        "{seen:?}"
+    );
 
     // SIGKILL of the orchestrator takes its local workers along (PR_SET_PDEATHSIG).
     server.proc.child.kill().unwrap();
@@ -203,14 +213,21 @@ fn a_worker_killed_mid_job_is_replaced_from_the_checkpoint_and_without_survivors
     let last = watch(&server, &job).pop().unwrap();
     assert_eq!(last.state, pb::JobState::Failed as i32, "{last:?}");
     let j = server.client(false).get(&job).unwrap();
-    assert!(j.error.contains(&format!("worker {survivor} at")) && j.error.contains("was lost at step") && j.error.contains("no live worker of back end cpu/double"), "{}", j.error);
+    assert!(
+        j.error.contains(&format!("worker {survivor} at"))
+            && j.error.contains("was lost at step")
+            && j.error.contains("no live worker of back end cpu/double"),
+        "{}",
+        j.error
+    );
 }
 
 /// Checks the job's summary.json: one lost worker (at `lost_addr`), whose boxes (fewer than
 /// all 16) alone were restored, on `survivor` (its log shows one restore, of exactly those),
 /// and replayed from the checkpoint up to the step of the loss. Returns how many boxes.
 fn only_the_lost_boxes_were_replayed(state: &Path, job: &str, lost_addr: &str, survivor: &Proc) -> usize {
-    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(state.join("jobs").join(job).join("run/summary.json")).unwrap()).unwrap();
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(state.join("jobs").join(job).join("run/summary.json")).unwrap()).unwrap();
     let rec = &summary["md_recovery"];
     assert_eq!(rec["lost_workers"], 1, "{rec}");
     let ev = &rec["events"][0];
@@ -256,7 +273,8 @@ fn a_frozen_worker_is_lost_past_the_step_deadline_or_the_heartbeat_timeout_and_o
         let workers = server.client(false).workers().unwrap();
         let lost: Vec<&pb::Worker> = workers.iter().filter(|w| w.state == pb::WorkerState::Lost as i32).collect();
         assert_eq!(lost.len(), 1, "{name}: {workers:?}");
-        let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(state.join("jobs").join(&job).join("run/summary.json")).unwrap()).unwrap();
+        let summary: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(state.join("jobs").join(&job).join("run/summary.json")).unwrap()).unwrap();
         assert!(summary["md_recovery"]["events"][0]["why"].as_str().unwrap().contains(why), "{name}: {}", summary["md_recovery"]);
         assert!(!log.contains("rolling back") && !log.contains("resuming"), "{name}: {log}");
         only_the_lost_boxes_were_replayed(&state, &job, &lost[0].address, &b);
@@ -285,7 +303,10 @@ fn registration_needs_the_token_and_the_same_protocol_version() {
     assert!(e.message().contains("RegisterWorker needs a bearer token"), "{e:?}");
     let e = server.client(true).register_worker(req(ours + 1)).unwrap_err();
     assert_eq!(e.code(), tonic::Code::FailedPrecondition, "{e:?}");
-    assert!(e.message().contains(&format!("version {}", ours + 1)) && e.message().contains(&format!("version {ours}")), "both versions named: {e:?}");
+    assert!(
+        e.message().contains(&format!("version {}", ours + 1)) && e.message().contains(&format!("version {ours}")),
+        "both versions named: {e:?}"
+    );
     let ok = server.client(true).register_worker(req(ours)).unwrap();
     let hb = |version: u32| pb::HeartbeatRequest { worker_id: ok.worker_id.clone(), epoch: ok.epoch, protocol_version: version };
     assert_eq!(server.client(false).heartbeat(hb(ours)).unwrap_err().code(), tonic::Code::Unauthenticated);
@@ -298,7 +319,21 @@ fn registration_needs_the_token_and_the_same_protocol_version() {
     let wrong = tmp.path().join("wrong");
     std::fs::write(&wrong, "not-the-token").unwrap();
     let o = Command::new(md_worker())
-        .args(["serve", "--listen", "127.0.0.1:0", "--device", "cpu", "--threads", "1", "--throughput", "1e6", "--orchestrator", &format!("http://{}", server.addr), "--token-file", wrong.to_str().unwrap()])
+        .args([
+            "serve",
+            "--listen",
+            "127.0.0.1:0",
+            "--device",
+            "cpu",
+            "--threads",
+            "1",
+            "--throughput",
+            "1e6",
+            "--orchestrator",
+            &format!("http://{}", server.addr),
+            "--token-file",
+            wrong.to_str().unwrap(),
+        ])
         .stdout(Stdio::null())
         .output()
         .unwrap();

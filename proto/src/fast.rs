@@ -14,9 +14,11 @@
 //! A repeated double keeps at most the values the protocol defines (9, 6 or 3) and counts
 //! them all, so the receiver can still refuse a wrong count naming the field.
 
-use prost::bytes::{Buf, BufMut};
-use prost::encoding::{DecodeContext, WireType, check_wire_type, decode_key, decode_varint, encode_key, encode_varint, encoded_len_varint, key_len, skip_field};
 use prost::DecodeError;
+use prost::bytes::{Buf, BufMut};
+use prost::encoding::{
+    DecodeContext, WireType, check_wire_type, decode_key, decode_varint, encode_key, encode_varint, encoded_len_varint, key_len, skip_field,
+};
 
 /// A repeated double of at most `N` kept values and the count seen on the wire.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -304,7 +306,12 @@ fn put_items<M: prost::Message>(tag: u32, items: &[M], buf: &mut impl BufMut) {
 /// (always, for tonic's decode buffer) it is parsed from a plain slice, which is much cheaper
 /// to read from than a `BytesMut`. The vector is sized from the first item, so it does not grow
 /// by doubling (copying) through a batch.
-fn merge_item<M: prost::Message + Default>(wire_type: WireType, items: &mut Vec<M>, buf: &mut impl Buf, ctx: DecodeContext) -> Result<(), DecodeError> {
+fn merge_item<M: prost::Message + Default>(
+    wire_type: WireType,
+    items: &mut Vec<M>,
+    buf: &mut impl Buf,
+    ctx: DecodeContext,
+) -> Result<(), DecodeError> {
     check_wire_type(WireType::LengthDelimited, wire_type)?;
     let len = decode_varint(buf)?;
     if len > buf.remaining() as u64 {

@@ -59,6 +59,7 @@ where
 {
     let (mut health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<S>().await;
-    let reflection = tonic_reflection::server::Builder::configure().register_encoded_file_descriptor_set(crate::FILE_DESCRIPTOR_SET).build_v1()?;
+    let reflection =
+        tonic_reflection::server::Builder::configure().register_encoded_file_descriptor_set(crate::FILE_DESCRIPTOR_SET).build_v1()?;
     Ok(server.add_service(health_service).add_service(reflection).add_service(service))
 }

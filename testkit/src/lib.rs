@@ -50,7 +50,10 @@ pub fn prebuilt(name: &str, package: &str) -> PathBuf {
     let profile = if dir.ends_with("release") { "--release" } else { "--profile test" };
     let build = format!("cargo build {profile} -p {package} --bin {name}");
     if !path.is_file() {
-        panic!("{} does not exist: build it first with `{build}` (`cargo test --workspace` builds every binary before its tests; MSCALE_BIN_DIR names another directory)", path.display());
+        panic!(
+            "{} does not exist: build it first with `{build}` (`cargo test --workspace` builds every binary before its tests; MSCALE_BIN_DIR names another directory)",
+            path.display()
+        );
     }
     if let Some(newer) = stale_source(&path) {
         panic!("{} is older than its source {}: rebuild it with `{build}` (no test runs cargo itself)", path.display(), newer.display());

@@ -595,7 +595,11 @@ impl<E: Exec> GpuEngine<E> {
             // The MD guard, once per call here (the device loop has none per step): a box
             // that blew up is stopped with its diagnosis, as the CPU back ends stop it.
             let ke_atom = self.kinetic[k] / n.max(1) as f64;
-            if !(d[0].is_finite() && stress_gpa.iter().all(|c| c.is_finite()) && ke_atom <= kernel::MAX_ATOM_KINETIC_EV && [d[13], d[14], d[15]].iter().all(|l| l.is_finite() && *l > 0.0)) {
+            if !(d[0].is_finite()
+                && stress_gpa.iter().all(|c| c.is_finite())
+                && ke_atom <= kernel::MAX_ATOM_KINETIC_EV
+                && [d[13], d[14], d[15]].iter().all(|l| l.is_finite() && *l > 0.0))
+            {
                 return Err(MdError::Diverged {
                     point: item.id,
                     msg: format!(

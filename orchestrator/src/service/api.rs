@@ -154,7 +154,13 @@ mod tests {
     fn errors_become_statuses_with_their_whole_message() {
         let s = Status::from(JobError::NotFound("j1".into()));
         assert_eq!((s.code(), s.message()), (Code::NotFound, "no job \"j1\""));
-        let scene = crate::scene::SceneError { file: "s.toml".into(), location: "line 3".into(), key: "scheme.cfl".into(), value: "3".into(), problem: "must be at most 1".into() };
+        let scene = crate::scene::SceneError {
+            file: "s.toml".into(),
+            location: "line 3".into(),
+            key: "scheme.cfl".into(),
+            value: "3".into(),
+            problem: "must be at most 1".into(),
+        };
         let text = scene.to_string();
         let s = Status::from(JobError::BadScene(scene));
         assert_eq!((s.code(), s.message()), (Code::InvalidArgument, text.as_str()));

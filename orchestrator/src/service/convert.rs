@@ -144,7 +144,9 @@ pub(crate) fn not_retained(id: &str, from: u64, to: u64) -> pb::JobEvent {
         not_retained_from: from,
         kind: pb::JobEventKind::NotRetained as i32,
         eta_s: -1.0,
-        message: format!("events {from} to {to} of job {id} are no longer retained (old progress events are pruned); they cannot be replayed"),
+        message: format!(
+            "events {from} to {to} of job {id} are no longer retained (old progress events are pruned); they cannot be replayed"
+        ),
         ..Default::default()
     }
 }

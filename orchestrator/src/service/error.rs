@@ -15,7 +15,9 @@ pub enum JobError {
     BadScene(#[from] crate::scene::SceneError),
     #[error("file {name:?}: its content hashes to {actual}, not the SHA-256 {sent} it was sent with")]
     BadFile { name: String, actual: String, sent: String },
-    #[error("job {id} has events up to {newest}; after_sequence {after} is beyond them (is this the orchestrator, and state directory, the watch began with?)")]
+    #[error(
+        "job {id} has events up to {newest}; after_sequence {after} is beyond them (is this the orchestrator, and state directory, the watch began with?)"
+    )]
     BeyondEvents { id: String, newest: u64, after: u64 },
     #[error("{0:?} is not a path inside the job's run directory")]
     NotInRun(String),

@@ -116,7 +116,14 @@ impl Core {
 /// Sends a watcher the job's events from `next` on, in order and each once, until the final one:
 /// first from the store, then from the job's channel; whenever the channel lags or shows a
 /// gap, from the store again.
-async fn follow(core: &Arc<Core>, id: &str, mut next: u64, mut rx: broadcast::Receiver<Arc<pb::JobEvent>>, stop: &mut watch::Receiver<bool>, tx: &EventSender) {
+async fn follow(
+    core: &Arc<Core>,
+    id: &str,
+    mut next: u64,
+    mut rx: broadcast::Receiver<Arc<pb::JobEvent>>,
+    stop: &mut watch::Receiver<bool>,
+    tx: &EventSender,
+) {
     let mut catch_up = true;
     loop {
         if catch_up {
@@ -162,7 +169,10 @@ async fn follow(core: &Arc<Core>, id: &str, mut next: u64, mut rx: broadcast::Re
 async fn replay(core: &Arc<Core>, id: &str, next: &mut u64, tx: &EventSender) -> Result<bool, JobError> {
     loop {
         let (c, job, after) = (core.clone(), id.to_string(), *next - 1);
-        let events = tokio::task::spawn_blocking(move || lock(&c.store).events_after(&job, after, REPLAY_BATCH).map_err(|e| e.context(format!("job {job}: cannot read its events")))).await??;
+        let events = tokio::task::spawn_blocking(move || {
+            lock(&c.store).events_after(&job, after, REPLAY_BATCH).map_err(|e| e.context(format!("job {job}: cannot read its events")))
+        })
+        .await??;
         for e in &events {
             if e.seq > *next && tx.send(Ok(not_retained(id, *next, e.seq - 1))).await.is_err() {
                 return Ok(true);
@@ -180,9 +190,9 @@ async fn replay(core: &Arc<Core>, id: &str, next: &mut u64, tx: &EventSender) ->
 
 #[cfg(test)]
 mod tests {
+    use super::super::store::Store;
     use super::super::store::test_job;
     use super::super::workers::Registry;
-    use super::super::store::Store;
     use super::*;
     use std::time::Duration;
 

@@ -1,9 +1,9 @@
 //! Reads of a job's run directory (FetchResult, FetchRun): never outside it, never through a
 //! link.
 
+use super::MAX_MESSAGE;
 use super::error::JobError;
 use super::shared::Core;
-use super::MAX_MESSAGE;
 use sha2::{Digest, Sha256};
 use std::path::{Component, Path, PathBuf};
 

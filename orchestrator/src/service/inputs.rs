@@ -61,7 +61,8 @@ fn stored_name(f: &InputFile) -> String {
 /// `mscale check` prints.
 fn prepare_inputs(dir: &Path, sub: &Submission) -> Result<scene::LoadedScene, JobError> {
     let input = dir.join("input");
-    std::fs::create_dir_all(input.join("files")).map_err(|source| JobError::Io { what: format!("cannot create {}", input.display()), source })?;
+    std::fs::create_dir_all(input.join("files"))
+        .map_err(|source| JobError::Io { what: format!("cannot create {}", input.display()), source })?;
     let mut renames = HashMap::new();
     for f in &sub.files {
         let actual = hex::encode(Sha256::digest(&f.content));

@@ -60,7 +60,13 @@ enum Attempt {
 fn run_job(core: &Arc<Core>, job: JobRecord) {
     let id = job.id.clone();
     let flags = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)));
-    *lock(&core.running) = Some(RunningJob { id: id.clone(), stop: flags.0.clone(), user_cancel: flags.1.clone(), reassign: flags.2.clone(), workers: Vec::new() });
+    *lock(&core.running) = Some(RunningJob {
+        id: id.clone(),
+        stop: flags.0.clone(),
+        user_cancel: flags.1.clone(),
+        reassign: flags.2.clone(),
+        workers: Vec::new(),
+    });
     // A job cancelled between being picked and starting stays cancelled and is not run.
     match lock(&core.store).transition(&id, JobState::Running, if job.resumes > 0 { "resumed" } else { "started" }, "") {
         Ok(true) => {}
@@ -122,7 +128,10 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
     loop {
         let assigned = workers::choose(&lock(&core.workers).usable(), kind.as_deref());
         if let (Some(k), true) = (&kind, assigned.is_empty()) {
-            return Attempt::Done(Outcome::Failed(serde_json::Value::Null, format!("no live worker of back end {k} is left to take the job's boxes")));
+            return Attempt::Done(Outcome::Failed(
+                serde_json::Value::Null,
+                format!("no live worker of back end {k} is left to take the job's boxes"),
+            ));
         }
         let epochs: Vec<u64> = assigned.iter().map(|w| w.epoch).collect();
         lock(&core.workers).set_busy(&epochs, id);
@@ -137,7 +146,9 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
         lock(&core.workers).set_busy(&epochs, "");
         let step = last_step.load(Ordering::SeqCst);
         let why = match &result {
-            Attempt::Done(Outcome::Cancelled { step, .. }) if reassign.load(Ordering::SeqCst) && !core.stopping.load(Ordering::SeqCst) && !is_user_cancel(core, id) => {
+            Attempt::Done(Outcome::Cancelled { step, .. })
+                if reassign.load(Ordering::SeqCst) && !core.stopping.load(Ordering::SeqCst) && !is_user_cancel(core, id) =>
+            {
                 reassign.store(false, Ordering::SeqCst);
                 stop.store(false, Ordering::SeqCst);
                 kind = assigned.first().map(WorkerRecord::kind);
@@ -164,7 +175,9 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
         {
             let mut reg = lock(&core.workers);
             for w in &lost {
-                if let Err(e) = reg.declare_lost(&mut lock(&core.store), w.epoch, &format!("stopped answering during step {at} of job {id}")) {
+                if let Err(e) =
+                    reg.declare_lost(&mut lock(&core.store), w.epoch, &format!("stopped answering during step {at} of job {id}"))
+                {
                     tracing::error!("cannot record worker {} as lost: {e:#}", w.id);
                 }
             }
@@ -179,13 +192,18 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
         }
         rollbacks += 1;
         if rollbacks > MAX_ROLLBACKS {
-            return Attempt::Done(Outcome::Failed(serde_json::Value::Null, format!("worker {names} was lost at step {at}; the job lost workers {rollbacks} times and gives up")));
+            return Attempt::Done(Outcome::Failed(
+                serde_json::Value::Null,
+                format!("worker {names} was lost at step {at}; the job lost workers {rollbacks} times and gives up"),
+            ));
         }
         let from = crate::checkpoint::list(&run_dir).ok().and_then(|l| l.first().map(|c| c.0));
         let from = from.map_or("the start (no checkpoint yet)".to_string(), |s| format!("its checkpoint of step {s}"));
         let onto = survivors.iter().map(|w| w.id.as_str()).collect::<Vec<_>>().join(", ");
         core.note(id, &format!("worker {names} was lost at step {at}; rolled back to {from} onto {onto}"));
-        tracing::warn!("job {id}: worker {names} was lost at step {at} ({why}); its boxes could not be replayed alone, so the whole job is rolling back to {from} onto {onto}");
+        tracing::warn!(
+            "job {id}: worker {names} was lost at step {at} ({why}); its boxes could not be replayed alone, so the whole job is rolling back to {from} onto {onto}"
+        );
         kind = Some(k);
     }
 }
@@ -216,7 +234,15 @@ fn job_workers(core: &Core, assigned: &[WorkerRecord], md: Option<&Arc<Mutex<MdS
 }
 
 /// One run of a job on `assigned` (in-process when empty), from its newest checkpoint if any.
-fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_dir: &Path, assigned: &[WorkerRecord], stop: &Arc<AtomicBool>, last_step: &Arc<AtomicU64>) -> Result<Outcome> {
+fn attempt(
+    core: &Arc<Core>,
+    job: &JobRecord,
+    loaded: &scene::LoadedScene,
+    run_dir: &Path,
+    assigned: &[WorkerRecord],
+    stop: &Arc<AtomicBool>,
+    last_step: &Arc<AtomicU64>,
+) -> Result<Outcome> {
     let id = job.id.clone();
     let mut opts = RunOptions::new(run_dir.to_path_buf(), vec!["mscale".into(), "serve".into(), format!("job {id}")]);
     opts.progress_bar = false;
@@ -237,7 +263,11 @@ fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_d
     opts.on_worker_lost = Some(Arc::new(move |r: &md_worker::recovery::Recovery| {
         if let Some(w) = assigned4.iter().find(|w| w.ad.address == r.worker) {
             let mut reg = lock(&core4.workers);
-            if let Err(e) = reg.declare_lost(&mut lock(&core4.store), w.epoch, &format!("stopped answering during step {} of job {id4}: {}", r.step, r.why)) {
+            if let Err(e) = reg.declare_lost(
+                &mut lock(&core4.store),
+                w.epoch,
+                &format!("stopped answering during step {} of job {id4}: {}", r.step, r.why),
+            ) {
                 tracing::error!("cannot record worker {} as lost: {e:#}", w.id);
             }
         }
@@ -269,7 +299,11 @@ fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_d
         }
         .encode_to_vec();
         lock(&core2.details).insert(id2.clone(), detail.clone());
-        let (kind, message) = if checkpoint { (EventKind::Checkpoint, format!("checkpoint at step {}", p.step)) } else { (EventKind::Progress, String::new()) };
+        let (kind, message) = if checkpoint {
+            (EventKind::Checkpoint, format!("checkpoint at step {}", p.step))
+        } else {
+            (EventKind::Progress, String::new())
+        };
         if let Err(e) = lock(&core2.store).progress_event(&id2, kind, p.step, p.steps, p.time, &message, &detail) {
             tracing::warn!("job {id2}: cannot record progress: {e:#}");
         }
@@ -281,7 +315,11 @@ fn attempt(core: &Arc<Core>, job: &JobRecord, loaded: &scene::LoadedScene, run_d
     if assigned.is_empty() {
         tracing::info!("job {id}: no live workers; MD (if any) runs in this process");
     } else {
-        let shares = assigned.iter().map(|w| format!("{} at {} ({:.3e} atom-steps/s)", w.id, w.ad.address, w.ad.atom_steps_per_s)).collect::<Vec<_>>().join(", ");
+        let shares = assigned
+            .iter()
+            .map(|w| format!("{} at {} ({:.3e} atom-steps/s)", w.id, w.ad.address, w.ad.atom_steps_per_s))
+            .collect::<Vec<_>>()
+            .join(", ");
         tracing::info!("job {id}: on workers {shares}");
     }
     let outcome = run::run(loaded, &opts);

@@ -104,8 +104,19 @@ pub struct PoolOptions {
 
 /// `mscale serve`: reads the token (generating one into the state directory when no file is
 /// given) and the TLS files, then serves until SIGINT/SIGTERM.
-pub fn serve_command(state: PathBuf, listen: String, token_file: Option<PathBuf>, checkpoint_every: u64, tls: Option<(PathBuf, PathBuf)>, pool: PoolOptions) -> Result<i32> {
-    anyhow::ensure!(pool.worker_timeout_s.is_finite() && pool.worker_timeout_s > 0.0, "--worker-timeout {} must be a positive number of seconds", pool.worker_timeout_s);
+pub fn serve_command(
+    state: PathBuf,
+    listen: String,
+    token_file: Option<PathBuf>,
+    checkpoint_every: u64,
+    tls: Option<(PathBuf, PathBuf)>,
+    pool: PoolOptions,
+) -> Result<i32> {
+    anyhow::ensure!(
+        pool.worker_timeout_s.is_finite() && pool.worker_timeout_s > 0.0,
+        "--worker-timeout {} must be a positive number of seconds",
+        pool.worker_timeout_s
+    );
     let token = match &token_file {
         Some(f) => read_token(f)?,
         None => auth::generated_token(&state)?,
@@ -137,37 +148,59 @@ pub fn serve_command(state: PathBuf, listen: String, token_file: Option<PathBuf>
 /// Runs the orchestrator until SIGINT/SIGTERM. Prints `mscale serve: listening on ADDR` on
 /// stdout once it answers calls.
 pub fn serve(opts: ServeOptions) -> Result<()> {
-    let addr: SocketAddr = opts.listen.parse().with_context(|| format!("--listen {:?} is not an address like 127.0.0.1:50100", opts.listen))?;
+    let addr: SocketAddr =
+        opts.listen.parse().with_context(|| format!("--listen {:?} is not an address like 127.0.0.1:50100", opts.listen))?;
     if !addr.ip().is_loopback() && opts.tls.is_none() {
-        bail!("refusing to listen on {addr} without TLS: tokens must not cross a network in clear text; pass --tls-cert and --tls-key, or listen on a loopback address (127.0.0.1 or [::1])");
+        bail!(
+            "refusing to listen on {addr} without TLS: tokens must not cross a network in clear text; pass --tls-cert and --tls-key, or listen on a loopback address (127.0.0.1 or [::1])"
+        );
     }
     let mut store = Store::open(&opts.state_dir)?;
     for id in store.requeue_interrupted()? {
         tracing::info!("job {id} was running when the orchestrator stopped: queued again, resumes from its last checkpoint");
     }
     let registry = Registry::load(&store, opts.worker_timeout)?;
-    let core = Core::new(store, registry, opts.state_dir.clone(), opts.token, opts.checkpoint_every, opts.local_workers, opts.step_deadline);
+    let core =
+        Core::new(store, registry, opts.state_dir.clone(), opts.token, opts.checkpoint_every, opts.local_workers, opts.step_deadline);
     let listener = std::net::TcpListener::bind(addr).with_context(|| format!("cannot listen on {addr}"))?;
     listener.set_nonblocking(true)?;
     let bound = listener.local_addr()?;
     // Started from this (the main) thread: they die with the process (see LocalWorkers), and
     // are killed when `_local` is dropped, after the runner stopped.
     let scheme = if opts.tls.is_some() { "https" } else { "http" };
-    let _local = workers::LocalWorkers::start(opts.local_workers, &format!("{scheme}://{bound}"), &opts.token_file, opts.local_ca.as_deref(), &opts.state_dir.join("workers"))?;
+    let _local = workers::LocalWorkers::start(
+        opts.local_workers,
+        &format!("{scheme}://{bound}"),
+        &opts.token_file,
+        opts.local_ca.as_deref(),
+        &opts.state_dir.join("workers"),
+    )?;
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("cannot start the gRPC runtime")?;
     let runner_core = core.clone();
-    let runner_thread = std::thread::Builder::new().name("job-runner".into()).spawn(move || jobs::runner(runner_core)).context("cannot start the job runner")?;
+    let runner_thread = std::thread::Builder::new()
+        .name("job-runner".into())
+        .spawn(move || jobs::runner(runner_core))
+        .context("cannot start the job runner")?;
     let monitor_core = core.clone();
-    let monitor_thread = std::thread::Builder::new().name("worker-monitor".into()).spawn(move || workers::monitor(monitor_core)).context("cannot start the worker monitor")?;
+    let monitor_thread = std::thread::Builder::new()
+        .name("worker-monitor".into())
+        .spawn(move || workers::monitor(monitor_core))
+        .context("cannot start the worker monitor")?;
     let result = rt.block_on(async {
         let listener = tokio::net::TcpListener::from_std(listener)?;
         let settings = mscale_proto::server::Settings { timeout: Some(Duration::from_secs(60)), ..Default::default() };
         let mut builder = mscale_proto::server::builder(&settings);
         if let Some((cert, key)) = &opts.tls {
-            builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key))).context("bad TLS certificate or key")?;
+            builder = builder
+                .tls_config(tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key)))
+                .context("bad TLS certificate or key")?;
         }
-        let service = OrchestratorServer::new(api::JobService::new(core.clone())).max_decoding_message_size(MAX_MESSAGE).max_encoding_message_size(MAX_MESSAGE);
-        let router = mscale_proto::server::router(&mut builder, service).await.map_err(|e| anyhow::anyhow!("cannot set up the gRPC services: {e}"))?;
+        let service = OrchestratorServer::new(api::JobService::new(core.clone()))
+            .max_decoding_message_size(MAX_MESSAGE)
+            .max_encoding_message_size(MAX_MESSAGE);
+        let router = mscale_proto::server::router(&mut builder, service)
+            .await
+            .map_err(|e| anyhow::anyhow!("cannot set up the gRPC services: {e}"))?;
         let incoming = mscale_proto::server::incoming(listener).map_err(|e| anyhow::anyhow!("listening: {e}"))?;
         println!("mscale serve: listening on {bound}");
         use std::io::Write;

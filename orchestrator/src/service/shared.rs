@@ -66,7 +66,15 @@ pub(crate) struct RunningJob {
 impl Core {
     /// A core over `store` and `registry`, with no job running; `expect_workers` is the number
     /// of local workers jobs wait for.
-    pub(crate) fn new(store: Store, registry: Registry, state_dir: PathBuf, token: String, checkpoint_every: u64, expect_workers: usize, step_deadline: md_worker::recovery::StepDeadline) -> Arc<Core> {
+    pub(crate) fn new(
+        store: Store,
+        registry: Registry,
+        state_dir: PathBuf,
+        token: String,
+        checkpoint_every: u64,
+        expect_workers: usize,
+        step_deadline: md_worker::recovery::StepDeadline,
+    ) -> Arc<Core> {
         Arc::new(Core {
             store: Mutex::new(store),
             state_dir,

@@ -121,9 +121,15 @@ impl Registry {
     /// Keeps a registration alive; returns whether it is draining.
     pub fn heartbeat(&mut self, id: &str, epoch: u64, protocol_version: u32) -> Result<bool, WorkerError> {
         check_version(protocol_version)?;
-        let w = self.workers.get(&epoch).filter(|w| w.id == id).ok_or_else(|| WorkerError::NotFound(format!("no worker {id} (epoch {epoch}) is registered here; register again")))?;
+        let w = self
+            .workers
+            .get(&epoch)
+            .filter(|w| w.id == id)
+            .ok_or_else(|| WorkerError::NotFound(format!("no worker {id} (epoch {epoch}) is registered here; register again")))?;
         match w.state {
-            WorkerState::Lost => Err(WorkerError::NotFound(format!("worker {id} was declared lost ({}); register again, as a new worker", w.note))),
+            WorkerState::Lost => {
+                Err(WorkerError::NotFound(format!("worker {id} was declared lost ({}); register again, as a new worker", w.note)))
+            }
             state => {
                 self.seen.insert(epoch, (Instant::now(), now_unix()));
                 Ok(state == WorkerState::Draining)
@@ -180,7 +186,11 @@ impl Registry {
     pub fn list(&self) -> Vec<WorkerView> {
         self.workers
             .values()
-            .map(|w| WorkerView { record: w.clone(), last_heartbeat: self.seen.get(&w.epoch).map_or(0, |s| s.1), job: self.busy.get(&w.epoch).cloned() })
+            .map(|w| WorkerView {
+                record: w.clone(),
+                last_heartbeat: self.seen.get(&w.epoch).map_or(0, |s| s.1),
+                job: self.busy.get(&w.epoch).cloned(),
+            })
             .collect()
     }
 
@@ -240,7 +250,11 @@ pub struct LocalWorkers {
 pub fn md_worker_program() -> Result<PathBuf> {
     let exe = std::env::current_exe().context("cannot find this program's path")?;
     let p = exe.with_file_name("md-worker");
-    anyhow::ensure!(p.is_file(), "--local-workers: there is no md-worker program next to {} (build it: cargo build -p md-worker)", exe.display());
+    anyhow::ensure!(
+        p.is_file(),
+        "--local-workers: there is no md-worker program next to {} (build it: cargo build -p md-worker)",
+        exe.display()
+    );
     Ok(p)
 }
 
@@ -261,11 +275,22 @@ impl LocalWorkers {
             let log_path = log_dir.join(format!("local-{k}.log"));
             let log = std::fs::File::create(&log_path).with_context(|| format!("cannot create {}", log_path.display()))?;
             let mut cmd = Command::new(&program);
-            cmd.args(["serve", "--listen", "127.0.0.1:0", "--device", "cpu", "--threads", &threads.to_string(), "--orchestrator", url, "--token-file"])
-                .arg(token_file)
-                .stdin(Stdio::null())
-                .stdout(Stdio::null())
-                .stderr(log);
+            cmd.args([
+                "serve",
+                "--listen",
+                "127.0.0.1:0",
+                "--device",
+                "cpu",
+                "--threads",
+                &threads.to_string(),
+                "--orchestrator",
+                url,
+                "--token-file",
+            ])
+            .arg(token_file)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(log);
             if let Some(ca) = ca_file {
                 cmd.arg("--ca-file").arg(ca);
             }
@@ -319,12 +344,15 @@ pub(crate) fn monitor(core: Arc<Core>) {
         std::thread::sleep(period);
         let mut reg = lock(&core.workers);
         for (epoch, silent) in reg.expired() {
-            let why = format!("no heartbeat for {:.1} s (the worker timeout is {:.1} s)", silent.as_secs_f64(), reg.timeout().as_secs_f64());
+            let why =
+                format!("no heartbeat for {:.1} s (the worker timeout is {:.1} s)", silent.as_secs_f64(), reg.timeout().as_secs_f64());
             match reg.declare_lost(&mut lock(&core.store), epoch, &why) {
                 Ok(true) => {
                     let abort = reg.get(epoch).and_then(|w| lock(&core.aborts).get(&w.ad.address).cloned());
                     if let Some(h) = abort {
-                        tracing::warn!("aborting the MD calls on the lost worker w{epoch}: its boxes are replayed on the job's other workers");
+                        tracing::warn!(
+                            "aborting the MD calls on the lost worker w{epoch}: its boxes are replayed on the job's other workers"
+                        );
                         h.abort(&why);
                     } else if let Some(run) = lock(&core.running).as_ref().filter(|r| r.workers.contains(&epoch)) {
                         tracing::warn!("job {}: moves off the lost worker w{epoch} (checkpoint after this step)", run.id);
@@ -347,7 +375,16 @@ impl Core {
             let w = reg.register(&mut lock(&self.store), ad)?;
             (w, reg.timeout())
         };
-        tracing::info!("worker {} registered: {} ({}, {}/{}), {:.3e} atom-steps/s ({})", w.id, w.ad.address, w.ad.device, w.ad.backend, w.ad.precision, w.ad.atom_steps_per_s, w.ad.throughput_source);
+        tracing::info!(
+            "worker {} registered: {} ({}, {}/{}), {:.3e} atom-steps/s ({})",
+            w.id,
+            w.ad.address,
+            w.ad.device,
+            w.ad.backend,
+            w.ad.precision,
+            w.ad.atom_steps_per_s,
+            w.ad.throughput_source
+        );
         self.wake_runner();
         Ok((w, timeout))
     }
@@ -365,7 +402,14 @@ mod tests {
     use super::*;
 
     fn ad(addr: &str, backend: &str, tp: f64) -> WorkerAd {
-        WorkerAd { address: addr.into(), backend: backend.into(), precision: "double".into(), atom_steps_per_s: tp, protocol_version: mscale_proto::COUPLING_PROTOCOL_VERSION, ..Default::default() }
+        WorkerAd {
+            address: addr.into(),
+            backend: backend.into(),
+            precision: "double".into(),
+            atom_steps_per_s: tp,
+            protocol_version: mscale_proto::COUPLING_PROTOCOL_VERSION,
+            ..Default::default()
+        }
     }
 
     #[test]
@@ -378,7 +422,11 @@ mod tests {
         let e = r.register(&mut store, bad).unwrap_err();
         assert!(matches!(e, WorkerError::Version { .. }), "{e}");
         let msg = e.to_string();
-        assert!(msg.contains(&format!("version {}", mscale_proto::COUPLING_PROTOCOL_VERSION + 1)) && msg.contains(&format!("version {}", mscale_proto::COUPLING_PROTOCOL_VERSION)), "{msg}");
+        assert!(
+            msg.contains(&format!("version {}", mscale_proto::COUPLING_PROTOCOL_VERSION + 1))
+                && msg.contains(&format!("version {}", mscale_proto::COUPLING_PROTOCOL_VERSION)),
+            "{msg}"
+        );
         for a in ["nohost", ":1", "h:0", "h:x", "http://h:1"] {
             assert!(matches!(r.register(&mut store, ad(a, "cpu", 1.0)), Err(WorkerError::Invalid(_))), "{a}");
         }
@@ -402,7 +450,14 @@ mod tests {
 
     #[test]
     fn a_job_runs_on_one_kind_of_worker() {
-        let w = |epoch: u64, backend: &str, tp: f64| WorkerRecord { id: format!("w{epoch}"), epoch, ad: ad(&format!("h:{epoch}"), backend, tp), state: WorkerState::Live, registered: 0, note: String::new() };
+        let w = |epoch: u64, backend: &str, tp: f64| WorkerRecord {
+            id: format!("w{epoch}"),
+            epoch,
+            ad: ad(&format!("h:{epoch}"), backend, tp),
+            state: WorkerState::Live,
+            registered: 0,
+            note: String::new(),
+        };
         let all = vec![w(1, "cpu", 1.0), w(2, "cuda", 5.0), w(3, "cpu", 2.0)];
         assert_eq!(choose(&all, None).iter().map(|w| w.epoch).collect::<Vec<_>>(), vec![2]);
         assert_eq!(choose(&all, Some("cpu/double")).iter().map(|w| w.epoch).collect::<Vec<_>>(), vec![1, 3]);

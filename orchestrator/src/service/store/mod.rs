@@ -217,8 +217,11 @@ impl Store {
         std::fs::create_dir_all(state_dir).with_context(|| format!("cannot create the state directory {}", state_dir.display()))?;
         let path = state_dir.join("jobs.sqlite");
         let mut db = Connection::open(&path).with_context(|| format!("cannot open the job store {}", path.display()))?;
-        db.execute_batch("PRAGMA journal_mode = WAL; PRAGMA synchronous = FULL;").with_context(|| format!("cannot set up the job store {}", path.display()))?;
-        migrations().to_latest(&mut db).with_context(|| format!("cannot bring the job store {} to schema version {SCHEMA_VERSION}", path.display()))?;
+        db.execute_batch("PRAGMA journal_mode = WAL; PRAGMA synchronous = FULL;")
+            .with_context(|| format!("cannot set up the job store {}", path.display()))?;
+        migrations()
+            .to_latest(&mut db)
+            .with_context(|| format!("cannot bring the job store {} to schema version {SCHEMA_VERSION}", path.display()))?;
         Ok(Store { db, retained_progress: RETAINED_PROGRESS_EVENTS })
     }
 
@@ -271,7 +274,10 @@ impl Store {
 
     /// The queued job to run next: highest priority, then oldest.
     pub fn next_queued(&self) -> Result<Option<JobRecord>> {
-        let r = self.db.query_row(&format!("SELECT {COLUMNS} FROM jobs WHERE state = 'queued' ORDER BY priority DESC, seq ASC LIMIT 1"), [], record).optional()?;
+        let r = self
+            .db
+            .query_row(&format!("SELECT {COLUMNS} FROM jobs WHERE state = 'queued' ORDER BY priority DESC, seq ASC LIMIT 1"), [], record)
+            .optional()?;
         r.map(finish_record).transpose()
     }
 
@@ -309,14 +315,26 @@ impl Store {
 
     /// Records progress (not a state change: no history row).
     pub fn progress(&mut self, id: &str, step: u64, steps: u64, sim_time: f64) -> Result<()> {
-        self.db.execute("UPDATE jobs SET step = ?2, steps = ?3, sim_time = ?4 WHERE id = ?1", params![id, step as i64, steps as i64, sim_time])?;
+        self.db.execute(
+            "UPDATE jobs SET step = ?2, steps = ?3, sim_time = ?4 WHERE id = ?1",
+            params![id, step as i64, steps as i64, sim_time],
+        )?;
         Ok(())
     }
 
     /// Records progress and its numbered event (`Progress` or `Checkpoint`) in one
     /// transaction; prunes the job's old progress events now and then.
     #[allow(clippy::too_many_arguments)] // one event's columns
-    pub fn progress_event(&mut self, id: &str, kind: EventKind, step: u64, steps: u64, sim_time: f64, message: &str, detail: &[u8]) -> Result<EventRecord> {
+    pub fn progress_event(
+        &mut self,
+        id: &str,
+        kind: EventKind,
+        step: u64,
+        steps: u64,
+        sim_time: f64,
+        message: &str,
+        detail: &[u8],
+    ) -> Result<EventRecord> {
         let tx = self.db.transaction()?;
         tx.execute("UPDATE jobs SET step = ?2, steps = ?3, sim_time = ?4 WHERE id = ?1", params![id, step as i64, steps as i64, sim_time])?;
         let ev = append_event(&tx, id, kind, message, detail, self.retained_progress)?;
@@ -388,7 +406,14 @@ impl Store {
         }
         tx.execute("INSERT INTO worker_history VALUES (?1, ?2, 'live', 'registered')", params![epoch, now])?;
         tx.commit()?;
-        let record = WorkerRecord { id: format!("w{epoch}"), epoch: epoch as u64, ad: ad.clone(), state: WorkerState::Live, registered: now, note: String::new() };
+        let record = WorkerRecord {
+            id: format!("w{epoch}"),
+            epoch: epoch as u64,
+            ad: ad.clone(),
+            state: WorkerState::Live,
+            registered: now,
+            note: String::new(),
+        };
         Ok((record, replaced.iter().map(|e| format!("w{e}")).collect()))
     }
 
@@ -396,7 +421,8 @@ impl Store {
     /// worker is unknown or already lost (`lost` is final).
     pub fn set_worker_state(&mut self, epoch: u64, state: WorkerState, note: &str) -> Result<bool> {
         let tx = self.db.transaction()?;
-        let old: Option<String> = tx.query_row("SELECT state FROM workers WHERE epoch = ?1", params![epoch as i64], |r| r.get(0)).optional()?;
+        let old: Option<String> =
+            tx.query_row("SELECT state FROM workers WHERE epoch = ?1", params![epoch as i64], |r| r.get(0)).optional()?;
         match old.as_deref().map(WorkerState::parse).transpose()? {
             None | Some(WorkerState::Lost) => return Ok(false),
             Some(old) if old == state => return Ok(true),
@@ -427,13 +453,27 @@ impl Store {
                     throughput_source: r.get(8)?,
                     protocol_version: r.get(9)?,
                 };
-                Ok((WorkerRecord { id: format!("w{epoch}"), epoch: epoch as u64, ad, state: WorkerState::Live, registered: r.get(11)?, note: r.get(12)? }, r.get::<_, String>(10)?))
+                Ok((
+                    WorkerRecord {
+                        id: format!("w{epoch}"),
+                        epoch: epoch as u64,
+                        ad,
+                        state: WorkerState::Live,
+                        registered: r.get(11)?,
+                        note: r.get(12)?,
+                    },
+                    r.get::<_, String>(10)?,
+                ))
             })?
             .collect::<rusqlite::Result<Vec<_>>>()?;
-        rows.into_iter().map(|(mut w, state)| WorkerState::parse(&state).map(|s| {
-            w.state = s;
-            w
-        })).collect()
+        rows.into_iter()
+            .map(|(mut w, state)| {
+                WorkerState::parse(&state).map(|s| {
+                    w.state = s;
+                    w
+                })
+            })
+            .collect()
     }
 
     /// (Unix time, state, note) of every change of a worker, oldest first.
@@ -469,8 +509,18 @@ impl Store {
 /// Appends a job's next numbered event inside `tx`, from the job row as `tx` sees it. With
 /// `retain_progress` > 0, every 256th event prunes the job's progress events older than that
 /// many sequence numbers (never the newest event).
-fn append_event(tx: &rusqlite::Transaction<'_>, id: &str, kind: EventKind, message: &str, detail: &[u8], retain_progress: u64) -> Result<EventRecord> {
-    let (state, step, steps, sim_time): (String, i64, i64, f64) = tx.query_row("SELECT state, step, steps, sim_time FROM jobs WHERE id = ?1", params![id], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)))?;
+fn append_event(
+    tx: &rusqlite::Transaction<'_>,
+    id: &str,
+    kind: EventKind,
+    message: &str,
+    detail: &[u8],
+    retain_progress: u64,
+) -> Result<EventRecord> {
+    let (state, step, steps, sim_time): (String, i64, i64, f64) =
+        tx.query_row("SELECT state, step, steps, sim_time FROM jobs WHERE id = ?1", params![id], |r| {
+            Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?))
+        })?;
     let last: i64 = tx.query_row("SELECT COALESCE(MAX(seq), 0) FROM events WHERE job_id = ?1", params![id], |r| r.get(0))?;
     let seq = last + 1;
     let at = now_unix();
@@ -482,7 +532,18 @@ fn append_event(tx: &rusqlite::Transaction<'_>, id: &str, kind: EventKind, messa
         tx.execute("DELETE FROM events WHERE job_id = ?1 AND kind = 'progress' AND seq <= ?2", params![id, seq - retain_progress as i64])?;
     }
     let state = JobState::parse(&state)?;
-    Ok(EventRecord { job_id: id.to_string(), seq: seq as u64, kind, at, state, step: step as u64, steps: steps as u64, sim_time, message: message.to_string(), detail: detail.to_vec() })
+    Ok(EventRecord {
+        job_id: id.to_string(),
+        seq: seq as u64,
+        kind,
+        at,
+        state,
+        step: step as u64,
+        steps: steps as u64,
+        sim_time,
+        message: message.to_string(),
+        detail: detail.to_vec(),
+    })
 }
 
 /// A job as the store's tests and the service's tests insert it.

@@ -60,7 +60,10 @@ fn events_are_numbered_without_gaps_across_a_restart_and_old_progress_is_pruned(
     assert_eq!(s.events_after("a", 600, 2).unwrap().iter().map(|e| e.seq).collect::<Vec<_>>(), vec![601, 602]);
     assert_eq!(s.events_after("a", 604, 10).unwrap().len(), 0);
     let states: Vec<(JobState, String)> = all.iter().filter(|e| e.kind == EventKind::State).map(|e| (e.state, e.message.clone())).collect();
-    assert_eq!(states.iter().map(|s| s.0).collect::<Vec<_>>(), vec![JobState::Queued, JobState::Running, JobState::Queued, JobState::Cancelled]);
+    assert_eq!(
+        states.iter().map(|s| s.0).collect::<Vec<_>>(),
+        vec![JobState::Queued, JobState::Running, JobState::Queued, JobState::Cancelled]
+    );
 }
 
 /// A raw connection to the store file in `dir`, as an older orchestrator left it.
@@ -90,10 +93,16 @@ fn a_store_of_the_unversioned_schema_opens_with_its_jobs_and_events() {
     let a = s.get("a").unwrap().unwrap();
     assert_eq!((a.state, a.priority, a.overrides.clone(), a.checkpoint_every), (JobState::Running, 3, vec!["k=1".to_string()], 10));
     // Its events are kept as they were (none added), and the numbering goes on.
-    assert_eq!(s.events_after("a", 0, 10).unwrap().iter().map(|e| (e.seq, e.message.clone())).collect::<Vec<_>>(), vec![(1, "submitted".to_string()), (2, "started".to_string())]);
+    assert_eq!(
+        s.events_after("a", 0, 10).unwrap().iter().map(|e| (e.seq, e.message.clone())).collect::<Vec<_>>(),
+        vec![(1, "submitted".to_string()), (2, "started".to_string())]
+    );
     assert_eq!(s.requeue_interrupted().unwrap(), vec!["a".to_string()]);
     assert_eq!(s.last_sequence("a").unwrap(), 3);
-    assert_eq!(s.workers().unwrap().iter().map(|w| (w.id.clone(), w.state)).collect::<Vec<_>>(), vec![("w1".to_string(), WorkerState::Live)]);
+    assert_eq!(
+        s.workers().unwrap().iter().map(|w| (w.id.clone(), w.state)).collect::<Vec<_>>(),
+        vec![("w1".to_string(), WorkerState::Live)]
+    );
     drop(s);
     // Opening again changes nothing.
     let s = Store::open(dir.path()).unwrap();
@@ -112,7 +121,10 @@ fn a_job_stored_before_events_were_numbered_gets_its_state_as_event_1() {
     let mut s = Store::open(dir.path()).unwrap();
     let ev = s.events_after("old", 0, 10).unwrap();
     assert_eq!(ev.len(), 1);
-    assert_eq!((ev[0].seq, ev[0].kind, ev[0].state, ev[0].step, ev[0].at, ev[0].message.as_str()), (1, EventKind::State, JobState::Failed, 40, 9, "it broke"));
+    assert_eq!(
+        (ev[0].seq, ev[0].kind, ev[0].state, ev[0].step, ev[0].at, ev[0].message.as_str()),
+        (1, EventKind::State, JobState::Failed, 40, 9, "it broke")
+    );
     assert_eq!(s.note_event("old", EventKind::Workers, "later", &[]).unwrap().seq, 2);
 }
 
@@ -128,7 +140,14 @@ fn a_store_of_a_newer_schema_is_refused() {
 #[test]
 fn workers_get_a_new_epoch_per_registration_and_lost_is_final() {
     let dir = tempfile::tempdir().unwrap();
-    let ad = |addr: &str| WorkerAd { address: addr.into(), backend: "cpu".into(), precision: "double".into(), atom_steps_per_s: 1e6, protocol_version: 1, ..Default::default() };
+    let ad = |addr: &str| WorkerAd {
+        address: addr.into(),
+        backend: "cpu".into(),
+        precision: "double".into(),
+        atom_steps_per_s: 1e6,
+        protocol_version: 1,
+        ..Default::default()
+    };
     let mut s = Store::open(dir.path()).unwrap();
     let (a, replaced) = s.register_worker(&ad("127.0.0.1:1")).unwrap();
     assert!(replaced.is_empty());
