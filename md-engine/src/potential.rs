@@ -665,7 +665,7 @@ mod tests {
     }
 
     fn shipped(name: &str) -> Potential {
-        Potential::from_file(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("potentials").join(name)).unwrap()
+        Potential::from_file(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../md-worker/potentials").join(name)).unwrap()
     }
 
     #[test]
