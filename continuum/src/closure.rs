@@ -62,7 +62,7 @@ impl ClosureBatch<'_> {
     }
 }
 
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum ClosureError {
     #[error(
@@ -73,6 +73,14 @@ pub enum ClosureError {
         "point {point}: {law} closure needs a positive volume ratio, got J = {jacobian:e} (the point was inverted: reduce the time step or add particles per cell)"
     )]
     Inverted { point: usize, law: &'static str, jacobian: f64 },
+    /// The engine behind a closure failed (an MD pool, a worker, a box): what the closure was
+    /// doing; the engine's own error is the source.
+    #[error("{context}")]
+    Engine {
+        context: String,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync + 'static>,
+    },
     #[error("{0}")]
     Other(String),
 }

@@ -32,13 +32,20 @@ pub enum Viscosity {
     },
 }
 
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+/// Why a step (or the set-up of a simulation, step 0) failed. A closure's error is the
+/// [`source`](std::error::Error::source) of [`SolverError::Closure`], not part of its message:
+/// print the chain (`{:#}` of an `anyhow::Error`, or each source in turn) to see it whole.
+#[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum SolverError {
     #[error("step {step}: {what}; likely cause: {cause}")]
     Diverged { step: u64, what: String, cause: &'static str },
-    #[error("step {step}: {source}")]
-    Closure { step: u64, source: ClosureError },
+    #[error("step {step}")]
+    Closure {
+        step: u64,
+        #[source]
+        source: ClosureError,
+    },
 }
 
 /// How velocities and positions advance in time.

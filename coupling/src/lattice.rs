@@ -23,13 +23,12 @@ pub struct LatticeProperties {
     pub vibration: Option<md_worker::potential::Vibration>,
 }
 
-pub fn lattice_kind(name: &str) -> Result<LatticeKind> {
-    Ok(match name {
-        "fcc" => LatticeKind::Fcc,
-        "bcc" => LatticeKind::Bcc,
-        "sc" => LatticeKind::Sc,
-        other => anyhow::bail!("unknown lattice {other:?}; expected fcc, bcc or sc"),
-    })
+fn lattice_name(kind: LatticeKind) -> &'static str {
+    match kind {
+        LatticeKind::Fcc => "fcc",
+        LatticeKind::Bcc => "bcc",
+        LatticeKind::Sc => "sc",
+    }
 }
 
 fn atoms_per_cell(kind: LatticeKind) -> f64 {
@@ -43,9 +42,8 @@ fn atoms_per_cell(kind: LatticeKind) -> f64 {
 /// Reads the potential (refusing malformed or truncated files with their line) and measures
 /// the density and the longitudinal modulus along x (C11 for the cube orientation) of the
 /// lattice from the stress of one (oriented) cell strained by +/- 0.1 % along x.
-pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64, orient: Orientation) -> Result<LatticeProperties> {
+pub fn lattice_properties(potential: &Path, kind: LatticeKind, a0: f64, orient: Orientation) -> Result<LatticeProperties> {
     let pot = Arc::new(Potential::from_file(potential)?);
-    let kind = lattice_kind(lattice)?;
     let density = atoms_per_cell(kind) * pot.mass(0) * AMU_KG / (a0 * 1e-10).powi(3);
     let vibration = pot.vibration();
     let eps = 1e-3;
@@ -67,7 +65,8 @@ pub fn lattice_properties(potential: &Path, lattice: &str, a0: f64, orient: Orie
     let c11_gpa = (out[0].stress_gpa[0] - out[1].stress_gpa[0]) / (2.0 * eps);
     anyhow::ensure!(
         c11_gpa > 0.0 && c11_gpa.is_finite(),
-        "the {lattice} lattice at a0 = {a0} A is not stable under this potential (C11 = {c11_gpa} GPa)"
+        "the {} lattice at a0 = {a0} A is not stable under this potential (C11 = {c11_gpa} GPa)",
+        lattice_name(kind)
     );
     Ok(LatticeProperties { density, c11_gpa, wave_speed: (c11_gpa * 1e9 / density).sqrt(), vibration })
 }
@@ -80,8 +79,8 @@ mod tests {
     #[test]
     fn an_oriented_lattice_has_the_same_density_and_its_own_longitudinal_modulus() {
         let pot = Path::new(env!("CARGO_MANIFEST_DIR")).join("../md-worker/potentials/Cu_mishin1.eam.alloy");
-        let cube = lattice_properties(&pot, "fcc", 3.615, Orientation::CUBE).unwrap();
-        let x110 = lattice_properties(&pot, "fcc", 3.615, Orientation([[1, 1, 0], [-1, 1, 0], [0, 0, 1]])).unwrap();
+        let cube = lattice_properties(&pot, LatticeKind::Fcc, 3.615, Orientation::CUBE).unwrap();
+        let x110 = lattice_properties(&pot, LatticeKind::Fcc, 3.615, Orientation([[1, 1, 0], [-1, 1, 0], [0, 0, 1]])).unwrap();
         assert!((cube.density - x110.density).abs() < 1e-9 * cube.density);
         // Mishin Cu: C11 169.9, C12 122.6, C44 76.2 GPa; along [110] (C11 + C12 + 2 C44) / 2 = 222.4.
         assert!((cube.c11_gpa / 169.9 - 1.0).abs() < 0.01, "C11 = {}", cube.c11_gpa);

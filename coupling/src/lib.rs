@@ -107,7 +107,7 @@ impl MdClosure {
         if s.points.len() < end {
             s.points.resize(end, None);
         }
-        s.pool.open(&potential, specs).map_err(|e| ClosureError::Other(format!("opening MD boxes: {e}")))?;
+        s.pool.open(&potential, specs).map_err(|e| ClosureError::Engine { context: "opening MD boxes".into(), source: Box::new(e) })?;
         drop(s);
         Ok(MdClosure { shared, settings })
     }
@@ -152,7 +152,10 @@ impl MdClosure {
                 }
             })
             .collect();
-        let results = shared.pool.step(step, &work).map_err(|e| ClosureError::Other(format!("MD at continuum step {step}: {e}")))?;
+        let results = shared
+            .pool
+            .step(step, &work)
+            .map_err(|e| ClosureError::Engine { context: format!("MD at continuum step {step}"), source: Box::new(e) })?;
         for (k, (w, r)) in work.iter().zip(results).enumerate() {
             let p = b.first + k;
             let sigma = from_md_stress(&r.stress_gpa);

@@ -31,11 +31,7 @@ pub fn token(token_file: Option<&Path>) -> Result<Option<String>> {
     Ok(std::env::var("MSCALE_TOKEN").ok().map(|t| t.trim().to_string()).filter(|t| !t.is_empty()))
 }
 
-/// A call the orchestrator refused, or that failed on the way: its status, kept whole so that
-/// [`crate::exit::code_of`] can tell bad input from other failures.
-#[derive(Debug, thiserror::Error)]
-#[error("{} ({:?})", .0.message(), .0.code())]
-pub struct Refused(pub tonic::Status);
+pub use crate::exit::Refused;
 
 impl Client {
     /// Plain HTTP/2 (for loopback).

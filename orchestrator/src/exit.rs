@@ -7,6 +7,29 @@ pub const RUN_FAILED: i32 = 1;
 /// Bad usage or bad input.
 pub const BAD_INPUT: i32 = 2;
 
+/// A call the orchestrator refused, or that failed on the way: its status, kept whole so that
+/// [`code_of`] can tell bad input from other failures.
+#[derive(Debug, thiserror::Error)]
+#[error("{} ({:?})", .0.message(), .0.code())]
+pub struct Refused(pub tonic::Status);
+
+/// The message of an error and its chain of sources, joined by `: ` (as `{:#}` of an
+/// `anyhow::Error` prints it); a source whose message its parent's already ends with is not
+/// repeated.
+pub fn message(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut out = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        let m = c.to_string();
+        if !out.ends_with(&m) {
+            out.push_str(": ");
+            out.push_str(&m);
+        }
+        cause = c.source();
+    }
+    out
+}
+
 /// The exit code of a failed verb: [`BAD_INPUT`] when anything in the error's chain is bad
 /// input (a scene that does not validate, a body that cannot be set up from its scene, a
 /// request the job service refused as invalid), [`RUN_FAILED`] otherwise.
@@ -15,7 +38,7 @@ pub fn code_of(e: &anyhow::Error) -> i32 {
     let bad_input = e.chain().any(|cause| {
         cause.is::<crate::scene::SceneError>()
             || cause.downcast_ref::<SetupError>().is_some_and(|s| matches!(s, SetupError::EmptyBody(_) | SetupError::MdUnavailable(_)))
-            || cause.downcast_ref::<crate::client::Refused>().is_some_and(|r| r.0.code() == tonic::Code::InvalidArgument)
+            || cause.downcast_ref::<Refused>().is_some_and(|r| r.0.code() == tonic::Code::InvalidArgument)
     });
     if bad_input { BAD_INPUT } else { RUN_FAILED }
 }
@@ -23,7 +46,6 @@ pub fn code_of(e: &anyhow::Error) -> i32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::client::Refused;
     use anyhow::Context;
 
     #[test]

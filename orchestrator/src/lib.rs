@@ -10,6 +10,7 @@ pub mod client;
 pub mod exit;
 pub mod md;
 pub mod output;
+pub mod reference;
 pub mod report;
 pub mod run;
 pub mod scene;

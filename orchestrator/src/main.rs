@@ -265,11 +265,11 @@ fn dispatch(cli: Cli) -> i32 {
             Ok(loaded) => {
                 print!("{}", loaded.scene.to_toml());
                 println!("\n# work");
-                let (per_body, nodes) = orchestrator::setup::work_size(&loaded.scene);
+                let (per_body, nodes) = orchestrator::setup::work_size(&loaded.resolved);
                 let points: usize = per_body.iter().map(|(_, n)| n).sum();
                 println!("# points = {points}\n# grid_nodes = {nodes}\n# steps = {}\n# dt_s = {:e}", loaded.steps, loaded.dt);
                 if estimate {
-                    match orchestrator::md::estimate(&loaded, &per_body) {
+                    match orchestrator::md::estimate(&loaded) {
                         Ok(Some(e)) => println!(
                             "# md_points = {}\n# atoms = {}\n# atom_steps = {:.3e}\n# measured_ns_per_atom_step = {:.1} (cpu back end, {} threads, this machine)\n# memory_bytes = {:.3e} ({:.0} bytes/atom measured)\n# predicted_md_wall_seconds = {:.0}",
                             e.md_points,

@@ -2,32 +2,26 @@
 //! from the potential (for validation and the CFL bound; measured in `coupling::lattice`),
 //! box specs for the points, and the worker pool (in-process or remote workers).
 
-use crate::scene::{Body, MdMaterial};
+use crate::scene::{ResolvedBody, ResolvedMd};
 use anyhow::{Context, Result};
 use md_worker::pool::{Endpoint, InProcess, MdPool, Remote};
-use md_worker::{BoxResult, BoxSpec, BoxWork, DeformMode, MdBackend, Orientation, Potential};
+use md_worker::{BoxResult, BoxSpec, BoxWork, DeformMode, MdBackend, Potential};
 use std::sync::Arc;
 
-pub use coupling::lattice::{LatticeProperties, lattice_kind, lattice_properties};
-
-/// Atoms in one box of an md material.
-pub fn atoms_per_box(m: &MdMaterial) -> Result<u64> {
-    Ok(lattice_kind(&m.lattice)?.atoms_per_cell(&Orientation(m.orientation)) * (m.cells_per_side as u64).pow(3))
-}
+pub use coupling::lattice::{LatticeProperties, lattice_properties};
 
 /// The box of one material point of an md body.
-pub fn box_spec(id: u64, body: &Body, md: &MdMaterial) -> Result<BoxSpec> {
+pub fn box_spec(id: u64, body: &ResolvedBody, md: &ResolvedMd) -> BoxSpec {
     let n = md.cells_per_side;
-    let mut s =
-        BoxSpec::lattice(id, lattice_kind(&md.lattice)?, md.lattice_constant_angstrom, [n, n, n]).oriented(Orientation(md.orientation));
-    s.strain = [body.initial_strain[0], body.initial_strain[1], body.initial_strain[2]];
+    let mut s = BoxSpec::lattice(id, md.lattice, md.lattice_constant_angstrom, [n, n, n]).oriented(md.orientation);
+    s.strain = body.initial_strain;
     s.temperature_k = body.temperature_k;
     s.seed = md.seed;
     s.relax_steps = md.relax_steps as u64;
     s.relax_dt_ps = md.timestep_fs * 1e-3;
     s.relax_box_blocks = if md.relax_box { 10 } else { 0 };
-    s.mode = if md.deformation == "affine" { DeformMode::Affine } else { DeformMode::Seed };
-    Ok(s)
+    s.mode = md.deformation;
+    s
 }
 
 /// A pool over `workers` (`host:port`), or in-process on all cores when there are none.
@@ -69,31 +63,29 @@ fn resident_bytes() -> Option<f64> {
 
 /// Counts the MD work of a validated scene and measures this machine's throughput on boxes of
 /// the scene's size (a few boxes, a short run), to predict atom-steps, memory and wall time.
-pub fn estimate(loaded: &crate::scene::LoadedScene, md_points_per_body: &[(String, usize)]) -> Result<Option<Estimate>> {
-    let scene = &loaded.scene;
+pub fn estimate(loaded: &crate::scene::LoadedScene) -> Result<Option<Estimate>> {
     let mut atoms = 0u64;
     let mut atom_steps = 0f64;
     let mut md_steps_per_box = 0;
     let mut calibrate = None;
     let mut md_points = 0;
-    for (name, n) in md_points_per_body {
-        let Some(crate::scene::Material::Md(m)) = scene.bodies.get(name).map(|b| &b.material) else { continue };
-        let per_box = atoms_per_box(m)?;
+    for (body, m) in loaded.resolved.md_bodies() {
+        let (per_box, n) = (m.atoms_per_box, body.points);
         let steps = loaded.steps * (loaded.dt / (m.timestep_fs * 1e-15)).round() as u64 + m.relax_steps as u64;
         md_points += n;
-        atoms += per_box * *n as u64;
-        atom_steps += (per_box * *n as u64) as f64 * steps as f64;
+        atoms += per_box * n as u64;
+        atom_steps += (per_box * n as u64) as f64 * steps as f64;
         md_steps_per_box = md_steps_per_box.max(steps);
-        calibrate.get_or_insert((m.clone(), scene.bodies[name].clone()));
+        calibrate.get_or_insert((m, body));
     }
     let Some((m, body)) = calibrate else { return Ok(None) };
     let pot = Arc::new(Potential::from_file(&m.potential)?);
     let boxes = rayon::current_num_threads().max(1) * 2;
     let before = resident_bytes();
     let mut md = md_worker::CpuBackend::new(pot);
-    let specs: Vec<BoxSpec> = (0..boxes as u64).map(|id| box_spec(id, &body, &m)).collect::<Result<_>>()?;
+    let specs: Vec<BoxSpec> = (0..boxes as u64).map(|id| box_spec(id, body, m)).collect();
     md.open(&specs)?;
-    let l = 1e-3 * if m.deformation == "affine" { 1.0 } else { 0.5 };
+    let l = 1e-3 * if m.deformation == DeformMode::Affine { 1.0 } else { 0.5 };
     let work: Vec<BoxWork> =
         (0..boxes as u64).map(|id| BoxWork::new(id, [[-l, 0.0, 0.0], [0.0; 3], [0.0; 3]], 20, m.timestep_fs * 1e-3)).collect();
     let mut out = vec![BoxResult::default(); boxes];

@@ -12,6 +12,8 @@
 //! reads it from there. 1D only: the 2D form is not implemented yet.
 
 use crate::output;
+use crate::reference::error_column;
+pub use crate::reference::*;
 use crate::run::{self, Outcome, RunOptions};
 use crate::scene::{self, SceneError};
 use anyhow::{Context, Result};
@@ -130,12 +132,14 @@ pub fn error_vs_time(
             all.push(format!("output.snapshots={snapshots}"));
         }
         let l = scene::load(scene_path, &all).map_err(ReportError::Scene)?;
-        let atom_steps = md_atom_steps(&l).map_err(|e| ReportError::Input(format!("{e:#}")))?;
+        let atom_steps = md_atom_steps(&l);
         loaded.push((l, atom_steps));
     }
     // The times and component scored (the columns): those of the reference every run has.
     let (times, component) = match loaded.first().and_then(|(l, _)| l.scene.reference.as_ref()) {
-        Some(scene::Reference::DirectMd(r)) => (r.times_ps.iter().map(|t| t * 1e-12).collect::<Vec<f64>>(), r.component.clone()),
+        Some(scene::Reference::DirectMd(r)) => {
+            (r.times_ps.iter().map(|t| t * 1e-12).collect::<Vec<f64>>(), r.component.as_str().to_string())
+        }
         _ => (Vec::new(), "sxx".to_string()),
     };
     let mut rows = Vec::new();
@@ -248,10 +252,6 @@ fn replica_summary_of(component: &str, sweeps: &[Sweep], replica: usize, rows: &
 }
 
 /// Column name of the eq. 7.12 error of `component` at time `t` (s): `sxx_error_5ps`.
-fn error_column(component: &str, t: f64) -> String {
-    format!("{component}_error_{}ps", (t * 1e15).round() / 1e3)
-}
-
 fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], component: &str) -> Result<()> {
     let mut csv = String::new();
     for s in sweeps {
@@ -350,308 +350,6 @@ pub fn read_csv(path: &Path) -> Result<Vec<Vec<String>>> {
     Ok(text.lines().map(|l| l.split(',').map(str::to_string).collect()).collect())
 }
 
-/// A direct-MD reference (a scene's `[reference] solution = "direct-md"`, or `--reference`):
-/// one stress component in slabs of the reference (unstrained) coordinate at a series of times,
-/// as `md-worker direct --slab` writes it (`time_ps,slab_center_nm,sxx_gpa,...`, tension
-/// positive).
-///
-/// This is the 1D form. The 2D form of eq. 7.12 (Eulerian x-y bins with atom counts, scored in
-/// the current configuration over the bins holding most of a bulk bin's atoms) is not
-/// implemented yet: it would add a frame type sampled at (x, y) and a mask, and feed the same
-/// [`eq_7_12_sum`].
-#[derive(Debug, Clone, PartialEq)]
-pub struct DirectProfile {
-    /// (time (s), slabs sorted by X: (X (m), stress (Pa))).
-    pub frames: Vec<(f64, Vec<(f64, f64)>)>,
-}
-
-/// Material points closer than this to either end of the reference bar are not scored: the
-/// direct MD freezes 10 A end layers as walls, the continuum has reflective walls there.
-pub const REFERENCE_WALL_M: f64 = 1e-9;
-
-/// Two times closer than this (s, 1e-3 ps) are the same snapshot (the direct CSV's times
-/// carry round-off from summing 1 fs steps).
-pub const TIME_TOLERANCE_S: f64 = 1e-15;
-
-impl DirectProfile {
-    /// sigma_xx of the profile in `path`.
-    pub fn read(path: &Path) -> Result<DirectProfile> {
-        Self::read_component(path, "sxx")
-    }
-
-    /// Stress `component` (`sxx`, `syy`, `szz`: the column `<component>_gpa`) of the profile in
-    /// `path`.
-    pub fn read_component(path: &Path, component: &str) -> Result<DirectProfile> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read the direct-MD reference {}", path.display()))?;
-        Self::parse_component(&text, component).with_context(|| format!("direct-MD reference {}", path.display()))
-    }
-
-    pub fn parse(text: &str) -> Result<DirectProfile> {
-        Self::parse_component(text, "sxx")
-    }
-
-    pub fn parse_component(text: &str, component: &str) -> Result<DirectProfile> {
-        let column = format!("{component}_gpa");
-        let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
-        let (_, header) = lines.next().ok_or_else(|| {
-            anyhow::anyhow!("is empty; expected a header time_ps,slab_center_nm,sxx_gpa,... (`md-worker direct --slab` output)")
-        })?;
-        let cols: Vec<&str> = header.split(',').map(str::trim).collect();
-        let col = |name: &str| {
-            cols.iter().position(|c| *c == name).ok_or_else(|| {
-                anyhow::anyhow!("line 1: no column `{name}` (found {}); expected `md-worker direct --slab` output", cols.join(","))
-            })
-        };
-        let (ct, cx, cs) = (col("time_ps")?, col("slab_center_nm")?, col(&column)?);
-        let mut frames: Vec<(f64, Vec<(f64, f64)>)> = Vec::new();
-        for (k, line) in lines {
-            let f: Vec<&str> = line.split(',').map(str::trim).collect();
-            let num = |c: usize, name: &str| -> Result<f64> {
-                let v = f.get(c).ok_or_else(|| anyhow::anyhow!("line {}: missing column `{name}`", k + 1))?;
-                v.parse::<f64>()
-                    .ok()
-                    .filter(|x| x.is_finite())
-                    .ok_or_else(|| anyhow::anyhow!("line {}: `{name}` = {v:?} is not a finite number", k + 1))
-            };
-            let (t, x, s) = (num(ct, "time_ps")? * 1e-12, num(cx, "slab_center_nm")? * 1e-9, num(cs, &column)? * 1e9);
-            match frames.iter_mut().find(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S) {
-                Some((_, rows)) => rows.push((x, s)),
-                None => frames.push((t, vec![(x, s)])),
-            }
-        }
-        if frames.is_empty() {
-            anyhow::bail!("has a header but no rows");
-        }
-        for (t, rows) in &mut frames {
-            rows.sort_by(|a, b| a.0.total_cmp(&b.0));
-            if rows.len() < 2 || rows.windows(2).any(|w| !(w[1].0 > w[0].0)) {
-                anyhow::bail!("t = {} ps: needs at least two slabs with distinct centres, found {}", *t * 1e12, rows.len());
-            }
-        }
-        Ok(DirectProfile { frames })
-    }
-
-    /// The slabs at time `t` (s), if the reference has that time.
-    pub fn at(&self, t: f64) -> Option<&[(f64, f64)]> {
-        self.frames
-            .iter()
-            .filter(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S)
-            .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
-            .map(|(_, r)| r.as_slice())
-    }
-
-    /// First and last time of the profile (s).
-    pub fn time_range(&self) -> (f64, f64) {
-        let t = self.frames.iter().map(|f| f.0);
-        (t.clone().fold(f64::INFINITY, f64::min), t.fold(f64::NEG_INFINITY, f64::max))
-    }
-
-    /// The profile's times (ps), for messages.
-    pub fn times_ps(&self) -> String {
-        self.frames.iter().map(|(t, _)| format!("{}", (t * 1e15).round() / 1e3)).collect::<Vec<_>>().join(", ")
-    }
-}
-
-/// sigma_xx of slabs (X, s) sorted by X, linear in X between slab centres, constant beyond.
-pub fn interpolate(rows: &[(f64, f64)], x: f64) -> f64 {
-    let i = rows.partition_point(|r| r.0 < x);
-    if i == 0 {
-        return rows[0].1;
-    }
-    if i == rows.len() {
-        return rows[rows.len() - 1].1;
-    }
-    let ((x0, y0), (x1, y1)) = (rows[i - 1], rows[i]);
-    y0 + (y1 - y0) * (x - x0) / (x1 - x0)
-}
-
-/// The seed's eq. 7.12 over (s_MD, s_MS) pairs of one stress component (Pa):
-/// eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2). Returns (eps, pairs). Every form of the score
-/// (the 1D slabs of [`eq_7_12`]; a 2D form would sample bins) ends here.
-pub fn eq_7_12_sum(pairs: impl IntoIterator<Item = (f64, f64)>) -> Result<(f64, usize)> {
-    let (mut num, mut den, mut count) = (0.0, 0.0, 0);
-    for (r, s) in pairs {
-        num += (r - s) * (r - s);
-        den += r * r;
-        count += 1;
-    }
-    if count == 0 {
-        anyhow::bail!("no material point to score");
-    }
-    if den == 0.0 {
-        anyhow::bail!("the reference stress is zero at every scored point: eq. 7.12 is undefined");
-    }
-    let eps = (num / den).sqrt();
-    anyhow::ensure!(eps.is_finite(), "eq. 7.12 is not finite (a run's stress is not finite)");
-    Ok((eps, count))
-}
-
-/// The seed's eq. 7.12 in 1D: eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the material
-/// points `(X, s_MS)` (reference coordinate (m), stress (Pa)), with s_MD the reference slabs
-/// interpolated at X. Points within `wall` of the reference bar's ends (the outer slab faces)
-/// are left out. Returns (eps, points scored).
-pub fn eq_7_12(reference: &[(f64, f64)], points: &[(f64, f64)], wall: f64) -> Result<(f64, usize)> {
-    let n = reference.len();
-    let lo = reference[0].0 - 0.5 * (reference[1].0 - reference[0].0);
-    let hi = reference[n - 1].0 + 0.5 * (reference[n - 1].0 - reference[n - 2].0);
-    let pairs: Vec<(f64, f64)> =
-        points.iter().filter(|&&(x, _)| x >= lo + wall && x <= hi - wall).map(|&(x, s)| (interpolate(reference, x), s)).collect();
-    if pairs.is_empty() {
-        anyhow::bail!(
-            "no material point lies inside the reference bar ({:.4} to {:.4} nm, less {} nm at each end)",
-            lo * 1e9,
-            hi * 1e9,
-            wall * 1e9
-        );
-    }
-    eq_7_12_sum(pairs)
-}
-
-/// One eq. 7.12 score of a run: at `time` (s), from the snapshot nearest to it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Score {
-    pub time: f64,
-    pub snapshot_step: u64,
-    pub snapshot_time: f64,
-    pub error: f64,
-    pub points: usize,
-}
-
-/// The eq. 7.12 error of `component` of the run in `run_dir` against `profile` at each of
-/// `times` (s), each from the snapshot of `snapshots/index.csv` nearest to it (scored against
-/// the profile's frame at the time asked for). The one implementation of the score: `mscale
-/// run` calls it for a scene's `[reference] solution = "direct-md"`, `mscale report` reads it
-/// back from the runs' summary.json.
-pub fn score_run(profile: &DirectProfile, component: &str, times: &[f64], map: &ReferenceMap, run_dir: &Path) -> Result<Vec<Score>> {
-    let index_path = run_dir.join("snapshots/index.csv");
-    let index = std::fs::read_to_string(&index_path).with_context(|| format!("cannot read {}", index_path.display()))?;
-    let snaps: Vec<(u64, f64, String)> = index
-        .lines()
-        .skip(1)
-        .filter_map(|l| {
-            let f: Vec<&str> = l.split(',').collect();
-            Some((f.first()?.parse().ok()?, f.get(1)?.parse().ok()?, f.get(2)?.to_string()))
-        })
-        .collect();
-    let mut out = Vec::new();
-    for &t in times {
-        let Some((step, ts, file)) = snaps.iter().min_by(|a, b| (a.1 - t).abs().total_cmp(&(b.1 - t).abs())) else {
-            anyhow::bail!("{} lists no snapshot", index_path.display());
-        };
-        let path = run_dir.join("snapshots").join(file);
-        let points = read_x0_component(&path, component)?;
-        let pts: Vec<(f64, f64)> = points.iter().map(|&(x0, s)| (map.x_ref(x0), s)).collect();
-        let reference = profile.at(t).ok_or_else(|| {
-            anyhow::anyhow!("the direct-MD reference has no frame at t = {} ps (it has {} ps)", t * 1e12, profile.times_ps())
-        })?;
-        let (error, n) = eq_7_12(reference, &pts, REFERENCE_WALL_M)
-            .with_context(|| format!("eq. 7.12 of {component} of {} at t = {} ps", path.display(), t * 1e12))?;
-        out.push(Score { time: t, snapshot_step: *step, snapshot_time: *ts, error, points: n });
-    }
-    Ok(out)
-}
-
-/// The summary.json `errors` of a run scored against a direct-MD reference: the eq. 7.12 error
-/// per time (with the snapshot it came from), and a flat `<component>_error_<t>ps` per time
-/// (the report's column names).
-pub fn direct_md_errors_json(profile: &Path, component: &str, scores: &[Score]) -> Value {
-    let mut m = serde_json::Map::new();
-    m.insert("reference".into(), "direct-md".into());
-    m.insert("profile".into(), profile.display().to_string().into());
-    m.insert("component".into(), component.into());
-    m.insert("measure".into(), "eq. 7.12: sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the material points in the reference coordinate, points within 1 nm of the bar's ends left out".into());
-    m.insert(
-        "times".into(),
-        scores
-            .iter()
-            .map(|s| serde_json::json!({"time_ps": ps(s.time), "snapshot_step": s.snapshot_step, "snapshot_time_ps": ps(s.snapshot_time), "error": s.error, "points": s.points}))
-            .collect::<Vec<_>>()
-            .into(),
-    );
-    for s in scores {
-        m.insert(error_column(component, s.time), s.error.into());
-    }
-    Value::Object(m)
-}
-
-/// A time (s) in ps, rounded to 1e-6 ps (the round-off of summed steps removed).
-fn ps(t: f64) -> f64 {
-    (t * 1e18).round() / 1e6
-}
-
-/// The log line of a scored run: `eq. 7.12 error of sxx against direct MD: 4.58 % at 5 ps, ...`.
-pub fn direct_md_log_line(component: &str, scores: &[Score]) -> String {
-    let parts: Vec<String> = scores
-        .iter()
-        .map(|s| {
-            let at = if (s.snapshot_time - s.time).abs() > TIME_TOLERANCE_S {
-                format!(" (snapshot at {} ps)", ps(s.snapshot_time))
-            } else {
-                String::new()
-            };
-            format!("{:.2} % at {} ps{at}", 100.0 * s.error, ps(s.time))
-        })
-        .collect();
-    format!("eq. 7.12 error of {component} against direct MD: {} ({} points)", parts.join(", "), scores.first().map_or(0, |s| s.points))
-}
-
-/// The scores a run wrote into its summary.json `errors`, one per time of `times` (s) in order;
-/// empty unless the run scored every one of them.
-pub fn scores_of_summary(summary: &Value, times: &[f64]) -> Vec<(f64, usize)> {
-    let Some(list) = summary["errors"]["times"].as_array() else { return Vec::new() };
-    let found: Option<Vec<(f64, usize)>> = times
-        .iter()
-        .map(|&t| {
-            let e = list.iter().find(|e| e["time_ps"].as_f64().is_some_and(|x| (x * 1e-12 - t).abs() <= TIME_TOLERANCE_S))?;
-            Some((e["error"].as_f64()?, e["points"].as_u64()? as usize))
-        })
-        .collect();
-    found.unwrap_or_default()
-}
-
-/// Maps a 1D scene's initial positions x0 (the strained configuration the bodies are given in)
-/// to the reference coordinate X of an unstrained bar: bodies in order along x, each stretched
-/// back by 1 / (1 + initial_strain_x), gaps between bodies kept. X starts at the first body's
-/// min.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ReferenceMap {
-    /// (x0 min, x0 max, X at x0 min, 1 + strain) per body, sorted by x0.
-    bodies: Vec<(f64, f64, f64, f64)>,
-}
-
-impl ReferenceMap {
-    pub fn of(scene: &scene::Scene) -> Result<ReferenceMap> {
-        if scene.domain.dimension != 1 {
-            anyhow::bail!("--reference scores sigma_xx along a 1D bar; scene `{}` has dimension {}", scene.name, scene.domain.dimension);
-        }
-        let mut b: Vec<(f64, f64, f64)> =
-            scene.bodies.values().map(|b| (b.min[0], b.max[0], 1.0 + b.initial_strain.first().copied().unwrap_or(0.0))).collect();
-        b.sort_by(|p, q| p.0.total_cmp(&q.0));
-        let mut bodies = Vec::new();
-        let mut prev: Option<(f64, f64)> = None; // (x0 max, X max) of the body before
-        for (lo, hi, stretch) in b {
-            let start = match prev {
-                None => lo,
-                Some((pmax, _)) if lo < pmax - 1e-9 * (hi - lo) => {
-                    anyhow::bail!("bodies of scene `{}` overlap along x at {lo:e} m: cannot map them to one reference bar", scene.name)
-                }
-                Some((pmax, pxmax)) => pxmax + (lo - pmax).max(0.0),
-            };
-            bodies.push((lo, hi, start, stretch));
-            prev = Some((hi, start + (hi - lo) / stretch));
-        }
-        Ok(ReferenceMap { bodies })
-    }
-
-    /// X of a point that starts at x0 (the body whose [min, max) holds it; the last body takes
-    /// its max too).
-    pub fn x_ref(&self, x0: f64) -> f64 {
-        let k = self.bodies.iter().rposition(|b| x0 >= b.0).unwrap_or(0);
-        let (lo, _, start, stretch) = self.bodies[k];
-        start + (x0 - lo) / stretch
-    }
-}
-
 /// `--reference FILE --reference-times T1,T2,...`: score every run's sigma_xx by eq. 7.12 at
 /// these times (s).
 #[derive(Debug, Clone)]
@@ -739,37 +437,14 @@ fn gcd(a: u64, b: u64) -> u64 {
     if b == 0 { a } else { gcd(b, a % b) }
 }
 
-/// (x0, stress `component`) of every material point in a particle CSV.
-fn read_x0_component(path: &Path, component: &str) -> Result<Vec<(f64, f64)>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let mut lines = text.lines();
-    let cols: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
-    let col = |n: &str| cols.iter().position(|c| *c == n).ok_or_else(|| anyhow::anyhow!("{}: no column `{n}`", path.display()));
-    let (cx, cs) = (col("x0")?, col(component)?);
-    lines
-        .enumerate()
-        .map(|(k, l)| {
-            let f: Vec<&str> = l.split(',').collect();
-            let get = |c: usize| {
-                f.get(c)
-                    .and_then(|v| v.parse::<f64>().ok())
-                    .ok_or_else(|| anyhow::anyhow!("{} line {}: unreadable x0 or {component}", path.display(), k + 2))
-            };
-            Ok((get(cx)?, get(cs)?))
-        })
-        .collect()
-}
-
 /// MD atom-steps of a scene: per md body, points x atoms per box x MD steps per box.
-pub fn md_atom_steps(loaded: &scene::LoadedScene) -> Result<f64> {
-    let (per_body, _) = crate::setup::work_size(&loaded.scene);
+pub fn md_atom_steps(loaded: &scene::LoadedScene) -> f64 {
     let mut total = 0.0;
-    for (name, n) in per_body {
-        let Some(scene::Material::Md(m)) = loaded.scene.bodies.get(&name).map(|b| &b.material) else { continue };
+    for (body, m) in loaded.resolved.md_bodies() {
         let steps = loaded.steps as f64 * (loaded.dt / (m.timestep_fs * 1e-15)).round() + m.relax_steps as f64;
-        total += n as f64 * crate::md::atoms_per_box(m)? as f64 * steps;
+        total += body.points as f64 * m.atoms_per_box as f64 * steps;
     }
-    Ok(total)
+    total
 }
 
 #[cfg(test)]

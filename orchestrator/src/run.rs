@@ -105,10 +105,7 @@ impl RunOptions {
 /// The MD pool of a scene with md bodies (one potential per run), or `None`.
 fn md_shared(loaded: &LoadedScene, opts: &RunOptions) -> Result<Option<Arc<Mutex<MdShared>>>> {
     let (workers, weights) = (&opts.workers, &opts.worker_weights);
-    let mut potentials = loaded.scene.bodies.values().filter_map(|b| match &b.material {
-        Material::Md(m) => Some(m.potential.clone()),
-        _ => None,
-    });
+    let mut potentials = loaded.resolved.md_bodies().map(|(_, m)| m.potential.clone());
     let Some(first) = potentials.next() else { return Ok(None) };
     if let Some(other) = potentials.find(|p| *p != first) {
         anyhow::bail!("all md bodies of a run must share one potential; found {} and {}", first.display(), other.display());
@@ -255,7 +252,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     if let (Some(hook), Some(m)) = (&opts.md_hook, &md) {
         hook(m);
     }
-    let mut sim = setup::simulation::<D>(scene, loaded.dt, md.as_ref())?;
+    let mut sim = setup::simulation::<D>(&loaded.resolved, md.as_ref())?;
     let mut before = checkpoint::DriverState::default();
     if let Some((ck, path)) = &saved {
         let mut guard = md.as_ref().map(|m| m.lock()).transpose().map_err(|_| anyhow::anyhow!("MD state poisoned"))?;
@@ -352,7 +349,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         let result = sim.step();
         continuum_s += t.elapsed().as_secs_f64();
         if let Err(e) = result {
-            failure = Some(e.to_string());
+            failure = Some(crate::exit::message(&e));
             break;
         }
         let totals = sim.totals();
@@ -509,26 +506,26 @@ struct DirectScore {
 fn direct_md_errors(scene: &Scene, dir: &Path, reached: f64) -> Option<DirectScore> {
     let Some(Reference::DirectMd(r)) = &scene.reference else { return None };
     let times: Vec<f64> = r.times_ps.iter().map(|t| t * 1e-12).filter(|t| *t <= reached).collect();
-    let scored = crate::report::DirectProfile::read_component(&r.profile, &r.component)
-        .and_then(|profile| Ok((profile, crate::report::ReferenceMap::of(scene)?)))
-        .and_then(|(profile, map)| crate::report::score_run(&profile, &r.component, &times, &map, dir));
+    let scored = crate::reference::DirectProfile::read_component(&r.profile, r.component.as_str())
+        .and_then(|profile| Ok((profile, crate::reference::ReferenceMap::of(scene)?)))
+        .and_then(|(profile, map)| crate::reference::score_run(&profile, r.component.as_str(), &times, &map, dir));
     Some(match scored {
         Ok(scores) => {
-            let mut json = crate::report::direct_md_errors_json(&r.profile, &r.component, &scores);
+            let mut json = crate::reference::direct_md_errors_json(&r.profile, r.component.as_str(), &scores);
             if times.len() < r.times_ps.len() {
                 json["not_reached_ps"] = json!(r.times_ps.iter().filter(|t| **t * 1e-12 > reached).collect::<Vec<_>>());
             }
             let line = if scores.is_empty() {
                 Err(format!("the run ended at t = {reached:e} s, before every time of its direct-MD reference: not scored"))
             } else {
-                Ok(crate::report::direct_md_log_line(&r.component, &scores))
+                Ok(crate::reference::direct_md_log_line(r.component.as_str(), &scores))
             };
             DirectScore { json, line }
         }
         Err(e) => {
             let why = format!("cannot score the run against its direct-MD reference {}: {e:#}", r.profile.display());
             DirectScore {
-                json: json!({"reference": "direct-md", "profile": r.profile.display().to_string(), "component": r.component, "failure": why}),
+                json: json!({"reference": "direct-md", "profile": r.profile.display().to_string(), "component": r.component.as_str(), "failure": why}),
                 line: Err(why),
             }
         }
@@ -590,7 +587,7 @@ fn summary<const D: usize>(
         "error": failure,
         "scene": scene.name,
         "dimension": D,
-        "method": scene.scheme.method,
+        "method": scene.scheme.method.name(),
         "wall_seconds": times.wall,
         "steps": sim.step,
         "simulated_time_s": sim.time,

@@ -1,11 +1,11 @@
-//! Turns a validated scene into a running [`continuum::Simulation`]: grid, points, closures.
-//! A scene gets only the parts it needs: constitutive-law scenes build no MD engine.
+//! Turns a resolved scene into a running [`continuum::Simulation`]: grid, points, closures.
+//! A scene gets only the parts it needs: constitutive-law scenes build no MD engine. Setup
+//! consumes only the [`ResolvedScene`]: every value is typed and measured there.
 
-use crate::scene::{Body, FaceSpec, Material, Scene, Shape};
+use crate::scene::{Law, ResolvedBody, ResolvedScene};
 use continuum::closure::{IdealGasIsothermal, LinearElastic, NeoHookean};
-use continuum::solver::{TimeIntegrator, Viscosity};
 use continuum::tensor::IDENTITY;
-use continuum::{Closure, Face, Grid, Particles, SchemeKind, Simulation};
+use continuum::{Closure, Grid, Particles, Simulation};
 use coupling::{MdClosure, MdSettings, MdShared};
 use std::sync::{Arc, Mutex};
 
@@ -14,160 +14,99 @@ use std::sync::{Arc, Mutex};
 pub enum SetupError {
     #[error("body `{0}` uses the md closure, but no MD worker pool was given")]
     MdUnavailable(String),
-    #[error("body `{0}`: {1}")]
-    Md(String, String),
+    #[error("body `{body}`")]
+    Md {
+        body: String,
+        #[source]
+        source: continuum::closure::ClosureError,
+    },
     #[error("body `{0}` has no material points: it is thinner than a particle spacing")]
     EmptyBody(String),
     #[error(transparent)]
     Solver(#[from] continuum::SolverError),
 }
 
-fn face(spec: &FaceSpec) -> Face {
-    match spec {
-        FaceSpec::Named(n) => match n.as_str() {
-            "fixed" => Face::Fixed,
-            "reflective" | "roller" => Face::Reflective,
-            "periodic" => Face::Periodic,
-            _ => Face::Free,
-        },
-        FaceSpec::Piston { piston } => Face::Piston(piston.clone()),
-    }
-}
-
-pub fn grid<const D: usize>(scene: &Scene) -> Grid<D> {
-    let d = &scene.domain;
-    let b = &scene.boundary;
-    let pairs = [(&b.x_min, &b.x_max), (&b.y_min, &b.y_max), (&b.z_min, &b.z_max)];
+pub fn grid<const D: usize>(scene: &ResolvedScene) -> Grid<D> {
     Grid {
-        origin: std::array::from_fn(|a| d.min[a]),
-        h: std::array::from_fn(|a| d.cell_size[a]),
-        cells: std::array::from_fn(|a| d.cells[a]),
-        faces: std::array::from_fn(|a| (face(pairs[a].0), face(pairs[a].1))),
+        origin: std::array::from_fn(|a| scene.origin[a]),
+        h: std::array::from_fn(|a| scene.cell_size[a]),
+        cells: std::array::from_fn(|a| scene.cells[a]),
+        faces: std::array::from_fn(|a| scene.faces[a].clone()),
     }
 }
 
-/// Whether a point lies in a body (half-open box, minus the notch).
-fn inside<const D: usize>(body: &Body, x: &[f64; D]) -> bool {
-    let in_box = (0..D).all(|a| x[a] >= body.min[a] && x[a] < body.max[a]);
-    if !in_box {
-        return false;
-    }
-    match (&body.shape, &body.notch) {
-        (Shape::NotchedBlock, Some(n)) if D >= 2 => {
-            // Triangle with its tip at (center, top - depth) opening to width at the top face.
-            let below_top = body.max[1] - x[1];
-            let half_width_here = 0.5 * n.width * (1.0 - below_top / n.depth);
-            !(below_top < n.depth && (x[0] - n.center).abs() < half_width_here)
+fn closure(body: &ResolvedBody, points: std::ops::Range<usize>, md: Option<&Arc<Mutex<MdShared>>>) -> Result<Box<dyn Closure>, SetupError> {
+    Ok(match &body.law {
+        Law::IdealGasIsothermal { sound_speed } => Box::new(IdealGasIsothermal { sound_speed: *sound_speed }),
+        Law::LinearElastic { youngs_modulus, poisson_ratio } => {
+            Box::new(LinearElastic { youngs_modulus: *youngs_modulus, poisson_ratio: *poisson_ratio, density0: body.density })
         }
-        _ => true,
-    }
-}
-
-fn closure(
-    body: &Body,
-    name: &str,
-    points: std::ops::Range<usize>,
-    md: Option<&Arc<Mutex<MdShared>>>,
-) -> Result<Box<dyn Closure>, SetupError> {
-    Ok(match &body.material {
-        Material::IdealGasIsothermal(g) => Box::new(IdealGasIsothermal { sound_speed: g.sound_speed }),
-        Material::LinearElastic(e) => {
-            Box::new(LinearElastic { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio, density0: body.density })
+        Law::NeoHookean { youngs_modulus, poisson_ratio } => {
+            Box::new(NeoHookean { youngs_modulus: *youngs_modulus, poisson_ratio: *poisson_ratio, density0: body.density })
         }
-        Material::NeoHookean(e) => {
-            Box::new(NeoHookean { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio, density0: body.density })
-        }
-        Material::Md(m) => {
-            let shared = md.ok_or_else(|| SetupError::MdUnavailable(name.to_string()))?;
-            let md_err = |e: String| SetupError::Md(name.to_string(), e);
-            let specs = points
-                .map(|p| crate::md::box_spec(p as u64, body, m))
-                .collect::<anyhow::Result<Vec<_>>>()
-                .map_err(|e| md_err(format!("{e:#}")))?;
-            let props =
-                crate::md::lattice_properties(&m.potential, &m.lattice, m.lattice_constant_angstrom, md_worker::Orientation(m.orientation))
-                    .map_err(|e| md_err(format!("{e:#}")))?;
-            let stress_sampling = m.stress_sampling.parse().map_err(|e: md_worker::MdError| md_err(e.to_string()))?;
+        Law::Md(m) => {
+            let shared = md.ok_or_else(|| SetupError::MdUnavailable(body.name.clone()))?;
+            let specs: Vec<_> = points.map(|p| crate::md::box_spec(p as u64, body, m)).collect();
             let settings = MdSettings {
                 dt_ps: m.timestep_fs * 1e-3,
                 energy_consistency: m.energy_consistency,
-                wave_speed: props.wave_speed,
-                stress_sampling,
+                wave_speed: m.lattice_properties.wave_speed,
+                stress_sampling: m.stress_sampling,
             };
-            Box::new(MdClosure::open(shared.clone(), settings, &specs).map_err(|e| md_err(e.to_string()))?)
+            Box::new(
+                MdClosure::open(shared.clone(), settings, &specs).map_err(|source| SetupError::Md { body: body.name.clone(), source })?,
+            )
         }
     })
 }
 
 /// Material points of every body, `ppc` per axis per cell at the cell's sub-centres.
-pub fn points<const D: usize>(scene: &Scene, grid: &Grid<D>) -> Result<Particles<D>, SetupError> {
-    let ppc = scene.scheme.particles_per_cell;
+pub fn points<const D: usize>(scene: &ResolvedScene, grid: &Grid<D>) -> Result<Particles<D>, SetupError> {
+    let ppc = scene.particles_per_cell;
     let mut pts = Particles::default();
     let per_cell = ppc.pow(D as u32);
     let volume = grid.cell_volume() / per_cell as f64;
-    for (b, (name, body)) in scene.bodies.iter().enumerate() {
+    for (b, body) in scene.bodies.iter().enumerate() {
         let mut f0 = IDENTITY;
         for (a, row) in f0.iter_mut().enumerate() {
             row[a] = 1.0 + body.initial_strain[a];
         }
         let j0 = continuum::tensor::det(&f0);
         let half: [f64; D] = std::array::from_fn(|a| grid.h[a] / (2.0 * ppc as f64));
+        let v: [f64; D] = std::array::from_fn(|a| body.velocity[a]);
         let before = pts.len();
-        let total: usize = grid.cells.iter().product::<usize>() * per_cell;
-        for k in 0..total {
-            let mut rem = k;
-            let x: [f64; D] = std::array::from_fn(|a| {
-                let n = grid.cells[a] * ppc;
-                let i = rem % n;
-                rem /= n;
-                grid.origin[a] + (i as f64 + 0.5) * grid.h[a] / ppc as f64
-            });
-            if inside(body, &x) {
-                let v: [f64; D] = std::array::from_fn(|a| body.velocity[a]);
-                // The geometry is the current (strained) configuration; mass follows the
-                // reference density and the reference volume V / J0.
-                pts.push(b as u32, x, v, body.density * volume / j0, volume / j0, half, f0);
-            }
-        }
+        let region = (body.min.as_slice(), body.max.as_slice(), body.notch.as_ref());
+        crate::scene::for_each_point::<D>(&scene.origin, &scene.cell_size, &scene.cells, ppc, region, |x| {
+            // The geometry is the current (strained) configuration; mass follows the
+            // reference density and the reference volume V / J0.
+            pts.push(b as u32, x, v, body.density * volume / j0, volume / j0, half, f0);
+        });
         if pts.len() == before {
-            return Err(SetupError::EmptyBody(name.clone()));
+            return Err(SetupError::EmptyBody(body.name.clone()));
         }
     }
     Ok(pts)
 }
 
-/// Builds the simulation of a validated scene with time step `dt`.
-pub fn simulation<const D: usize>(scene: &Scene, dt: f64, md: Option<&Arc<Mutex<MdShared>>>) -> Result<Simulation<D>, SetupError> {
+/// Builds the simulation of a resolved scene.
+pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<MdShared>>>) -> Result<Simulation<D>, SetupError> {
     let grid = grid::<D>(scene);
     let points = points(scene, &grid)?;
     let ranges = points.body_ranges();
-    let closures = scene.bodies.iter().zip(ranges).map(|((n, b), r)| closure(b, n, r, md)).collect::<Result<Vec<_>, _>>()?;
-    let scheme = SchemeKind::from_name(&scene.scheme.method).unwrap_or(SchemeKind::Mpm);
-    let viscosity = match scene.scheme.artificial_viscosity.as_str() {
-        "linear" => Viscosity::Linear { coefficient: scene.scheme.viscosity_coefficient },
-        "tensor" => Viscosity::Tensor { linear: scene.scheme.viscosity_c_l, quadratic: scene.scheme.viscosity_c_q },
-        _ => Viscosity::None,
-    };
-    let mut sim = Simulation::new(grid, points, scheme, closures, viscosity, dt)?
-        .with_sub_points(scene.scheme.sub_points)
-        .with_small_mass_fraction(scene.scheme.small_mass_fraction);
-    sim.integrator = if scene.scheme.integrator == "leapfrog" { TimeIntegrator::Leapfrog } else { TimeIntegrator::Dhakal };
+    let closures = scene.bodies.iter().zip(ranges).map(|(b, r)| closure(b, r, md)).collect::<Result<Vec<_>, _>>()?;
+    let mut sim = Simulation::new(grid, points, scene.scheme, closures, scene.viscosity, scene.dt)?
+        .with_sub_points(scene.sub_points)
+        .with_small_mass_fraction(scene.small_mass_fraction);
+    sim.integrator = scene.integrator;
     Ok(sim)
 }
 
-/// Size of a scene's work without building closures: (points per body in body order, grid nodes).
-pub fn work_size(scene: &Scene) -> (Vec<(String, usize)>, usize) {
-    fn size<const D: usize>(scene: &Scene) -> (Vec<(String, usize)>, usize) {
-        let grid = grid::<D>(scene);
-        let counts = match points::<D>(scene, &grid) {
-            Ok(p) => p.body_ranges().iter().map(|r| r.len()).collect(),
-            Err(_) => Vec::new(),
-        };
-        (scene.bodies.keys().cloned().zip(counts.into_iter().chain(std::iter::repeat(0))).collect(), grid.node_count())
-    }
-    match scene.domain.dimension {
-        1 => size::<1>(scene),
-        2 => size::<2>(scene),
-        _ => size::<3>(scene),
-    }
+/// Size of a scene's work without building anything: (points per body in body order, grid nodes).
+pub fn work_size(scene: &ResolvedScene) -> (Vec<(String, usize)>, usize) {
+    let nodes = match scene.dimension {
+        1 => grid::<1>(scene).node_count(),
+        2 => grid::<2>(scene).node_count(),
+        _ => grid::<3>(scene).node_count(),
+    };
+    (scene.point_counts(), nodes)
 }

@@ -39,7 +39,7 @@ fn run_uncached(scene_file: &str, sets: &[&str]) -> Outcome {
     let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
     let loaded = scene::load(&scene_path(scene_file), &sets).expect("scene loads");
     let sc = &loaded.scene;
-    let mut sim = orchestrator::setup::simulation::<1>(sc, loaded.dt, None).expect("simulation builds");
+    let mut sim = orchestrator::setup::simulation::<1>(&loaded.resolved, None).expect("simulation builds");
     let mut failure = None;
     while sim.step < loaded.steps {
         if let Err(e) = sim.step() {

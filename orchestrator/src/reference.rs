@@ -1,0 +1,334 @@
+//! A direct-MD reference and the score of a run against it (Dhakal eq. 7.12): the profile
+//! of `md-worker direct --slab`, the map from a 1D scene's initial positions to the reference
+//! bar's coordinate, and the scores of a run's particle snapshots. Scenes validate their
+//! `[reference]` with it, runs score themselves with it, reports collect the scores; it
+//! depends on none of them.
+
+use anyhow::{Context, Result};
+use serde_json::Value;
+use std::path::Path;
+
+/// A direct-MD reference (a scene's `[reference] solution = "direct-md"`, or `--reference`):
+/// one stress component in slabs of the reference (unstrained) coordinate at a series of times,
+/// as `md-worker direct --slab` writes it (`time_ps,slab_center_nm,sxx_gpa,...`, tension
+/// positive).
+///
+/// This is the 1D form. The 2D form of eq. 7.12 (Eulerian x-y bins with atom counts, scored in
+/// the current configuration over the bins holding most of a bulk bin's atoms) is not
+/// implemented yet: it would add a frame type sampled at (x, y) and a mask, and feed the same
+/// [`eq_7_12_sum`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct DirectProfile {
+    /// (time (s), slabs sorted by X: (X (m), stress (Pa))).
+    pub frames: Vec<(f64, Vec<(f64, f64)>)>,
+}
+
+/// Material points closer than this to either end of the reference bar are not scored: the
+/// direct MD freezes 10 A end layers as walls, the continuum has reflective walls there.
+pub const REFERENCE_WALL_M: f64 = 1e-9;
+
+/// Two times closer than this (s, 1e-3 ps) are the same snapshot (the direct CSV's times
+/// carry round-off from summing 1 fs steps).
+pub const TIME_TOLERANCE_S: f64 = 1e-15;
+
+impl DirectProfile {
+    /// sigma_xx of the profile in `path`.
+    pub fn read(path: &Path) -> Result<DirectProfile> {
+        Self::read_component(path, "sxx")
+    }
+
+    /// Stress `component` (`sxx`, `syy`, `szz`: the column `<component>_gpa`) of the profile in
+    /// `path`.
+    pub fn read_component(path: &Path, component: &str) -> Result<DirectProfile> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read the direct-MD reference {}", path.display()))?;
+        Self::parse_component(&text, component).with_context(|| format!("direct-MD reference {}", path.display()))
+    }
+
+    pub fn parse(text: &str) -> Result<DirectProfile> {
+        Self::parse_component(text, "sxx")
+    }
+
+    pub fn parse_component(text: &str, component: &str) -> Result<DirectProfile> {
+        let column = format!("{component}_gpa");
+        let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
+        let (_, header) = lines.next().ok_or_else(|| {
+            anyhow::anyhow!("is empty; expected a header time_ps,slab_center_nm,sxx_gpa,... (`md-worker direct --slab` output)")
+        })?;
+        let cols: Vec<&str> = header.split(',').map(str::trim).collect();
+        let col = |name: &str| {
+            cols.iter().position(|c| *c == name).ok_or_else(|| {
+                anyhow::anyhow!("line 1: no column `{name}` (found {}); expected `md-worker direct --slab` output", cols.join(","))
+            })
+        };
+        let (ct, cx, cs) = (col("time_ps")?, col("slab_center_nm")?, col(&column)?);
+        let mut frames: Vec<(f64, Vec<(f64, f64)>)> = Vec::new();
+        for (k, line) in lines {
+            let f: Vec<&str> = line.split(',').map(str::trim).collect();
+            let num = |c: usize, name: &str| -> Result<f64> {
+                let v = f.get(c).ok_or_else(|| anyhow::anyhow!("line {}: missing column `{name}`", k + 1))?;
+                v.parse::<f64>()
+                    .ok()
+                    .filter(|x| x.is_finite())
+                    .ok_or_else(|| anyhow::anyhow!("line {}: `{name}` = {v:?} is not a finite number", k + 1))
+            };
+            let (t, x, s) = (num(ct, "time_ps")? * 1e-12, num(cx, "slab_center_nm")? * 1e-9, num(cs, &column)? * 1e9);
+            match frames.iter_mut().find(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S) {
+                Some((_, rows)) => rows.push((x, s)),
+                None => frames.push((t, vec![(x, s)])),
+            }
+        }
+        if frames.is_empty() {
+            anyhow::bail!("has a header but no rows");
+        }
+        for (t, rows) in &mut frames {
+            rows.sort_by(|a, b| a.0.total_cmp(&b.0));
+            if rows.len() < 2 || rows.windows(2).any(|w| !(w[1].0 > w[0].0)) {
+                anyhow::bail!("t = {} ps: needs at least two slabs with distinct centres, found {}", *t * 1e12, rows.len());
+            }
+        }
+        Ok(DirectProfile { frames })
+    }
+
+    /// The slabs at time `t` (s), if the reference has that time.
+    pub fn at(&self, t: f64) -> Option<&[(f64, f64)]> {
+        self.frames
+            .iter()
+            .filter(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S)
+            .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+            .map(|(_, r)| r.as_slice())
+    }
+
+    /// First and last time of the profile (s).
+    pub fn time_range(&self) -> (f64, f64) {
+        let t = self.frames.iter().map(|f| f.0);
+        (t.clone().fold(f64::INFINITY, f64::min), t.fold(f64::NEG_INFINITY, f64::max))
+    }
+
+    /// The profile's times (ps), for messages.
+    pub fn times_ps(&self) -> String {
+        self.frames.iter().map(|(t, _)| format!("{}", (t * 1e15).round() / 1e3)).collect::<Vec<_>>().join(", ")
+    }
+}
+
+/// sigma_xx of slabs (X, s) sorted by X, linear in X between slab centres, constant beyond.
+pub fn interpolate(rows: &[(f64, f64)], x: f64) -> f64 {
+    let i = rows.partition_point(|r| r.0 < x);
+    if i == 0 {
+        return rows[0].1;
+    }
+    if i == rows.len() {
+        return rows[rows.len() - 1].1;
+    }
+    let ((x0, y0), (x1, y1)) = (rows[i - 1], rows[i]);
+    y0 + (y1 - y0) * (x - x0) / (x1 - x0)
+}
+
+/// The seed's eq. 7.12 over (s_MD, s_MS) pairs of one stress component (Pa):
+/// eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2). Returns (eps, pairs). Every form of the score
+/// (the 1D slabs of [`eq_7_12`]; a 2D form would sample bins) ends here.
+pub fn eq_7_12_sum(pairs: impl IntoIterator<Item = (f64, f64)>) -> Result<(f64, usize)> {
+    let (mut num, mut den, mut count) = (0.0, 0.0, 0);
+    for (r, s) in pairs {
+        num += (r - s) * (r - s);
+        den += r * r;
+        count += 1;
+    }
+    if count == 0 {
+        anyhow::bail!("no material point to score");
+    }
+    if den == 0.0 {
+        anyhow::bail!("the reference stress is zero at every scored point: eq. 7.12 is undefined");
+    }
+    let eps = (num / den).sqrt();
+    anyhow::ensure!(eps.is_finite(), "eq. 7.12 is not finite (a run's stress is not finite)");
+    Ok((eps, count))
+}
+
+/// The seed's eq. 7.12 in 1D: eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the material
+/// points `(X, s_MS)` (reference coordinate (m), stress (Pa)), with s_MD the reference slabs
+/// interpolated at X. Points within `wall` of the reference bar's ends (the outer slab faces)
+/// are left out. Returns (eps, points scored).
+pub fn eq_7_12(reference: &[(f64, f64)], points: &[(f64, f64)], wall: f64) -> Result<(f64, usize)> {
+    let n = reference.len();
+    let lo = reference[0].0 - 0.5 * (reference[1].0 - reference[0].0);
+    let hi = reference[n - 1].0 + 0.5 * (reference[n - 1].0 - reference[n - 2].0);
+    let pairs: Vec<(f64, f64)> =
+        points.iter().filter(|&&(x, _)| x >= lo + wall && x <= hi - wall).map(|&(x, s)| (interpolate(reference, x), s)).collect();
+    if pairs.is_empty() {
+        anyhow::bail!(
+            "no material point lies inside the reference bar ({:.4} to {:.4} nm, less {} nm at each end)",
+            lo * 1e9,
+            hi * 1e9,
+            wall * 1e9
+        );
+    }
+    eq_7_12_sum(pairs)
+}
+
+/// One eq. 7.12 score of a run: at `time` (s), from the snapshot nearest to it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Score {
+    pub time: f64,
+    pub snapshot_step: u64,
+    pub snapshot_time: f64,
+    pub error: f64,
+    pub points: usize,
+}
+
+/// The eq. 7.12 error of `component` of the run in `run_dir` against `profile` at each of
+/// `times` (s), each from the snapshot of `snapshots/index.csv` nearest to it (scored against
+/// the profile's frame at the time asked for). The one implementation of the score: `mscale
+/// run` calls it for a scene's `[reference] solution = "direct-md"`, `mscale report` reads it
+/// back from the runs' summary.json.
+pub fn score_run(profile: &DirectProfile, component: &str, times: &[f64], map: &ReferenceMap, run_dir: &Path) -> Result<Vec<Score>> {
+    let index_path = run_dir.join("snapshots/index.csv");
+    let index = std::fs::read_to_string(&index_path).with_context(|| format!("cannot read {}", index_path.display()))?;
+    let snaps: Vec<(u64, f64, String)> = index
+        .lines()
+        .skip(1)
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            Some((f.first()?.parse().ok()?, f.get(1)?.parse().ok()?, f.get(2)?.to_string()))
+        })
+        .collect();
+    let mut out = Vec::new();
+    for &t in times {
+        let Some((step, ts, file)) = snaps.iter().min_by(|a, b| (a.1 - t).abs().total_cmp(&(b.1 - t).abs())) else {
+            anyhow::bail!("{} lists no snapshot", index_path.display());
+        };
+        let path = run_dir.join("snapshots").join(file);
+        let points = read_x0_component(&path, component)?;
+        let pts: Vec<(f64, f64)> = points.iter().map(|&(x0, s)| (map.x_ref(x0), s)).collect();
+        let reference = profile.at(t).ok_or_else(|| {
+            anyhow::anyhow!("the direct-MD reference has no frame at t = {} ps (it has {} ps)", t * 1e12, profile.times_ps())
+        })?;
+        let (error, n) = eq_7_12(reference, &pts, REFERENCE_WALL_M)
+            .with_context(|| format!("eq. 7.12 of {component} of {} at t = {} ps", path.display(), t * 1e12))?;
+        out.push(Score { time: t, snapshot_step: *step, snapshot_time: *ts, error, points: n });
+    }
+    Ok(out)
+}
+
+/// The summary.json `errors` of a run scored against a direct-MD reference: the eq. 7.12 error
+/// per time (with the snapshot it came from), and a flat `<component>_error_<t>ps` per time
+/// (the report's column names).
+pub fn direct_md_errors_json(profile: &Path, component: &str, scores: &[Score]) -> Value {
+    let mut m = serde_json::Map::new();
+    m.insert("reference".into(), "direct-md".into());
+    m.insert("profile".into(), profile.display().to_string().into());
+    m.insert("component".into(), component.into());
+    m.insert("measure".into(), "eq. 7.12: sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the material points in the reference coordinate, points within 1 nm of the bar's ends left out".into());
+    m.insert(
+        "times".into(),
+        scores
+            .iter()
+            .map(|s| serde_json::json!({"time_ps": ps(s.time), "snapshot_step": s.snapshot_step, "snapshot_time_ps": ps(s.snapshot_time), "error": s.error, "points": s.points}))
+            .collect::<Vec<_>>()
+            .into(),
+    );
+    for s in scores {
+        m.insert(error_column(component, s.time), s.error.into());
+    }
+    Value::Object(m)
+}
+
+/// A time (s) in ps, rounded to 1e-6 ps (the round-off of summed steps removed).
+/// The summary and report column of `component`'s error at `t` (s): `sxx_error_5ps`.
+pub(crate) fn error_column(component: &str, t: f64) -> String {
+    format!("{component}_error_{}ps", (t * 1e15).round() / 1e3)
+}
+
+fn ps(t: f64) -> f64 {
+    (t * 1e18).round() / 1e6
+}
+
+/// The log line of a scored run: `eq. 7.12 error of sxx against direct MD: 4.58 % at 5 ps, ...`.
+pub fn direct_md_log_line(component: &str, scores: &[Score]) -> String {
+    let parts: Vec<String> = scores
+        .iter()
+        .map(|s| {
+            let at = if (s.snapshot_time - s.time).abs() > TIME_TOLERANCE_S {
+                format!(" (snapshot at {} ps)", ps(s.snapshot_time))
+            } else {
+                String::new()
+            };
+            format!("{:.2} % at {} ps{at}", 100.0 * s.error, ps(s.time))
+        })
+        .collect();
+    format!("eq. 7.12 error of {component} against direct MD: {} ({} points)", parts.join(", "), scores.first().map_or(0, |s| s.points))
+}
+
+/// The scores a run wrote into its summary.json `errors`, one per time of `times` (s) in order;
+/// empty unless the run scored every one of them.
+pub fn scores_of_summary(summary: &Value, times: &[f64]) -> Vec<(f64, usize)> {
+    let Some(list) = summary["errors"]["times"].as_array() else { return Vec::new() };
+    let found: Option<Vec<(f64, usize)>> = times
+        .iter()
+        .map(|&t| {
+            let e = list.iter().find(|e| e["time_ps"].as_f64().is_some_and(|x| (x * 1e-12 - t).abs() <= TIME_TOLERANCE_S))?;
+            Some((e["error"].as_f64()?, e["points"].as_u64()? as usize))
+        })
+        .collect();
+    found.unwrap_or_default()
+}
+
+/// Maps a 1D scene's initial positions x0 (the strained configuration the bodies are given in)
+/// to the reference coordinate X of an unstrained bar: bodies in order along x, each stretched
+/// back by 1 / (1 + initial_strain_x), gaps between bodies kept. X starts at the first body's
+/// min.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReferenceMap {
+    /// (x0 min, x0 max, X at x0 min, 1 + strain) per body, sorted by x0.
+    pub(crate) bodies: Vec<(f64, f64, f64, f64)>,
+}
+
+impl ReferenceMap {
+    /// The map of a 1D scene `name` whose bodies span x0 in [lo, hi) with stretch 1 + strain_x,
+    /// given as (lo, hi, stretch).
+    pub fn from_bodies(name: &str, mut b: Vec<(f64, f64, f64)>) -> Result<ReferenceMap> {
+        b.sort_by(|p, q| p.0.total_cmp(&q.0));
+        let mut bodies = Vec::new();
+        let mut prev: Option<(f64, f64)> = None; // (x0 max, X max) of the body before
+        for (lo, hi, stretch) in b {
+            let start = match prev {
+                None => lo,
+                Some((pmax, _)) if lo < pmax - 1e-9 * (hi - lo) => {
+                    anyhow::bail!("bodies of scene `{name}` overlap along x at {lo:e} m: cannot map them to one reference bar")
+                }
+                Some((pmax, pxmax)) => pxmax + (lo - pmax).max(0.0),
+            };
+            bodies.push((lo, hi, start, stretch));
+            prev = Some((hi, start + (hi - lo) / stretch));
+        }
+        Ok(ReferenceMap { bodies })
+    }
+
+    /// X of a point that starts at x0 (the body whose [min, max) holds it; the last body takes
+    /// its max too).
+    pub fn x_ref(&self, x0: f64) -> f64 {
+        let k = self.bodies.iter().rposition(|b| x0 >= b.0).unwrap_or(0);
+        let (lo, _, start, stretch) = self.bodies[k];
+        start + (x0 - lo) / stretch
+    }
+}
+
+/// (x0, stress `component`) of every material point in a particle CSV.
+fn read_x0_component(path: &Path, component: &str) -> Result<Vec<(f64, f64)>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut lines = text.lines();
+    let cols: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let col = |n: &str| cols.iter().position(|c| *c == n).ok_or_else(|| anyhow::anyhow!("{}: no column `{n}`", path.display()));
+    let (cx, cs) = (col("x0")?, col(component)?);
+    lines
+        .enumerate()
+        .map(|(k, l)| {
+            let f: Vec<&str> = l.split(',').collect();
+            let get = |c: usize| {
+                f.get(c)
+                    .and_then(|v| v.parse::<f64>().ok())
+                    .ok_or_else(|| anyhow::anyhow!("{} line {}: unreadable x0 or {component}", path.display(), k + 2))
+            };
+            Ok((get(cx)?, get(cs)?))
+        })
+        .collect()
+}

@@ -1,0 +1,722 @@
+//! Validation of a deserialised scene: physics and numerics checked, every default filled.
+
+use super::parse::Locator;
+use super::resolve::{Law, ResolvedBody, ResolvedMd, ResolvedScene, count_points, region};
+use super::*;
+use continuum::solver::Viscosity;
+use continuum::{Face, SchemeKind};
+use coupling::lattice::LatticeProperties;
+use md_worker::{DeformMode, Orientation};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+/// What validation measured of an md body's lattice.
+type Measured = (LatticeProperties, u64);
+
+/// Largest lattice constant an md material may have (A); real crystals of these lattices have 2-7.
+const MAX_LATTICE_CONSTANT: f64 = 100.0;
+
+fn finite_positive(loc: &Locator<'_>, key: &str, v: f64, what: &str) -> Result<(), SceneError> {
+    if v.is_finite() && v > 0.0 { Ok(()) } else { Err(loc.err(key, v, format!("{what} must be a finite positive number"))) }
+}
+
+fn vec_str(v: &[f64]) -> String {
+    format!("{v:?}")
+}
+
+/// Largest CFL number the explicit schemes are stable at (Gong, Ch. 7: c dt/h <= 1).
+pub const CFL_LIMIT: f64 = 1.0;
+
+/// Largest MD box a scene may ask for (atoms).
+pub const MAX_ATOMS_PER_BOX: u64 = 256_000;
+
+impl Scene {
+    /// Checks physics and numerics; fills defaults (so that the scene renders as what runs).
+    /// Returns the resolved scene and the files the scene names (resolved against `base`).
+    pub(super) fn resolve(&mut self, loc: &Locator<'_>, base: &Path) -> Result<(ResolvedScene, Vec<PathBuf>), SceneError> {
+        if self.schema != SCHEMA_VERSION {
+            return Err(loc.err("schema", self.schema, format!("this build reads schema {SCHEMA_VERSION}")));
+        }
+        let dim = self.domain.dimension;
+        if !(1..=3).contains(&dim) {
+            return Err(loc.err("domain.dimension", dim, "allowed: 1, 2 or 3"));
+        }
+        self.validate_domain(loc)?;
+        if self.bodies.is_empty() {
+            return Err(loc.err("bodies", "{}", "a scene needs at least one body, e.g. [bodies.bar]"));
+        }
+        let mut files = Vec::new();
+        let mut max_speed: f64 = 0.0;
+        let names: Vec<String> = self.bodies.keys().cloned().collect();
+        let mut measured = BTreeMap::new();
+        for name in names {
+            let (speed, file, lattice) = self.validate_body(loc, &name, base)?;
+            max_speed = max_speed.max(speed);
+            files.extend(file);
+            measured.extend(lattice.map(|m| (name, m)));
+        }
+        self.validate_boundary(loc)?;
+        let user_timestep = self.scheme.timestep.is_some() && self.scheme.cfl.is_none();
+        let (mut dt, mut steps) = self.validate_scheme(loc, max_speed)?;
+        if let Some(md_step) = self.md_step(loc)? {
+            (dt, steps) = self.fit_to_md_step(loc, dt, md_step, user_timestep, max_speed)?;
+        }
+        files.extend(self.validate_reference(loc, base)?);
+        let counts = self.point_counts();
+        self.validate_dump_points(loc, &counts)?;
+        Ok((self.resolved(dt, steps, &counts, measured), files))
+    }
+
+    /// Material points per body (name order), counted without building them.
+    fn point_counts(&self) -> Vec<(String, usize)> {
+        let d = &self.domain;
+        let ppc = self.scheme.particles_per_cell;
+        self.bodies
+            .iter()
+            .map(|(name, b)| {
+                let r = region(b.shape, &b.min, &b.max, b.notch.as_ref());
+                (name.clone(), count_points(d.dimension, &d.min, &d.cell_size, &d.cells, ppc, r))
+            })
+            .collect()
+    }
+
+    /// The typed scene setup consumes, from a validated scene (every default filled).
+    fn resolved(&self, dt: f64, steps: u64, counts: &[(String, usize)], mut measured: BTreeMap<String, Measured>) -> ResolvedScene {
+        let face = |f: &FaceSpec| match f {
+            FaceSpec::Named(FaceName::Free) => Face::Free,
+            FaceSpec::Named(FaceName::Fixed) => Face::Fixed,
+            FaceSpec::Named(FaceName::Reflective | FaceName::Roller) => Face::Reflective,
+            FaceSpec::Named(FaceName::Periodic) => Face::Periodic,
+            FaceSpec::Piston { piston } => Face::Piston(piston.clone()),
+        };
+        let b = &self.boundary;
+        let s = &self.scheme;
+        let bodies = self
+            .bodies
+            .iter()
+            .zip(counts)
+            .map(|((name, body), (_, points))| {
+                let law = match &body.material {
+                    Material::IdealGasIsothermal(g) => Law::IdealGasIsothermal { sound_speed: g.sound_speed },
+                    Material::LinearElastic(e) => Law::LinearElastic { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio },
+                    Material::NeoHookean(e) => Law::NeoHookean { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio },
+                    Material::Md(m) => {
+                        let (lattice_properties, atoms_per_box) = measured.remove(name).expect("every md body is measured by validation");
+                        Law::Md(Box::new(ResolvedMd {
+                            potential: m.potential.clone(),
+                            lattice: m.lattice,
+                            lattice_constant_angstrom: m.lattice_constant_angstrom,
+                            cells_per_side: m.cells_per_side,
+                            orientation: Orientation(m.orientation),
+                            timestep_fs: m.timestep_fs,
+                            stress_sampling: m.stress_sampling,
+                            energy_consistency: m.energy_consistency,
+                            seed: m.seed,
+                            relax_steps: m.relax_steps,
+                            relax_box: m.relax_box,
+                            deformation: match m.deformation {
+                                Deformation::Affine => DeformMode::Affine,
+                                // `auto` is resolved by validation; seed is its non-1D choice.
+                                Deformation::Seed | Deformation::Auto => DeformMode::Seed,
+                            },
+                            lattice_properties,
+                            atoms_per_box,
+                        }))
+                    }
+                };
+                ResolvedBody {
+                    name: name.clone(),
+                    min: body.min.clone(),
+                    max: body.max.clone(),
+                    notch: if body.shape == Shape::NotchedBlock { body.notch.clone() } else { None },
+                    density: body.density,
+                    velocity: body.velocity.clone(),
+                    initial_strain: [body.initial_strain[0], body.initial_strain[1], body.initial_strain[2]],
+                    temperature_k: body.temperature_k,
+                    law,
+                    points: *points,
+                }
+            })
+            .collect();
+        ResolvedScene {
+            dimension: self.domain.dimension,
+            origin: self.domain.min.clone(),
+            cell_size: self.domain.cell_size.clone(),
+            cells: self.domain.cells.clone(),
+            faces: [(face(&b.x_min), face(&b.x_max)), (face(&b.y_min), face(&b.y_max)), (face(&b.z_min), face(&b.z_max))],
+            scheme: s.method,
+            particles_per_cell: s.particles_per_cell,
+            sub_points: s.sub_points,
+            viscosity: match s.artificial_viscosity {
+                ViscosityForm::None => Viscosity::None,
+                ViscosityForm::Linear => Viscosity::Linear { coefficient: s.viscosity_coefficient },
+                ViscosityForm::Tensor => Viscosity::Tensor { linear: s.viscosity_c_l, quadratic: s.viscosity_c_q },
+            },
+            integrator: s.integrator,
+            small_mass_fraction: s.small_mass_fraction,
+            dt,
+            steps,
+            bodies,
+        }
+    }
+
+    fn validate_domain(&mut self, loc: &Locator<'_>) -> Result<(), SceneError> {
+        let d = &mut self.domain;
+        let dim = d.dimension;
+        for (key, v) in [("domain.min", &d.min), ("domain.max", &d.max)] {
+            if v.len() != dim {
+                return Err(loc.err(key, vec_str(v), format!("needs {dim} value(s), one per dimension")));
+            }
+            if v.iter().any(|x| !x.is_finite()) {
+                return Err(loc.err(key, vec_str(v), "values must be finite"));
+            }
+        }
+        for a in 0..dim {
+            if d.max[a] <= d.min[a] {
+                return Err(loc.err(
+                    "domain.max",
+                    vec_str(&d.max),
+                    format!("must exceed domain.min along every axis (axis {a}: {} <= {})", d.max[a], d.min[a]),
+                ));
+            }
+        }
+        match (d.cells.is_empty(), d.cell_size.is_empty()) {
+            (false, false) => {
+                // Both given (as in a resolved scene): they must agree.
+                let agree = d.cells.len() == dim
+                    && d.cell_size.len() == dim
+                    && (0..dim).all(|a| ((d.max[a] - d.min[a]) / d.cells[a] as f64 - d.cell_size[a]).abs() <= 1e-9 * d.cell_size[a].abs());
+                if !agree {
+                    return Err(loc.err(
+                        "domain.cell_size",
+                        vec_str(&d.cell_size),
+                        format!("disagrees with cells = {:?}; give `cells` or `cell_size`, not both", d.cells),
+                    ));
+                }
+            }
+            (true, true) => return Err(loc.err("domain", "", "missing `cells` (cells per axis) or `cell_size` (m per axis)")),
+            (false, true) => {
+                if d.cells.len() != dim || d.cells.contains(&0) {
+                    return Err(loc.err("domain.cells", format!("{:?}", d.cells), format!("needs {dim} positive integer(s)")));
+                }
+            }
+            (true, false) => {
+                if d.cell_size.len() != dim || d.cell_size.iter().any(|h| !(h.is_finite() && *h > 0.0)) {
+                    return Err(loc.err("domain.cell_size", vec_str(&d.cell_size), format!("needs {dim} positive length(s) in m")));
+                }
+                let mut cells = Vec::new();
+                for a in 0..dim {
+                    let n = (d.max[a] - d.min[a]) / d.cell_size[a];
+                    if (n - n.round()).abs() > 1e-9 * n.max(1.0) {
+                        return Err(loc.err(
+                            "domain.cell_size",
+                            vec_str(&d.cell_size),
+                            format!(
+                                "must divide the domain length along axis {a} ({} m) into a whole number of cells",
+                                d.max[a] - d.min[a]
+                            ),
+                        ));
+                    }
+                    cells.push(n.round() as usize);
+                }
+                d.cells = cells;
+            }
+        }
+        let total: f64 = d.cells.iter().map(|&c| c as f64 + 1.0).product();
+        if total > 2e8 {
+            return Err(loc.err("domain.cells", format!("{:?}", d.cells), "more than 2e8 grid nodes: this would not fit in memory"));
+        }
+        d.cell_size = (0..dim).map(|a| (d.max[a] - d.min[a]) / d.cells[a] as f64).collect();
+        Ok(())
+    }
+
+    /// Returns the body's wave speed estimate (m/s), the file it names, if any, and what was
+    /// measured of an md body's lattice.
+    fn validate_body(
+        &mut self,
+        loc: &Locator<'_>,
+        name: &str,
+        base: &Path,
+    ) -> Result<(f64, Option<PathBuf>, Option<Measured>), SceneError> {
+        let dim = self.domain.dimension;
+        let (dmin, dmax) = (self.domain.min.clone(), self.domain.max.clone());
+        let Some(b) = self.bodies.get_mut(name) else { return Ok((0.0, None, None)) };
+        let k = |f: &str| format!("bodies.{name}.{f}");
+        for (f, v) in [("min", &b.min), ("max", &b.max)] {
+            if v.len() != dim || v.iter().any(|x| !x.is_finite()) {
+                return Err(loc.err(&k(f), vec_str(v), format!("needs {dim} finite value(s) (m)")));
+            }
+        }
+        for a in 0..dim {
+            if b.max[a] <= b.min[a] {
+                return Err(loc.err(&k("max"), vec_str(&b.max), format!("must exceed `min` along every axis (axis {a})")));
+            }
+            if b.min[a] < dmin[a] - 1e-12 || b.max[a] > dmax[a] + 1e-12 {
+                return Err(loc.err(
+                    &k("max"),
+                    format!("min {:?} max {:?}", b.min, b.max),
+                    format!("the body must lie inside the domain {dmin:?} .. {dmax:?}"),
+                ));
+            }
+        }
+        match (b.shape, &b.notch) {
+            (Shape::NotchedBlock, None) => {
+                return Err(loc.err(&k("notch"), "", "a notched-block needs [bodies.NAME.notch] with center, width and depth (m)"));
+            }
+            (Shape::NotchedBlock, Some(n)) => {
+                if dim < 2 {
+                    return Err(loc.err(&k("shape"), "\"notched-block\"", "a notch needs a 2D or 3D domain"));
+                }
+                for (f, v) in [("width", n.width), ("depth", n.depth)] {
+                    finite_positive(loc, &k(&format!("notch.{f}")), v, "the notch size")?;
+                }
+                if n.depth >= b.max[1] - b.min[1] {
+                    return Err(loc.err(&k("notch.depth"), n.depth, "must be less than the body's height"));
+                }
+            }
+            (_, Some(_)) => return Err(loc.err(&k("notch"), "", "only a notched-block has a notch")),
+            _ => {}
+        }
+        finite_positive(loc, &k("density"), b.density, "density (kg/m^3)")?;
+        if b.velocity.is_empty() {
+            b.velocity = vec![0.0; dim];
+        }
+        if b.velocity.len() != dim || b.velocity.iter().any(|v| !v.is_finite()) {
+            return Err(loc.err(&k("velocity"), vec_str(&b.velocity), format!("needs {dim} finite value(s) (m/s)")));
+        }
+        if b.initial_strain.is_empty() {
+            b.initial_strain = vec![0.0; 3];
+        }
+        if b.initial_strain.len() > 3 || b.initial_strain.iter().any(|e| !(e.is_finite() && *e > -0.5 && *e < 1.0)) {
+            return Err(loc.err(
+                &k("initial_strain"),
+                vec_str(&b.initial_strain),
+                "up to 3 diagonal engineering strains (xx, yy, zz), each between -0.5 and 1",
+            ));
+        }
+        b.initial_strain.resize(3, 0.0);
+        if !(b.temperature_k.is_finite() && b.temperature_k >= 0.0) {
+            return Err(loc.err(&k("temperature_k"), b.temperature_k, "temperature (K) must be finite and >= 0"));
+        }
+        let rho = b.density;
+        match &mut b.material {
+            Material::IdealGasIsothermal(g) => {
+                finite_positive(loc, &k("material.sound_speed"), g.sound_speed, "the sound speed (m/s)")?;
+                Ok((g.sound_speed, None, None))
+            }
+            Material::LinearElastic(e) | Material::NeoHookean(e) => {
+                finite_positive(loc, &k("material.youngs_modulus"), e.youngs_modulus, "Young's modulus (Pa)")?;
+                if !(e.poisson_ratio > -1.0 && e.poisson_ratio < 0.5) {
+                    return Err(loc.err(&k("material.poisson_ratio"), e.poisson_ratio, "Poisson's ratio must lie in (-1, 0.5)"));
+                }
+                let (lambda, mu) = continuum::closure::lame(e.youngs_modulus, e.poisson_ratio);
+                Ok((((lambda + 2.0 * mu) / rho).sqrt(), None, None))
+            }
+            Material::Md(md) => {
+                let file = base.join(&md.potential);
+                if !file.is_file() {
+                    return Err(loc.err(
+                        &k("material.potential"),
+                        format!("{:?}", md.potential),
+                        format!("no such file ({}); paths are relative to the scene file", file.display()),
+                    ));
+                }
+                finite_positive(loc, &k("material.lattice_constant_angstrom"), md.lattice_constant_angstrom, "the lattice constant (A)")?;
+                if md.lattice_constant_angstrom > MAX_LATTICE_CONSTANT {
+                    return Err(loc.err(
+                        &k("material.lattice_constant_angstrom"),
+                        md_worker::error::show(md.lattice_constant_angstrom),
+                        format!("the lattice constant must be at most {MAX_LATTICE_CONSTANT} A"),
+                    ));
+                }
+                if !(1..=40).contains(&md.cells_per_side) {
+                    return Err(loc.err(&k("material.cells_per_side"), md.cells_per_side, "allowed: 1 to 40 lattice cells per box side"));
+                }
+                if let Err(e) = md_worker::Orientation(md.orientation).validate() {
+                    return Err(loc.err(&k("material.orientation"), format!("{:?}", md.orientation), e.to_string()));
+                }
+                let atoms = md.lattice.atoms_per_cell(&Orientation(md.orientation)) * (md.cells_per_side as u64).pow(3);
+                if atoms > MAX_ATOMS_PER_BOX {
+                    return Err(loc.err(
+                        &k("material.cells_per_side"),
+                        md.cells_per_side,
+                        format!("{atoms} atoms per box; at most {MAX_ATOMS_PER_BOX} (fewer cells, or an orientation with smaller indices)"),
+                    ));
+                }
+                if !(md.timestep_fs > 0.0 && md.timestep_fs <= 5.0) {
+                    return Err(loc.err(&k("material.timestep_fs"), md.timestep_fs, "the MD time step must lie in (0, 5] fs"));
+                }
+                if md.precision != MdPrecision::Double {
+                    return Err(loc.err(&k("material.precision"), format!("{:?}", md.precision.scene_name()), MdPrecision::allowed()));
+                }
+                if md.deformation == Deformation::Auto {
+                    md.deformation = if dim == 1 { Deformation::Affine } else { Deformation::Seed };
+                }
+                if md.deformation == Deformation::Affine && dim > 1 {
+                    return Err(loc.err(&k("material.deformation"), format!("{:?}", md.deformation.scene_name()), Deformation::allowed()));
+                }
+                if md.relax_steps > 1_000_000 {
+                    return Err(loc.err(&k("material.relax_steps"), md.relax_steps, "at most 1e6 relaxation steps"));
+                }
+                // From here on the path is absolute, so the resolved scene reads back anywhere.
+                let file = file.canonicalize().unwrap_or(file);
+                md.potential = file.clone();
+                let props =
+                    coupling::lattice::lattice_properties(&file, md.lattice, md.lattice_constant_angstrom, Orientation(md.orientation))
+                        .map_err(|e| loc.err(&k("material.potential"), format!("{:?}", md.potential), format!("{e}")))?;
+                if let Some(v) = props.vibration
+                    && md.timestep_fs > v.max_dt_ps() * 1e3
+                {
+                    return Err(loc.err(&k("material.timestep_fs"), md.timestep_fs, format!("exceeds {:.3} fs, {v}", v.max_dt_ps() * 1e3)));
+                }
+                if (rho - props.density).abs() > 0.01 * props.density {
+                    return Err(loc.err(
+                        &k("density"),
+                        rho,
+                        format!(
+                            "an md body's density must match its lattice: {:.1} kg/m^3 for {} at a0 = {} A",
+                            props.density,
+                            md.lattice.scene_name(),
+                            md.lattice_constant_angstrom
+                        ),
+                    ));
+                }
+                Ok((props.wave_speed, Some(file), Some((props, atoms))))
+            }
+        }
+    }
+
+    fn validate_boundary(&self, loc: &Locator<'_>) -> Result<(), SceneError> {
+        let dim = self.domain.dimension;
+        for (i, (face, spec)) in self.boundary.faces().into_iter().enumerate() {
+            let key = format!("boundary.{face}");
+            let axis = i / 2;
+            match spec {
+                FaceSpec::Named(n) if axis >= dim && *n != FaceName::Free => {
+                    return Err(loc.err(&key, format!("{:?}", n.scene_name()), format!("a {dim}D scene has no {face} face")));
+                }
+                FaceSpec::Piston { piston } if axis >= dim || piston.len() != dim || piston.iter().any(|v| !v.is_finite()) => {
+                    return Err(loc.err(
+                        &key,
+                        vec_str(piston),
+                        format!("a piston needs {dim} finite velocity value(s) (m/s) on an existing face"),
+                    ));
+                }
+                _ => {}
+            }
+        }
+        for (axis, (lo, hi)) in [
+            (&self.boundary.x_min, &self.boundary.x_max),
+            (&self.boundary.y_min, &self.boundary.y_max),
+            (&self.boundary.z_min, &self.boundary.z_max),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let periodic = |f: &FaceSpec| matches!(f, FaceSpec::Named(FaceName::Periodic));
+            if periodic(lo) != periodic(hi) {
+                let face = ["x", "y", "z"][axis];
+                return Err(loc.err(
+                    &format!("boundary.{face}_max"),
+                    face_debug(hi),
+                    format!("periodic must be set on both {face}_min and {face}_max"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    fn validate_scheme(&mut self, loc: &Locator<'_>, max_speed: f64) -> Result<(f64, u64), SceneError> {
+        let dim = self.domain.dimension;
+        let s = &mut self.scheme;
+        let kind = s.method;
+        if !kind.supports_dimension(dim) {
+            let ok: Vec<&str> = SchemeKind::NAMES.iter().filter(|(_, k)| k.supports_dimension(dim)).map(|(n, _)| *n).collect();
+            return Err(loc.err(
+                "scheme.method",
+                format!("{:?}", kind.name()),
+                format!("`{}` is the 1D CPDI; a {dim}D scene allows: {}", kind.name(), ok.join(", ")),
+            ));
+        }
+        if !(1..=64).contains(&s.particles_per_cell) {
+            return Err(loc.err("scheme.particles_per_cell", s.particles_per_cell, "allowed: 1 to 64 per axis"));
+        }
+        if kind == SchemeKind::DdmpSubpoints {
+            if !(1..=64).contains(&s.sub_points) {
+                return Err(loc.err("scheme.sub_points", s.sub_points, "allowed: 1 to 64 sub-points per particle"));
+            }
+        } else if s.sub_points != 1 {
+            return Err(loc.err(
+                "scheme.sub_points",
+                s.sub_points,
+                format!("sub-points need method \"ddmp-subpoints\"; `{}` uses 1", kind.name()),
+            ));
+        }
+        if !(s.viscosity_coefficient.is_finite() && s.viscosity_coefficient >= 0.0) {
+            return Err(loc.err("scheme.viscosity_coefficient", s.viscosity_coefficient, "must be finite and >= 0"));
+        }
+        for (key, v) in [("scheme.viscosity_c_l", s.viscosity_c_l), ("scheme.viscosity_c_q", s.viscosity_c_q)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(loc.err(key, v, "must be finite and >= 0"));
+            }
+        }
+        if !(s.small_mass_fraction.is_finite() && (0.0..1.0).contains(&s.small_mass_fraction)) {
+            return Err(loc.err("scheme.small_mass_fraction", s.small_mass_fraction, "must lie in [0, 1)"));
+        }
+        finite_positive(loc, "scheme.end_time", s.end_time, "the end time (s)")?;
+        let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
+        let speed = max_speed + self.bodies.values().flat_map(|b| b.velocity.iter()).fold(0.0_f64, |m, v| m.max(v.abs()));
+        let bound = CFL_LIMIT * h / speed;
+        let dt = match (s.cfl, s.timestep) {
+            (Some(c), Some(dt)) => {
+                // Both given (as in a resolved scene): they must agree.
+                if (c - dt * speed / h).abs() > 1e-9 * c.abs() {
+                    return Err(loc.err(
+                        "scheme.timestep",
+                        dt,
+                        format!("disagrees with cfl = {c} (which gives {:e} s); give `cfl` or `timestep`, not both", c * h / speed),
+                    ));
+                }
+                if !(c > 0.0 && c <= CFL_LIMIT) {
+                    return Err(loc.err("scheme.cfl", c, format!("allowed: 0 < cfl <= {CFL_LIMIT} (explicit stability bound)")));
+                }
+                dt
+            }
+            (None, None) => return Err(loc.err("scheme", "", "missing `cfl` (c dt / h, at most 1) or `timestep` (s)")),
+            (Some(c), None) => {
+                if !(c > 0.0 && c <= CFL_LIMIT) {
+                    return Err(loc.err("scheme.cfl", c, format!("allowed: 0 < cfl <= {CFL_LIMIT} (explicit stability bound)")));
+                }
+                c * h / speed
+            }
+            (None, Some(dt)) => {
+                finite_positive(loc, "scheme.timestep", dt, "the time step (s)")?;
+                if dt > bound {
+                    return Err(loc.err("scheme.timestep", dt, format!("exceeds the stability bound h / (c + |v|) = {bound:.6e} s (h = {h:e} m, c + |v| = {speed:e} m/s); use a smaller time step or `cfl`")));
+                }
+                dt
+            }
+        };
+        let steps = (s.end_time / dt - 1e-9).ceil().max(1.0);
+        if steps > 1e9 {
+            return Err(loc.err("scheme.end_time", s.end_time, format!("needs {steps:e} steps of {dt:e} s; more than 1e9 steps")));
+        }
+        s.cfl = Some(dt * speed / h);
+        s.timestep = Some(dt);
+        Ok((dt, steps as u64))
+    }
+
+    /// Returns the file a direct-MD reference names (made absolute in the scene).
+    fn validate_reference(&mut self, loc: &Locator<'_>, base: &Path) -> Result<Option<PathBuf>, SceneError> {
+        match self.reference.clone() {
+            None => Ok(None),
+            Some(Reference::IsothermalRiemann(r)) => self.validate_riemann(loc, &r).map(|_| None),
+            Some(Reference::DirectMd(r)) => {
+                let file = self.validate_direct_md(loc, &r, base)?;
+                self.reference = Some(Reference::DirectMd(DirectMdReference { profile: file.clone(), ..r }));
+                Ok(Some(file))
+            }
+        }
+    }
+
+    /// A direct-MD profile: readable, with the component's column, a frame at every time (each
+    /// within the profile's range and the run), a 1D scene whose bodies map onto one bar, and
+    /// particle snapshots to score. Returns the profile's absolute path.
+    fn validate_direct_md(&self, loc: &Locator<'_>, r: &DirectMdReference, base: &Path) -> Result<PathBuf, SceneError> {
+        if self.domain.dimension != 1 {
+            return Err(loc.err(
+                "reference.solution",
+                "\"direct-md\"",
+                format!("scores 1D scenes only (the slabs of a 1D `md-worker direct --slab` run); this scene has dimension {}: the 2D form (Eulerian bins) is not implemented yet", self.domain.dimension),
+            ));
+        }
+        let file = base.join(&r.profile);
+        let profile = crate::reference::DirectProfile::read_component(&file, r.component.as_str()).map_err(|e| {
+            loc.err(
+                "reference.profile",
+                format!("{:?}", r.profile),
+                format!("{e:#}; the profile is the CSV of `md-worker direct --slab`, its path relative to the scene file"),
+            )
+        })?;
+        if r.times_ps.is_empty() {
+            return Err(loc.err("reference.times_ps", "[]", "give at least one time (ps) to score at, e.g. [5.0, 10.0]"));
+        }
+        let (first, last) = profile.time_range();
+        for (k, &t) in r.times_ps.iter().enumerate() {
+            let key = format!("reference.times_ps[{k}]");
+            if !t.is_finite()
+                || t * 1e-12 < first - crate::reference::TIME_TOLERANCE_S
+                || t * 1e-12 > last + crate::reference::TIME_TOLERANCE_S
+            {
+                return Err(loc.err(
+                    &key,
+                    t,
+                    format!(
+                        "outside the profile's range {} to {} ps ({})",
+                        (first * 1e15).round() / 1e3,
+                        (last * 1e15).round() / 1e3,
+                        file.display()
+                    ),
+                ));
+            }
+            if profile.at(t * 1e-12).is_none() {
+                return Err(loc.err(&key, t, format!("the profile has no frame at t = {t} ps (it has {} ps)", profile.times_ps())));
+            }
+            if t * 1e-12 > self.scheme.end_time * (1.0 + 1e-9) {
+                return Err(loc.err(&key, t, format!("after the end time {} ps of the run", self.scheme.end_time * 1e12)));
+            }
+        }
+        if !self.output.particles {
+            return Err(loc.err(
+                "output.particles",
+                "false",
+                "a direct-md reference scores the particle snapshots: needs output.particles = true",
+            ));
+        }
+        if let Err(e) = crate::reference::ReferenceMap::of(self) {
+            return Err(loc.err("reference.solution", "\"direct-md\"", format!("{e:#}")));
+        }
+        Ok(file.canonicalize().unwrap_or(file))
+    }
+
+    fn validate_riemann(&self, loc: &Locator<'_>, r: &RiemannReference) -> Result<(), SceneError> {
+        if self.domain.dimension != 1 {
+            return Err(loc.err("reference.solution", "\"isothermal-riemann\"", "needs a 1D scene"));
+        }
+        let mut speeds = BTreeSet::new();
+        for (key, name) in [("reference.left", &r.left), ("reference.right", &r.right)] {
+            match self.bodies.get(name).map(|b| &b.material) {
+                None => {
+                    return Err(loc.err(
+                        key,
+                        format!("{name:?}"),
+                        format!("no such body; bodies: {}", self.bodies.keys().cloned().collect::<Vec<_>>().join(", ")),
+                    ));
+                }
+                Some(Material::IdealGasIsothermal(g)) => {
+                    speeds.insert(g.sound_speed.to_bits());
+                }
+                Some(m) => {
+                    return Err(loc.err(
+                        key,
+                        format!("{name:?}"),
+                        format!("the isothermal Riemann solution needs ideal-gas-isothermal bodies, this one is {}", m.law()),
+                    ));
+                }
+            }
+        }
+        if speeds.len() != 1 {
+            return Err(loc.err("reference.right", format!("{:?}", r.right), "both bodies must have the same sound speed"));
+        }
+        Ok(())
+    }
+
+    /// `output.dump_points`: each id must name a material point of an md body, once.
+    fn validate_dump_points(&self, loc: &Locator<'_>, counts: &[(String, usize)]) -> Result<(), SceneError> {
+        let ids = &self.output.dump_points;
+        if ids.is_empty() {
+            return Ok(());
+        }
+        // Point ids run body after body (in name order), as in the particle files.
+        let mut ranges = Vec::new();
+        let mut first = 0u64;
+        for (name, n) in counts {
+            ranges.push((name.clone(), first..first + *n as u64));
+            first += *n as u64;
+        }
+        let md_ranges: Vec<String> = ranges
+            .iter()
+            .filter(|(name, r)| !r.is_empty() && matches!(self.bodies[name].material, Material::Md(_)))
+            .map(|(name, r)| format!("{}..={} (body `{name}`)", r.start, r.end - 1))
+            .collect();
+        let md_ids =
+            if md_ranges.is_empty() { "the scene has no md body".to_string() } else { format!("md points: {}", md_ranges.join(", ")) };
+        let mut seen = BTreeSet::new();
+        for (k, &id) in ids.iter().enumerate() {
+            let key = format!("output.dump_points[{k}]");
+            let Some((name, _)) = ranges.iter().find(|(_, r)| r.contains(&id)) else {
+                return Err(loc.err(
+                    &key,
+                    id,
+                    format!(
+                        "no such material point: the scene has {first} material points (ids 0..={}); {md_ids}",
+                        first.saturating_sub(1)
+                    ),
+                ));
+            };
+            let body = &self.bodies[name];
+            if !matches!(body.material, Material::Md(_)) {
+                return Err(loc.err(
+                    &key,
+                    id,
+                    format!("point {id} belongs to body `{name}` (law {}), which has no MD box; {md_ids}", body.material.law()),
+                ));
+            }
+            if !seen.insert(id) {
+                return Err(loc.err(&key, id, "listed twice"));
+            }
+        }
+        Ok(())
+    }
+
+    /// The MD time step (s) shared by every md body, if there are any.
+    fn md_step(&self, loc: &Locator<'_>) -> Result<Option<f64>, SceneError> {
+        let mut step: Option<(String, f64)> = None;
+        for (name, b) in &self.bodies {
+            if let Material::Md(m) = &b.material {
+                match &step {
+                    Some((first, fs)) if *fs != m.timestep_fs => {
+                        return Err(loc.err(
+                            &format!("bodies.{name}.material.timestep_fs"),
+                            m.timestep_fs,
+                            format!("every md body must use the same MD time step; body `{first}` uses {fs} fs"),
+                        ));
+                    }
+                    Some(_) => {}
+                    None => step = Some((name.clone(), m.timestep_fs)),
+                }
+            }
+        }
+        Ok(step.map(|(_, fs)| fs * 1e-15))
+    }
+
+    /// A continuum step is a whole number of MD steps: a step from `cfl` is rounded down to
+    /// one; a given `timestep` must be one.
+    fn fit_to_md_step(
+        &mut self,
+        loc: &Locator<'_>,
+        dt: f64,
+        md_step: f64,
+        user_timestep: bool,
+        speed: f64,
+    ) -> Result<(f64, u64), SceneError> {
+        let n = dt / md_step;
+        let whole = (n + 1e-9).floor();
+        if whole < 1.0 {
+            return Err(loc.err("scheme.timestep", dt, format!("the continuum step is shorter than one MD step ({md_step:e} s)")));
+        }
+        if user_timestep && (n - n.round()).abs() > 1e-6 * n {
+            return Err(loc.err(
+                "scheme.timestep",
+                dt,
+                format!("must be a whole number of MD steps ({md_step:e} s); e.g. {:e} s", whole * md_step),
+            ));
+        }
+        let dt = if user_timestep { n.round() * md_step } else { whole * md_step };
+        let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
+        // The same speed as the CFL number of `validate_scheme`: wave speed plus body speed.
+        let speed = speed + self.bodies.values().flat_map(|b| b.velocity.iter()).fold(0.0_f64, |m, v| m.max(v.abs()));
+        let steps = (self.scheme.end_time / dt - 1e-9).ceil().max(1.0) as u64;
+        self.scheme.timestep = Some(dt);
+        self.scheme.cfl = Some(dt * speed / h);
+        Ok((dt, steps))
+    }
+}
+
+/// A face as messages have always shown it (`Named("reflective")`, `Piston { piston: [..] }`).
+fn face_debug(f: &FaceSpec) -> String {
+    match f {
+        FaceSpec::Named(n) => format!("Named({:?})", n.scene_name()),
+        FaceSpec::Piston { piston } => format!("Piston {{ piston: {piston:?} }}"),
+    }
+}
