@@ -920,15 +920,3 @@ impl MdBackend for CpuBackend {
         "cpu"
     }
 }
-
-/// A back end by name: `reference`, `cpu`, `cuda` (double) or `cuda-mixed` (the GPU ones fail
-/// with [`MdError::Device`] when there is no usable GPU).
-pub fn backend_by_name(name: &str, pot: Arc<Potential>) -> Result<Box<dyn MdBackend>, MdError> {
-    match name {
-        "reference" => Ok(Box::new(ReferenceBackend::new(pot))),
-        "cpu" => Ok(Box::new(CpuBackend::new(pot))),
-        "cuda" => crate::device::backend_for_device("cuda", "double", pot),
-        "cuda-mixed" => crate::device::backend_for_device("cuda", "mixed", pot),
-        _ => Err(MdError::invalid("back end", format!("{name:?}; expected reference, cpu, cuda or cuda-mixed"))),
-    }
-}

@@ -1,9 +1,11 @@
-//! The engine's devices: `cpu` or `cuda`. `cuda` needs the `cuda` cargo feature, a CUDA
-//! driver, NVRTC and a device, and is an error naming what is missing. Choosing a device for
-//! the user (`auto`: the GPU when there is one, otherwise the cpu back end with one warning)
-//! is the worker's policy (`md_worker::device`).
+//! The engine's back ends by name (`reference`, `cpu`, `cuda`, `cuda-mixed`) and by device
+//! (`cpu` or `cuda`). `cuda` needs the `cuda` cargo feature, a CUDA driver, NVRTC and a device,
+//! and is an error naming what is missing. The one place programs build a back end through is
+//! the worker's registry (`md_worker::device::build`): it adds thread pools, the `null` and
+//! `mpi` back ends, and the choice of a device for the user (`auto`: the GPU when there is
+//! one, otherwise the cpu back end with one warning).
 
-use crate::backend::{CpuBackend, MdBackend};
+use crate::backend::{CpuBackend, MdBackend, ReferenceBackend};
 use crate::error::MdError;
 use crate::potential::Potential;
 use std::sync::Arc;
@@ -18,6 +20,18 @@ pub fn backend_for_device(device: &str, precision: &str, pot: Arc<Potential>) ->
         "cpu" => Ok(Box::new(CpuBackend::new(pot))),
         "cuda" => cuda(precision, pot),
         _ => Err(MdError::invalid("device", format!("{device:?}; expected cpu or cuda"))),
+    }
+}
+
+/// A back end by name: `reference`, `cpu`, `cuda` (double) or `cuda-mixed` (the GPU ones fail
+/// with [`MdError::Device`] when there is no usable GPU).
+pub fn backend_by_name(name: &str, pot: Arc<Potential>) -> Result<Box<dyn MdBackend>, MdError> {
+    match name {
+        "reference" => Ok(Box::new(ReferenceBackend::new(pot))),
+        "cpu" => Ok(Box::new(CpuBackend::new(pot))),
+        "cuda" => backend_for_device("cuda", "double", pot),
+        "cuda-mixed" => backend_for_device("cuda", "mixed", pot),
+        _ => Err(MdError::invalid("back end", format!("{name:?}; expected reference, cpu, cuda or cuda-mixed"))),
     }
 }
 

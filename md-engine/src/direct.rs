@@ -247,9 +247,11 @@ impl Bar {
         let pot = self.pot.clone();
         let dtfm: Vec<f64> = self.masses.iter().map(|m| dtf / m).collect();
         let (mut rho, mut fp) = (std::mem::take(&mut self.rho), std::mem::take(&mut self.fp));
+        // Out of the bar while its view borrows the rest.
+        let frozen = std::mem::take(&mut self.frozen);
         for _ in 0..steps {
             for i in 0..self.x.len() {
-                if self.frozen[i] {
+                if frozen[i] {
                     continue;
                 }
                 let h = dtfm[self.types[i] as usize];
@@ -258,17 +260,7 @@ impl Bar {
                     self.x[i][d] += dt * self.v[i][d];
                 }
             }
-            let frozen = &self.frozen;
-            let mut b = BoxView {
-                meta: &mut self.meta,
-                types: &self.types,
-                x: &mut self.x,
-                v: &mut self.v,
-                f: &mut self.f,
-                x_build: &mut self.x_build,
-                img: &mut self.img,
-                list: &mut self.list,
-            };
+            let mut b = self.view();
             // Frozen atoms never move, and lie inside the box, so wrapping leaves them be.
             if kernel::needs_rebuild(&pot, &b) {
                 kernel::rebuild(&pot, &mut b);
@@ -286,6 +278,7 @@ impl Bar {
             b.meta.step += 1;
             self.time_ps += dt;
         }
+        self.frozen = frozen;
         self.rho = rho;
         self.fp = fp;
     }

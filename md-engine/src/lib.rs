@@ -28,8 +28,8 @@ pub mod units;
 
 pub use backend::{
     BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, Diagnostics, InitialAtoms, MdBackend, PointId, ReferenceBackend, StressSampling,
-    backend_by_name,
 };
+pub use device::backend_by_name;
 pub use error::MdError;
 pub use kernel::DeformMode;
 pub use lattice::{LatticeKind, Orientation};

@@ -11,7 +11,7 @@
 //! between workers matter (boxes are spread in proportion to it); a GPU is underrated by a
 //! workload this small, so give GPU workers `--throughput` from `md-worker bench`.
 
-use crate::backend::{BoxResult, BoxSpec, BoxWork, MdBackend};
+use crate::backend::{BoxResult, BoxSpec, BoxWork};
 use crate::lattice::LatticeKind;
 use crate::potential::Potential;
 use anyhow::{Context, Result, bail};
@@ -69,11 +69,11 @@ pub struct WorkerKind {
 /// Atom-steps per second of `kind`'s back end on the fixed workload described above.
 pub fn measure_throughput(kind: &WorkerKind) -> Result<f64> {
     let pot = Arc::new(Potential::from_text("Cu_u3.eam", include_str!("../potentials/Cu_u3.eam"))?);
-    let mut b: Box<dyn MdBackend> = match (kind.backend.as_str(), &kind.threads) {
-        ("cuda", _) => crate::device::backend_for_device("cuda", &kind.precision, pot)?,
-        (_, Some(pool)) => Box::new(crate::CpuBackend::with_pool(pot, pool.clone())),
-        _ => Box::new(crate::CpuBackend::new(pot)),
-    };
+    // The worker's cuda back end, or (every other kind: cpu, mpi, null) the cpu back end on
+    // its threads.
+    let device = if kind.backend == "cuda" { "cuda" } else { "cpu" };
+    let choice = crate::device::BackendChoice::on_device(device, &kind.precision).with_threads(kind.threads.clone());
+    let mut b = crate::device::build(&choice, pot, None)?;
     let (boxes, steps) = (8u64, 10u64);
     let specs: Vec<BoxSpec> = (0..boxes)
         .map(|id| {

@@ -24,8 +24,10 @@ pub use md_engine::{backend, data, direct, error, kernel, lattice, neighbor, pot
 
 pub use md_engine::{
     BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, DeformMode, Diagnostics, EamFormat, InitialAtoms, LatticeKind, LjCut, MdBackend,
-    MdError, Orientation, PointId, Potential, ReferenceBackend, StressSampling, backend_by_name,
+    MdError, Orientation, PointId, Potential, ReferenceBackend, StressSampling,
 };
+
+pub use device::backend_by_name;
 
 /// Cargo features this build was compiled with (programs report them in their provenance).
 pub const FEATURES: &[&str] = &[

@@ -318,13 +318,11 @@ fn bench(
         Some(t) => Some(Arc::new(rayon::ThreadPoolBuilder::new().num_threads(t).build()?)),
         None => None,
     };
-    let mut b: Box<dyn MdBackend> = match (device, backend, pool) {
-        (None | Some("cpu"), "cpu", Some(pool)) | (Some("cpu"), _, Some(pool)) => {
-            Box::new(md_worker::CpuBackend::with_pool(pot.clone(), pool))
-        }
-        (None, _, _) => backend_by_name(backend, pot.clone())?,
-        (Some(d), _, _) => md_worker::device::backend_for_device(d, precision, pot.clone())?,
+    let choice = match device {
+        Some(d) => md_worker::device::BackendChoice::on_device(d, precision),
+        None => md_worker::device::BackendChoice::named(backend),
     };
+    let mut b = md_worker::device::build(&choice.with_threads(pool), pot.clone(), None)?;
     let backend = b.name();
     let specs: Vec<BoxSpec> = (0..boxes as u64)
         .map(|id| {
@@ -389,15 +387,10 @@ fn serve(listen: &str, device: &str, threads: Option<usize>, join: &md_worker::j
         "auto" if ranks > 1 => "cpu",
         d => d,
     };
-    let backend = match (device, md_worker::device::gpu_unavailable()) {
-        ("cpu", _) => "cpu",
-        ("cuda" | "auto", None) => "cuda",
-        ("cuda", Some(why)) => return Err(bad(format!("--device cuda: {why}"))),
-        ("auto", Some(why)) => {
-            tracing::warn!("device auto: no usable GPU ({why}); serving on the cpu back end");
-            "cpu"
-        }
-        (other, _) => return Err(bad(format!("--device {other:?}: expected auto, cpu or cuda"))),
+    let backend = match md_worker::device::resolve_device(device) {
+        Ok(d) => d,
+        Err(MdError::Device(why)) => return Err(bad(format!("--device {device}: {why}"))),
+        Err(_) => return Err(bad(format!("--device {device:?}: expected auto, cpu or cuda"))),
     };
     let pool = match threads {
         Some(0) => return Err(bad("--threads must be at least 1")),

@@ -105,10 +105,8 @@ impl Endpoint for InProcess {
     fn open(&mut self, potential: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
         if self.backend.is_none() {
             let pot = Arc::new(potential.parse()?);
-            self.backend = Some(match (self.backend_name.as_str(), &self.threads) {
-                ("cpu", Some(pool)) => Box::new(crate::CpuBackend::with_pool(pot, pool.clone())),
-                (name, _) => crate::backend_by_name(name, pot)?,
-            });
+            let choice = crate::device::BackendChoice::named(&self.backend_name).with_threads(self.threads.clone());
+            self.backend = Some(crate::device::build(&choice, pot, Some(potential))?);
         }
         self.backend()?.open(specs)
     }

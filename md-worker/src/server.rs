@@ -150,16 +150,10 @@ impl MdWorker for WorkerService {
         #[cfg(feature = "mpi")]
         let source = lock(&self.sources).get(&pref.sha256).cloned();
         let backend = blocking(move || {
-            let mut b: Box<dyn MdBackend> = match (name.as_str(), threads) {
-                ("cpu", Some(pool)) => Box::new(crate::CpuBackend::with_pool(pot, pool)),
-                ("null", _) => Box::new(crate::null::NullBackend::default()),
-                #[cfg(feature = "mpi")]
-                ("mpi", threads) => {
-                    let src = source.ok_or_else(|| MdError::invalid("potential", "the mpi back end needs the potential's bytes"))?;
-                    Box::new(crate::mpi::MpiBackend::new(&src, pot, threads)?)
-                }
-                (n, _) => crate::backend_by_name(n, pot)?,
-            };
+            #[cfg(not(feature = "mpi"))]
+            let source: Option<PotentialSource> = None;
+            let choice = crate::device::BackendChoice::named(&name).with_threads(threads);
+            let mut b = crate::device::build(&choice, pot, source.as_ref())?;
             b.open(&specs)?;
             Ok(b)
         })
@@ -257,4 +251,46 @@ pub async fn serve(
     let router = mscale_proto::server::router(&mut mscale_proto::server::builder(&settings), service).await?;
     router.serve_with_incoming_shutdown(mscale_proto::server::incoming(listener)?, shutdown).await?;
     Ok(())
+}
+
+/// A worker served in this process on a free loopback port (its own tokio runtime on its own
+/// thread), stopped and joined when dropped: for tests and tools that need a real gRPC worker
+/// without a process.
+pub struct Loopback {
+    /// `127.0.0.1:PORT`.
+    pub addr: String,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Loopback {
+    /// Serves back end `backend` (a registry name: `reference`, `cpu`, `null`, ...) on rayon's
+    /// global pool.
+    pub fn start(backend: &str) -> std::io::Result<Loopback> {
+        let opts = ServeOptions { backend: backend.into(), threads: None, device: "loopback".into() };
+        let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+        let listener = rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
+        let addr = listener.local_addr()?.to_string();
+        let (stop, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let thread = std::thread::spawn(move || {
+            let served = rt.block_on(serve(listener, opts, async move {
+                let _ = stop_rx.await;
+            }));
+            if let Err(e) = served {
+                tracing::error!("loopback worker: {e}");
+            }
+        });
+        Ok(Loopback { addr, stop: Some(stop), thread: Some(thread) })
+    }
+}
+
+impl Drop for Loopback {
+    fn drop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
 }

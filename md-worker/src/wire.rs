@@ -254,52 +254,13 @@ mod tests {
     use crate::pool::{Endpoint, PotentialSource, Remote};
     use std::sync::Arc;
 
-    /// A worker served in this process on a free loopback port; stopped when dropped.
-    struct Worker {
-        addr: String,
-        stop: Option<tokio::sync::oneshot::Sender<()>>,
-        thread: Option<std::thread::JoinHandle<()>>,
-    }
-
-    impl Worker {
-        fn start() -> Worker {
-            let (addr_tx, addr_rx) = std::sync::mpsc::channel();
-            let (stop, stop_rx) = tokio::sync::oneshot::channel::<()>();
-            let thread = std::thread::spawn(move || {
-                let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
-                rt.block_on(async move {
-                    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-                    addr_tx.send(listener.local_addr().unwrap().to_string()).unwrap();
-                    let opts = crate::server::ServeOptions { backend: "reference".into(), threads: None, device: "test".into() };
-                    crate::server::serve(listener, opts, async move {
-                        let _ = stop_rx.await;
-                    })
-                    .await
-                    .unwrap();
-                });
-            });
-            Worker { addr: addr_rx.recv().unwrap(), stop: Some(stop), thread: Some(thread) }
-        }
-    }
-
-    impl Drop for Worker {
-        fn drop(&mut self) {
-            if let Some(s) = self.stop.take() {
-                let _ = s.send(());
-            }
-            if let Some(t) = self.thread.take() {
-                let _ = t.join();
-            }
-        }
-    }
-
     fn cu() -> PotentialSource {
         PotentialSource::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/potentials/Cu_mishin1.eam.alloy"))).unwrap()
     }
 
     #[test]
     fn hostile_values_over_the_wire_are_refused_or_stopped_naming_the_point() {
-        let w = Worker::start();
+        let w = crate::server::Loopback::start("reference").unwrap();
         let rt = Arc::new(tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap());
         let mut remote = Remote::connect(&w.addr, rt).unwrap();
         // A lattice constant that gives a box below the neighbour list's reach.

@@ -178,45 +178,6 @@ fn resume_refuses_another_scene() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("no checkpoint"), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
-/// An `md-worker serve` hosted in this test process on a free loopback port, until dropped.
-struct Worker {
-    addr: String,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-impl Worker {
-    fn start() -> Worker {
-        let (addr_tx, addr_rx) = std::sync::mpsc::channel();
-        let (stop, stop_rx) = tokio::sync::oneshot::channel::<()>();
-        let thread = std::thread::spawn(move || {
-            let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
-            rt.block_on(async move {
-                let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-                addr_tx.send(listener.local_addr().unwrap().to_string()).unwrap();
-                let opts = md_worker::server::ServeOptions { backend: "cpu".into(), threads: None, device: "test".into() };
-                md_worker::server::serve(listener, opts, async move {
-                    let _ = stop_rx.await;
-                })
-                .await
-                .unwrap();
-            });
-        });
-        Worker { addr: addr_rx.recv().unwrap(), stop: Some(stop), thread: Some(thread) }
-    }
-}
-
-impl Drop for Worker {
-    fn drop(&mut self) {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
-}
-
 #[test]
 fn md_run_on_a_remote_worker_resumes_on_a_fresh_worker_to_the_same_digest() {
     let tmp = tempfile::tempdir().unwrap();
@@ -227,7 +188,7 @@ fn md_run_on_a_remote_worker_resumes_on_a_fresh_worker_to_the_same_digest() {
     // Boxes on a gRPC worker, checkpoints after steps 2 and 4 (snapshots over Snapshot).
     let remote = tmp.path().join("remote");
     {
-        let w = Worker::start();
+        let w = md_worker::server::Loopback::start("cpu").unwrap();
         ok(&["run", MD_SMALL, "--out", remote.to_str().unwrap(), "--checkpoint-every", "2", "--workers", &w.addr]);
     }
     same_state(&reference, &summary(&remote));
@@ -235,7 +196,7 @@ fn md_run_on_a_remote_worker_resumes_on_a_fresh_worker_to_the_same_digest() {
 
     // A new worker has none of the boxes: they are opened and restored over Restore.
     std::fs::remove_file(remote.join("summary.json")).unwrap();
-    let w = Worker::start();
+    let w = md_worker::server::Loopback::start("cpu").unwrap();
     ok(&["run", "--resume", remote.to_str().unwrap(), "--workers", &w.addr]);
     same_state(&reference, &summary(&remote));
 }
