@@ -12,8 +12,8 @@
 
 use crate::backend::{CpuBackend, MdBackend};
 use crate::error::MdError;
-use crate::pool::PotentialSource;
 use crate::potential::Potential;
+use crate::source::PotentialSource;
 use std::sync::Arc;
 
 pub use md_engine::device::gpu_unavailable;

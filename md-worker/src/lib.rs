@@ -9,6 +9,7 @@
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod device;
+pub mod ids;
 pub mod join;
 #[cfg(feature = "mpi")]
 pub mod mpi;
@@ -16,6 +17,7 @@ pub mod null;
 pub mod pool;
 pub mod recovery;
 pub mod server;
+pub mod source;
 pub mod wire;
 
 #[cfg(feature = "cuda")]

@@ -23,8 +23,8 @@
 use crate::backend::{BoxResult, BoxSpec, BoxState, BoxWork, MdBackend, PointId};
 use crate::error::MdError;
 use crate::kernel::DeformMode;
-use crate::pool::PotentialSource;
 use crate::potential::Potential;
+use crate::source::PotentialSource;
 use mpi::traits::*;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeSet, HashMap, HashSet};

@@ -6,7 +6,7 @@ use crate::backend::{BoxResult, BoxSpec, BoxState, BoxWork, MdBackend, PointId};
 use crate::error::MdError;
 #[derive(Default)]
 pub struct NullBackend {
-    lengths: crate::pool::IdMap<[f64; 3]>,
+    lengths: crate::ids::IdMap<[f64; 3]>,
 }
 
 impl MdBackend for NullBackend {

@@ -15,45 +15,14 @@
 
 use crate::backend::{BoxResult, BoxSpec, BoxState, BoxWork, MdBackend, PointId};
 use crate::error::MdError;
-use crate::potential::Potential;
 use crate::recovery::{AbortHandle, Baseline, CheckpointBoxes, InputLog, Recovery, StepDeadline};
 use crate::wire;
 use mscale_proto::coupling::v1 as pb;
-use sha2::{Digest, Sha256};
-use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// A potential file as shipped to workers: its name, bytes and SHA-256.
-#[derive(Debug, Clone)]
-pub struct PotentialSource {
-    pub name: String,
-    pub bytes: Arc<Vec<u8>>,
-    pub sha256: String,
-}
-
-impl PotentialSource {
-    pub fn from_file(path: &std::path::Path) -> Result<Self, MdError> {
-        let bytes = std::fs::read(path).map_err(|e| MdError::Io { file: path.display().to_string(), source: e })?;
-        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        Ok(Self::from_bytes(name, bytes))
-    }
-
-    pub fn from_bytes(name: String, bytes: Vec<u8>) -> Self {
-        let sha256 = hex::encode(Sha256::digest(&bytes));
-        PotentialSource { name, bytes: Arc::new(bytes), sha256 }
-    }
-
-    /// Parses the potential (the format follows the file name).
-    pub fn parse(&self) -> Result<Potential, MdError> {
-        let text = std::str::from_utf8(&self.bytes).map_err(|_| MdError::Parse {
-            file: self.name.clone(),
-            line: 1,
-            msg: "not a text file".into(),
-        })?;
-        Potential::from_text(&self.name, text)
-    }
-}
+pub use crate::ids::{IdHasher, IdMap};
+pub use crate::source::PotentialSource;
 
 /// One place boxes live.
 pub trait Endpoint: Send {
@@ -136,29 +105,6 @@ pub struct PoolTimes {
     /// Step calls.
     pub calls: u64,
 }
-
-/// Hasher of point ids for the per-box maps of the step path: one multiply (Fibonacci
-/// hashing). Point ids come from the coordinator itself, so SipHash's resistance to chosen
-/// keys buys nothing here, and it was a visible part of a 20,000-box step's cost.
-#[derive(Debug, Default, Clone, Copy)]
-pub struct IdHasher(u64);
-
-impl std::hash::Hasher for IdHasher {
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.write_u64(u64::from(b));
-        }
-    }
-    fn write_u64(&mut self, v: u64) {
-        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-    }
-    fn finish(&self) -> u64 {
-        self.0 ^ (self.0 >> 32)
-    }
-}
-
-/// A map keyed by point id with [`IdHasher`].
-pub type IdMap<V> = HashMap<PointId, V, std::hash::BuildHasherDefault<IdHasher>>;
 
 /// Boxes spread over endpoints.
 pub struct MdPool {
