@@ -215,6 +215,12 @@ pub struct MdMaterial {
     /// 1D, seed otherwise).
     #[serde(default = "default_deformation")]
     pub deformation: String,
+    /// MD-call avoidance: `off` (the default: every box every step), `exact` (boxes with
+    /// bitwise identical states and work are computed once; results bitwise those of `off`)
+    /// or `{ tolerance = GPa, max_interval = continuum steps }` (a box is not stepped while its
+    /// predicted stress change stays below the tolerance; see `coupling::reuse`).
+    #[serde(default)]
+    pub reuse: coupling::Reuse,
 }
 
 fn default_orientation() -> [[i32; 3]; 3] {
@@ -821,6 +827,14 @@ impl Scene {
                 }
                 if !["last", "average"].contains(&md.stress_sampling.as_str()) {
                     return Err(loc.err(&k("material.stress_sampling"), format!("{:?}", md.stress_sampling), "allowed: \"last\" (the stress after the last MD step of a continuum step, the seed's choice), \"average\" (the mean over the continuum step's MD steps)"));
+                }
+                if let coupling::Reuse::Tolerance { tolerance_gpa, max_interval } = md.reuse {
+                    if !(tolerance_gpa.is_finite() && tolerance_gpa >= 0.0) {
+                        return Err(loc.err(&k("material.reuse.tolerance"), tolerance_gpa, "the tolerance (GPa) must be a finite number >= 0 (0: never skip a box)"));
+                    }
+                    if !(1..=100_000).contains(&max_interval) {
+                        return Err(loc.err(&k("material.reuse.max_interval"), max_interval, "allowed: 1 to 100000 continuum steps"));
+                    }
                 }
                 if md.precision != "double" {
                     return Err(loc.err(

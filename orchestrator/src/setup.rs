@@ -89,10 +89,13 @@ fn closure(
                     .map_err(|e| md_err(format!("{e:#}")))?;
             let stress_sampling = m.stress_sampling.parse().map_err(|e: md_worker::MdError| md_err(e.to_string()))?;
             let settings = MdSettings {
+                body: name.to_string(),
                 dt_ps: m.timestep_fs * 1e-3,
                 energy_consistency: m.energy_consistency,
                 wave_speed: props.wave_speed,
+                c11_gpa: props.c11_gpa,
                 stress_sampling,
+                reuse: m.reuse,
             };
             Box::new(MdClosure::open(shared.clone(), settings, &specs).map_err(|e| md_err(e.to_string()))?)
         }
