@@ -266,10 +266,9 @@ impl MdClosure {
                     continue;
                 }
                 if p.skip.skipped > 0 {
-                    // The catch-up: every missed MD step and this step's, at the mean rate.
-                    let n = (p.skip.skipped + 1) as f64;
-                    w.velocity_gradient = std::array::from_fn(|i| std::array::from_fn(|j| (p.skip.l_sum[i][j] + l[i][j]) / n));
-                    w.steps = steps * (p.skip.skipped + 1);
+                    // The catch-up: the deformation of every skipped step and this one's, in this
+                    // step's MD steps (the box's clock stays behind by the skipped time).
+                    w.velocity_gradient = std::array::from_fn(|i| std::array::from_fn(|j| p.skip.l_sum[i][j] + l[i][j]));
                 }
             }
             plan.push(Plan::Call(work.len()));

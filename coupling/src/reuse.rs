@@ -104,15 +104,17 @@ impl From<Reuse> for RawReuse {
 /// A box is skipped while that predicted change plus the unpredicted part stays below the
 /// tolerance and it was skipped fewer than `max_interval` steps in a row.
 ///
-/// The box itself does not move while skipped: its own clock, temperature and atoms stay at
-/// its last MD call. At its next call it catches up in one call of all the MD steps it missed
-/// (plus the current step's) at the mean velocity gradient of those steps, so its length
-/// follows the point's accumulated deformation (to second order in the rate's variation), its
-/// clock is right again, and the work the continuum did with the predicted stresses while it
-/// was skipped is given to it as energy (energy consistency) at the call after that, like any
-/// other step's. What is lost is the time history inside the interval: the box sees the mean
-/// rate instead of the rate's variation, and its temperature and stress stay frozen in the
-/// particle outputs while it is skipped.
+/// The box itself does not move while skipped: its clock, temperature and atoms stay at its
+/// last MD call, and the MD steps of the skipped continuum steps are never done (that is the
+/// saving). At its next call the box catches up the point's deformation, not its time: one
+/// continuum step's MD steps at the sum of the velocity gradients of the skipped steps and the
+/// current one, so its shape is the point's again (to second order in the rate's variation),
+/// while its own clock stays behind the continuum's by the skipped time for good, and it sees
+/// the skipped deformation `n + 1` times faster than the point did. The work the continuum did
+/// with the predicted stresses while the box was skipped joins the energy balance of that call
+/// (energy consistency). What is lost: the box's thermal evolution over the skipped time and
+/// the rate history inside the interval. At 0 K, where a crystal's stress follows its
+/// deformation, that loss is small; at a temperature, keep the interval short.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct Skip {
     /// Continuum steps skipped since the box's last MD call.
