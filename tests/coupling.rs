@@ -208,3 +208,35 @@ fn dump_points_must_name_points_of_md_bodies() {
     );
     assert!(scene::load(&md_small, &["output.dump_points=[0, 5]".to_string()]).is_ok());
 }
+
+#[test]
+fn two_md_bodies_make_one_pool_call_per_step_and_exact_reuse_changes_no_bit() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let off = run_small(&tmp.path().join("off"), &[], None);
+    let s = mscale_tests::summary(&off);
+    assert_eq!(s["steps"], 5, "{s}");
+    assert_eq!(s["md"]["pool_calls"], 5, "one call per continuum step for both bodies: {}", s["md"]);
+    let d = &s["md"]["diagnostics"];
+    assert!(d["max_strain_rate_per_s"].as_f64().expect("strain rate") > 0.0, "{d}");
+    let ratio = d["min_box_length_over_cutoff"].as_f64().expect("box length");
+    assert!(ratio > 1.0 && ratio < 2.0, "2x2x2-cell boxes of Cu (7.2 A) over Mishin's 5.5 A cut-off: {d}");
+    assert!(d["max_neighbor_rebuilds_per_call"].as_u64().is_some(), "{d}");
+    assert_eq!(s["md"]["atom_steps_avoided"], 0.0, "{}", s["md"]);
+    let exact = ["bodies.left.material.reuse=\"exact\"", "bodies.right.material.reuse=\"exact\""];
+    let ex = run_small(&tmp.path().join("exact"), &exact, None);
+    assert_eq!(digest(&ex), digest(&off), "exact reuse changed the run");
+    let s = mscale_tests::summary(&ex);
+    // The left body's 3 boxes are alike at 0 K under the same work; the right body's (50 K)
+    // all differ.
+    let left = &s["md"]["bodies"]["left"];
+    assert!(left["avoided_by_exact_sharing"].as_f64().expect("avoided") > 0.0, "{left}");
+    assert_eq!(s["md"]["bodies"]["right"]["atom_steps_avoided"], 0.0, "{}", s["md"]);
+    assert!(std::fs::read_to_string(ex.join("scene.resolved.toml")).expect("resolved").contains("reuse = \"exact\""));
+    // The tolerance mode skips boxes, and runs to the end; a zero tolerance never skips.
+    let tol = ["bodies.left.material.reuse={ tolerance = 0.0 }", "bodies.right.material.reuse={ tolerance = 0.0 }"];
+    assert_eq!(digest(&run_small(&tmp.path().join("tol0"), &tol, None)), digest(&off), "a zero tolerance skipped a box");
+    let tol = ["bodies.left.material.reuse={ tolerance = 0.5, max_interval = 3 }", "bodies.right.material.reuse={ tolerance = 0.5 }"];
+    let t = mscale_tests::summary(&run_small(&tmp.path().join("tol"), &tol, None));
+    assert_eq!(t["status"], "completed", "{t}");
+    assert!(t["md"]["avoided_by_tolerance"].as_f64().expect("avoided") > 0.0, "{}", t["md"]);
+}

@@ -11,6 +11,8 @@ use rayon::prelude::*;
 
 /// The points of one body, handed to its closure.
 pub struct ClosureBatch<'a> {
+    /// The continuum step this batch advances to (1 for the first step; 0 for `initialize`).
+    pub step: u64,
     /// Global index of the first point of the batch (point `k` of the batch has id `first + k`).
     pub first: usize,
     /// Velocity gradient over the step, L_ij = dv_i/dx_j (1/s).
@@ -42,7 +44,7 @@ impl ClosureBatch<'_> {
     where
         F: Fn(PointIn<'_>, &mut Mat3) -> Result<(), ClosureError> + Sync,
     {
-        let ClosureBatch { first, vel_grad, def_grad, mass, volume, stress } = self;
+        let ClosureBatch { first, vel_grad, def_grad, mass, volume, stress, .. } = self;
         let failed = stress
             .par_chunks_mut(CHUNK)
             .enumerate()
@@ -90,6 +92,13 @@ pub trait Closure: Send {
     fn name(&self) -> &'static str;
     /// Largest longitudinal wave speed over the points (m/s), for the CFL time step.
     fn wave_speed(&self, mass: &[f64], volume: &[f64]) -> f64;
+    /// Called for every body of a step before any body's `initialize` or `advance` of that
+    /// step (same batch, same `dt`): closures that share a resource (the MD closures of several
+    /// bodies share one worker pool) register their work here, and the first of them to be
+    /// advanced sends all of it at once. The default does nothing.
+    fn prepare(&mut self, _batch: &ClosureBatch<'_>, _dt: f64) -> Result<(), ClosureError> {
+        Ok(())
+    }
     /// Stress of the initial state (the points carry their initial deformation gradient).
     fn initialize(&mut self, batch: ClosureBatch<'_>) -> Result<(), ClosureError> {
         self.advance(batch, 0.0)

@@ -206,17 +206,22 @@ impl<const D: usize> Simulation<D> {
             sub_x: Vec::new(),
             ddmp_field: Vec::new(),
         };
-        for (b, range) in sim.body_ranges.clone().into_iter().enumerate() {
-            let pts = &mut sim.points;
-            let batch = ClosureBatch {
-                first: range.start,
-                vel_grad: &pts.vel_grad[range.clone()],
-                def_grad: &pts.def_grad[range.clone()],
-                mass: &pts.mass[range.clone()],
-                volume: &pts.volume[range.clone()],
-                stress: &mut pts.stress[range.clone()],
-            };
-            sim.closures[b].initialize(batch).map_err(|source| SolverError::Closure { step: 0, source })?;
+        for prepare in [true, false] {
+            for (b, range) in sim.body_ranges.clone().into_iter().enumerate() {
+                let pts = &mut sim.points;
+                let batch = ClosureBatch {
+                    step: 0,
+                    first: range.start,
+                    vel_grad: &pts.vel_grad[range.clone()],
+                    def_grad: &pts.def_grad[range.clone()],
+                    mass: &pts.mass[range.clone()],
+                    volume: &pts.volume[range.clone()],
+                    stress: &mut pts.stress[range.clone()],
+                };
+                let closure = &mut sim.closures[b];
+                let r = if prepare { closure.prepare(&batch, 0.0) } else { closure.initialize(batch) };
+                r.map_err(|source| SolverError::Closure { step: 0, source })?;
+            }
         }
         sim.initial = sim.totals();
         Ok(sim)
@@ -546,17 +551,27 @@ impl<const D: usize> Simulation<D> {
                 cause: "time step too large or the particle was crushed between its neighbours",
             });
         }
-        for (b, range) in self.body_ranges.iter().enumerate() {
-            let batch = ClosureBatch {
-                first: range.start,
-                vel_grad: &pts.vel_grad[range.clone()],
-                def_grad: &pts.def_grad[range.clone()],
-                mass: &pts.mass[range.clone()],
-                volume: &pts.volume[range.clone()],
-                stress: &mut pts.stress[range.clone()],
-            };
-            self.closures[b].advance(batch, dt).map_err(|source| SolverError::Closure { step, source })?;
-            self.closure_evaluations += range.len() as u64;
+        // Every closure sees its batch first (`prepare`), so closures sharing a worker pool send
+        // one call for all their bodies; then each is advanced.
+        for prepare in [true, false] {
+            for (b, range) in self.body_ranges.iter().enumerate() {
+                let batch = ClosureBatch {
+                    step,
+                    first: range.start,
+                    vel_grad: &pts.vel_grad[range.clone()],
+                    def_grad: &pts.def_grad[range.clone()],
+                    mass: &pts.mass[range.clone()],
+                    volume: &pts.volume[range.clone()],
+                    stress: &mut pts.stress[range.clone()],
+                };
+                let closure = &mut self.closures[b];
+                if prepare {
+                    closure.prepare(&batch, dt).map_err(|source| SolverError::Closure { step, source })?;
+                } else {
+                    closure.advance(batch, dt).map_err(|source| SolverError::Closure { step, source })?;
+                    self.closure_evaluations += range.len() as u64;
+                }
+            }
         }
         let (old_stress, old_q, old_volume) = (&self.old_stress, &self.old_q, &self.old_volume);
         let h = self.grid.min_spacing();

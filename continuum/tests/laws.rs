@@ -120,6 +120,7 @@ impl Points {
 
     fn batch(&mut self) -> ClosureBatch<'_> {
         ClosureBatch {
+            step: 1,
             first: 0,
             vel_grad: &self.vel_grad,
             def_grad: &self.def_grad,

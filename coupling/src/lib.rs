@@ -19,10 +19,13 @@
 //! lattice's density and longitudinal modulus from a strained unit cell.
 
 pub mod lattice;
+pub mod reuse;
+
+pub use reuse::{Reuse, Skip};
 
 use continuum::closure::{Closure, ClosureBatch, ClosureError};
 use continuum::tensor::{self, Mat3};
-use md_worker::pool::MdPool;
+use md_worker::pool::{IdMap, MdPool};
 use md_worker::{BoxResult, BoxSpec, BoxWork, StressSampling};
 use std::sync::{Arc, Mutex};
 
@@ -67,6 +70,42 @@ pub struct MdPointState {
     pub pending_ev: f64,
     /// Energy added so far (eV).
     pub added_ev: f64,
+    /// What the tolerance mode keeps between the box's MD calls.
+    pub skip: Skip,
+}
+
+/// The extremes the MD boxes of a run have seen (summary.json `md.diagnostics`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MdDiagnostics {
+    /// Largest |D_ij| of a point of an md body over the run (1/s).
+    pub max_strain_rate_per_s: f64,
+    /// Smallest box length of an MD call's result over the potential's cut-off.
+    pub min_box_length_over_cutoff: f64,
+    /// Most neighbour-list builds of one box in one call.
+    pub max_rebuilds_per_call: u64,
+}
+
+impl Default for MdDiagnostics {
+    fn default() -> Self {
+        MdDiagnostics { max_strain_rate_per_s: 0.0, min_box_length_over_cutoff: f64::INFINITY, max_rebuilds_per_call: 0 }
+    }
+}
+
+/// The MD cost of one md body.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MdBodyStats {
+    pub name: String,
+    pub reuse: Reuse,
+    /// Its points are `first..first + boxes`.
+    pub first: usize,
+    pub boxes: usize,
+    pub atoms_per_box: u64,
+    /// MD steps of each box at open (relaxation).
+    pub relax_steps: u64,
+    /// MD box-steps `off` would have done in step calls (every box every step).
+    pub requested_md_steps: u64,
+    /// MD box-steps the tolerance mode skipped.
+    pub skipped_md_steps: u64,
 }
 
 /// What a run shares with its MD closures: the pool and the per-point outputs.
@@ -76,25 +115,85 @@ pub struct MdShared {
     pub potential: md_worker::pool::PotentialSource,
     /// Indexed by global point index; `None` for points of non-MD bodies.
     pub points: Vec<Option<MdPointState>>,
-    /// Continuum step counter (for replay logs and worker messages).
-    pub step: u64,
+    /// One per md body, in the order they were opened.
+    pub bodies: Vec<MdBodyStats>,
+    pub diagnostics: MdDiagnostics,
+    /// The potential's cut-off (A).
+    pub cutoff_a: f64,
+    /// Work the closures of the current continuum step have registered (`prepare`), sent to
+    /// the pool in one call by the first of them to be advanced.
+    queue: Vec<BoxWork>,
+    /// The continuum step of the queued work.
+    queue_step: u64,
+    /// Results of the last pool call not yet taken by their closures, by point id.
+    results: IdMap<BoxResult>,
+}
+
+impl MdShared {
+    pub fn new(pool: MdPool, potential: md_worker::pool::PotentialSource) -> Self {
+        let cutoff_a = potential.parse().map_or(f64::NAN, |p| p.cutoff());
+        MdShared {
+            pool,
+            potential,
+            points: Vec::new(),
+            bodies: Vec::new(),
+            diagnostics: MdDiagnostics::default(),
+            cutoff_a,
+            queue: Vec::new(),
+            queue_step: 0,
+            results: IdMap::default(),
+        }
+    }
+
+    /// Sends the queued work of every body in one pool call and keeps the results.
+    fn flush(&mut self) -> Result<(), ClosureError> {
+        let (step, work) = (self.queue_step, std::mem::take(&mut self.queue));
+        if work.is_empty() {
+            return Ok(());
+        }
+        let results = self.pool.step(step, &work).map_err(|e| ClosureError::Engine { context: format!("MD at continuum step {step}"), source: Box::new(e) })?;
+        self.results.extend(results.into_iter().map(|r| (r.id, r)));
+        Ok(())
+    }
 }
 
 /// Settings of one MD body.
 #[derive(Debug, Clone)]
 pub struct MdSettings {
+    /// The body's name (for the cost report).
+    pub body: String,
     /// MD time step (ps).
     pub dt_ps: f64,
     pub energy_consistency: bool,
     /// Longitudinal wave speed of the material at rest (m/s), for the CFL bound and viscosity.
     pub wave_speed: f64,
+    /// Longitudinal modulus of the lattice at rest (GPa), the tolerance mode's bound of what
+    /// its measured tangent does not cover.
+    pub c11_gpa: f64,
     /// Stress at the last MD step of a continuum step, or averaged over its MD steps.
     pub stress_sampling: StressSampling,
+    pub reuse: Reuse,
 }
 
+/// What a point does this step: an MD call (its work's index) or a skip (tolerance mode) with
+/// the predicted change of its stress and its strain since its last MD call.
+#[derive(Debug, Clone, Copy)]
+enum Plan {
+    Call(usize),
+    Skip { change: [f64; 6], strain: [f64; 6] },
+}
+
+/// The MD closure of one body. The closures of all md bodies of a run share one [`MdShared`]:
+/// each registers its points' work in `prepare`, and the first one advanced sends the work of
+/// all of them to the pool in one call (one round trip per continuum step, whatever the number
+/// of md bodies); each then takes its own results.
 pub struct MdClosure {
     shared: Arc<Mutex<MdShared>>,
     settings: MdSettings,
+    /// Index of this body in [`MdShared::bodies`].
+    body: usize,
+    /// This step's plan of the body's points (in batch order) and its work, once registered.
+    registered: Option<(Vec<Plan>, Vec<BoxWork>)>,
 }
 
 impl MdClosure {
@@ -108,8 +207,74 @@ impl MdClosure {
             s.points.resize(end, None);
         }
         s.pool.open(&potential, specs).map_err(|e| ClosureError::Engine { context: "opening MD boxes".into(), source: Box::new(e) })?;
+        if settings.reuse.exact_sharing() {
+            let ids: Vec<u64> = specs.iter().map(|b| b.id).collect();
+            s.pool.enable_reuse(&ids).map_err(|e| ClosureError::Engine { context: "sharing identical MD boxes".into(), source: Box::new(e) })?;
+        }
+        let body = s.bodies.len();
+        let first = specs.first().map_or(0, |b| b.id);
+        let atoms_per_box = s.pool.atoms_of(first);
+        s.bodies.push(MdBodyStats {
+            name: settings.body.clone(),
+            reuse: settings.reuse,
+            first: first as usize,
+            boxes: specs.len(),
+            atoms_per_box,
+            relax_steps: specs.first().map_or(0, |b| b.relax_steps),
+            requested_md_steps: 0,
+            skipped_md_steps: 0,
+        });
         drop(s);
-        Ok(MdClosure { shared, settings })
+        Ok(MdClosure { shared, settings, body, registered: None })
+    }
+
+    fn lock(&self) -> Result<std::sync::MutexGuard<'_, MdShared>, ClosureError> {
+        self.shared.lock().map_err(|_| ClosureError::Other("MD state poisoned".into()))
+    }
+
+    /// MD steps of a continuum step of `dt` seconds.
+    fn md_steps(&self, dt: f64) -> u64 {
+        (dt / S_PER_PS / self.settings.dt_ps).round() as u64
+    }
+
+    /// The plan and the work of every point of the batch over `dt` (s).
+    fn plan_of(&self, shared: &MdShared, b: &ClosureBatch<'_>, dt: f64) -> (Vec<Plan>, Vec<BoxWork>) {
+        let steps = self.md_steps(dt);
+        let dt_md = self.settings.dt_ps;
+        let mut plan = Vec::with_capacity(b.stress.len());
+        let mut work = Vec::with_capacity(b.stress.len());
+        for k in 0..b.stress.len() {
+            let id = (b.first + k) as u64;
+            let state = shared.points[b.first + k].as_ref();
+            let l = to_md_rate(&b.vel_grad[k]);
+            let mut w = BoxWork {
+                id,
+                velocity_gradient: l,
+                steps,
+                dt_ps: dt_md,
+                energy_to_add_ev: if self.settings.energy_consistency && steps > 0 { state.map_or(0.0, |p| p.pending_ev) } else { 0.0 },
+                stress_sampling: self.settings.stress_sampling,
+            };
+            if let (Reuse::Tolerance { tolerance_gpa, max_interval }, Some(p)) = (self.settings.reuse, state)
+                && steps > 0
+            {
+                let inc = reuse::strain_increment(&l, steps as f64 * dt_md);
+                let strain: [f64; 6] = std::array::from_fn(|c| p.skip.strain[c] + inc[c]);
+                let (change, bound) = p.skip.predict(&strain, self.settings.c11_gpa);
+                if bound < tolerance_gpa && p.skip.skipped < max_interval {
+                    plan.push(Plan::Skip { change, strain });
+                    continue;
+                }
+                if p.skip.skipped > 0 {
+                    // The catch-up: the deformation of every skipped step and this one's, in this
+                    // step's MD steps (the box's clock stays behind by the skipped time).
+                    w.velocity_gradient = std::array::from_fn(|i| std::array::from_fn(|j| p.skip.l_sum[i][j] + l[i][j]));
+                }
+            }
+            plan.push(Plan::Call(work.len()));
+            work.push(w);
+        }
+        (plan, work)
     }
 }
 
@@ -120,6 +285,22 @@ impl Closure for MdClosure {
 
     fn wave_speed(&self, _mass: &[f64], _volume: &[f64]) -> f64 {
         self.settings.wave_speed
+    }
+
+    fn prepare(&mut self, b: &ClosureBatch<'_>, dt: f64) -> Result<(), ClosureError> {
+        let mut shared = self.lock()?;
+        let (plan, work) = self.plan_of(&shared, b, dt);
+        if !shared.queue.is_empty() && shared.queue_step != b.step {
+            return Err(ClosureError::Other(format!(
+                "MD work of continuum step {} queued while that of step {} was never sent",
+                b.step, shared.queue_step
+            )));
+        }
+        shared.queue_step = b.step;
+        shared.queue.extend_from_slice(&work);
+        drop(shared);
+        self.registered = Some((plan, work));
+        Ok(())
     }
 
     fn initialize(&mut self, b: ClosureBatch<'_>) -> Result<(), ClosureError> {
@@ -135,52 +316,105 @@ impl Closure for MdClosure {
 impl MdClosure {
     fn call(&mut self, b: ClosureBatch<'_>, dt: f64) -> Result<(), ClosureError> {
         let dt_md = self.settings.dt_ps;
-        let steps = (dt / S_PER_PS / dt_md).round() as u64;
-        let mut shared = self.shared.lock().map_err(|_| ClosureError::Other("MD state poisoned".into()))?;
-        let step = shared.step;
-        let work: Vec<BoxWork> = (0..b.stress.len())
-            .map(|k| {
-                let id = (b.first + k) as u64;
-                let pending = shared.points[b.first + k].as_ref().map_or(0.0, |p| p.pending_ev);
-                BoxWork {
-                    id,
-                    velocity_gradient: to_md_rate(&b.vel_grad[k]),
-                    steps,
-                    dt_ps: dt_md,
-                    energy_to_add_ev: if self.settings.energy_consistency && steps > 0 { pending } else { 0.0 },
-                    stress_sampling: self.settings.stress_sampling,
-                }
-            })
-            .collect();
-        let results = shared
-            .pool
-            .step(step, &work)
-            .map_err(|e| ClosureError::Engine { context: format!("MD at continuum step {step}"), source: Box::new(e) })?;
-        for (k, (w, r)) in work.iter().zip(results).enumerate() {
+        let steps = self.md_steps(dt);
+        let shared_arc = self.shared.clone();
+        let mut guard = shared_arc.lock().map_err(|_| ClosureError::Other("MD state poisoned".into()))?;
+        let shared = &mut *guard;
+        // Not prepared (a caller that skips `prepare`): this body's work goes alone.
+        let (plan, work) = match self.registered.take() {
+            Some(r) => r,
+            None => {
+                let (plan, work) = self.plan_of(shared, &b, dt);
+                shared.queue_step = b.step;
+                shared.queue.extend_from_slice(&work);
+                (plan, work)
+            }
+        };
+        if work.iter().any(|w| !shared.results.contains_key(&w.id)) {
+            shared.flush()?;
+        }
+        let tolerance = match self.settings.reuse {
+            Reuse::Tolerance { tolerance_gpa, .. } => Some(tolerance_gpa),
+            _ => None,
+        };
+        let (c11, cutoff) = (self.settings.c11_gpa, shared.cutoff_a);
+        let diag = &mut shared.diagnostics;
+        let stats = &mut shared.bodies[self.body];
+        if steps > 0 {
+            stats.requested_md_steps += steps * b.stress.len() as u64;
+        }
+        for (k, item) in plan.iter().enumerate() {
             let p = b.first + k;
+            let l = to_md_rate(&b.vel_grad[k]);
+            let d = tensor::sym(&l);
+            diag.max_strain_rate_per_s = d.iter().flatten().fold(diag.max_strain_rate_per_s, |m, v| m.max(v.abs() / S_PER_PS));
+            let state = shared.points[p].get_or_insert_with(Default::default);
+            let step_ps = steps as f64 * dt_md;
+            let volume: f64 = state.last.diagnostics.lengths_a.iter().product();
+            let w = match *item {
+                Plan::Skip { change, strain } => {
+                    let reported: [f64; 6] = std::array::from_fn(|c| state.last.stress_gpa[c] + change[c]);
+                    let sigma = from_md_stress(&reported);
+                    if !tensor::is_finite(&sigma) {
+                        return Err(ClosureError::NonFinite { point: p, law: "md", jacobian: tensor::det(&b.def_grad[k]) });
+                    }
+                    b.stress[k] = sigma;
+                    let over_step: [f64; 6] = std::array::from_fn(|c| 0.5 * (state.skip.reported_gpa[c] + reported[c]));
+                    let skip = &mut state.skip;
+                    skip.work_ev += stress_work_ev(&over_step, &d, volume, step_ps);
+                    skip.skipped += 1;
+                    for i in 0..3 {
+                        for j in 0..3 {
+                            skip.l_sum[i][j] += l[i][j];
+                        }
+                    }
+                    skip.strain = strain;
+                    skip.reported_gpa = reported;
+                    stats.skipped_md_steps += steps;
+                    continue;
+                }
+                Plan::Call(i) => work[i],
+            };
+            let r = shared.results.remove(&w.id).ok_or_else(|| ClosureError::Other(format!("MD: no result for point {p}")))?;
             let sigma = from_md_stress(&r.stress_gpa);
             if !tensor::is_finite(&sigma) {
                 return Err(ClosureError::NonFinite { point: p, law: "md", jacobian: tensor::det(&b.def_grad[k]) });
             }
             b.stress[k] = sigma;
-            let state = shared.points[p].get_or_insert_with(Default::default);
+            diag.min_box_length_over_cutoff =
+                r.diagnostics.lengths_a.iter().fold(diag.min_box_length_over_cutoff, |m, x| m.min(x / cutoff));
+            diag.max_rebuilds_per_call =
+                diag.max_rebuilds_per_call.max(r.diagnostics.neighbor_rebuilds.saturating_sub(state.last.diagnostics.neighbor_rebuilds));
             if steps > 0 {
-                let d = tensor::sym(&w.velocity_gradient);
-                let old_volume: f64 = state.last.diagnostics.lengths_a.iter().product();
+                // This continuum step's part of the call: its own rate (a catch-up's earlier
+                // steps were accounted for while the box was skipped).
+                let old_volume: f64 = volume;
                 let new_volume: f64 = r.diagnostics.lengths_a.iter().product();
+                let before = if tolerance.is_some() { state.skip.reported_gpa } else { state.last.stress_gpa };
                 // The stress over the step: the trapezoid of its ends, or (average sampling) the
                 // step's own mean.
                 let over_step: [f64; 6] = match w.stress_sampling {
                     StressSampling::Average => r.stress_gpa,
-                    StressSampling::Last => std::array::from_fn(|c| 0.5 * (state.last.stress_gpa[c] + r.stress_gpa[c])),
+                    StressSampling::Last => std::array::from_fn(|c| 0.5 * (before[c] + r.stress_gpa[c])),
                 };
-                let work_ev = stress_work_ev(&over_step, &d, 0.5 * (old_volume + new_volume), steps as f64 * dt_md);
+                let step_work = stress_work_ev(&over_step, &d, 0.5 * (old_volume + new_volume), step_ps);
+                let work_ev = if state.skip.skipped > 0 { state.skip.work_ev + step_work } else { step_work };
                 let energy = |x: &BoxResult| x.potential_energy_ev + x.kinetic_energy_ev;
                 // What was really added: a removal larger than the box's kinetic energy falls short.
                 let added = w.energy_to_add_ev + r.diagnostics.energy_shortfall_ev;
                 let gained = energy(&r) - energy(&state.last) - added;
                 state.added_ev += added;
                 state.pending_ev = work_ev - gained;
+            }
+            if let Some(tol) = tolerance {
+                let inc = reuse::strain_increment(&l, step_ps);
+                let strain: [f64; 6] = std::array::from_fn(|c| state.skip.strain[c] + inc[c]);
+                let ds: [f64; 6] = std::array::from_fn(|c| r.stress_gpa[c] - state.last.stress_gpa[c]);
+                let secant = state.skip.secant;
+                state.skip = Skip { reported_gpa: r.stress_gpa, secant, ..Default::default() };
+                if steps > 0 {
+                    state.skip.measured(ds, strain, c11, tol);
+                }
             }
             state.last = r;
         }

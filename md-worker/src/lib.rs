@@ -16,6 +16,7 @@ pub mod mpi;
 pub mod null;
 pub mod pool;
 pub mod recovery;
+pub mod reuse;
 pub mod server;
 pub mod source;
 pub mod wire;

@@ -16,6 +16,7 @@
 use crate::backend::{BoxResult, BoxSpec, BoxState, BoxWork, MdBackend, PointId};
 use crate::error::MdError;
 use crate::recovery::{AbortHandle, Baseline, CheckpointBoxes, InputLog, Recovery, StepDeadline};
+use crate::reuse::{Classes, content_hash};
 use crate::wire;
 use mscale_proto::coupling::v1 as pb;
 use std::sync::Arc;
@@ -130,6 +131,10 @@ pub struct MdPool {
     on_loss: Option<LossHook>,
     /// The continuum step of the last step call (for a loss found by a snapshot).
     last_step: u64,
+    /// Boxes that share their computation with bitwise identical ones ([`crate::reuse`]).
+    classes: Classes,
+    /// MD steps each box was really stepped in step calls (recovery replays not counted).
+    done_steps: IdMap<u64>,
 }
 
 /// Told of every lost endpoint once its boxes live on the survivors.
@@ -200,6 +205,8 @@ impl MdPool {
             recoveries: Vec::new(),
             on_loss: None,
             last_step: 0,
+            classes: Classes::default(),
+            done_steps: IdMap::default(),
         })
     }
 
@@ -333,10 +340,94 @@ impl MdPool {
         Ok(())
     }
 
+    /// Lets the named boxes share their computation with bitwise identical boxes (exact reuse,
+    /// [`crate::reuse`]): boxes whose states have the same content hash now (point ids left out)
+    /// form one class. Results stay bitwise those of stepping every box.
+    pub fn enable_reuse(&mut self, ids: &[PointId]) -> Result<(), MdError> {
+        let mut hashes = Vec::with_capacity(ids.len());
+        // In chunks, so a large pool is not copied out at once.
+        for chunk in ids.chunks(256) {
+            for s in self.snapshot_physical(chunk)? {
+                hashes.push((s.meta.id, content_hash(&s)?));
+            }
+        }
+        self.classes.join(&hashes);
+        Ok(())
+    }
+
+    /// Distinct box states among the boxes that take part in reuse (0 without reuse).
+    pub fn reuse_classes(&self) -> usize {
+        self.classes.class_count()
+    }
+
+    /// MD steps box `id` was really stepped by step calls (less than it was sent under reuse).
+    pub fn md_steps_done(&self, id: PointId) -> u64 {
+        self.done_steps.get(&id).copied().unwrap_or(0)
+    }
+
+    /// Atoms of box `id` (0 if unknown).
+    pub fn atoms_of(&self, id: PointId) -> u64 {
+        self.atoms.get(&id).copied().unwrap_or(0)
+    }
+
+    /// Gives each `(from, to)` box pair the state `from` has now.
+    fn copy_boxes(&mut self, pairs: &[(PointId, PointId)]) -> Result<(), MdError> {
+        if pairs.is_empty() {
+            return Ok(());
+        }
+        let mut from: Vec<PointId> = pairs.iter().map(|p| p.0).collect();
+        from.sort_unstable();
+        from.dedup();
+        let states = self.snapshot_physical(&from)?;
+        let by_id: IdMap<&BoxState> = states.iter().map(|s| (s.meta.id, s)).collect();
+        let copies = pairs
+            .iter()
+            .map(|(f, t)| {
+                let mut s = (*by_id.get(f).ok_or(MdError::UnknownBox(*f))?).clone();
+                s.meta.id = *t;
+                Ok(s)
+            })
+            .collect::<Result<Vec<_>, MdError>>()?;
+        self.restore_physical(copies)
+    }
+
     /// Advances boxes; `out[k]` is the result of `work[k]`. An endpoint lost during the call is
     /// replaced: its boxes are rebuilt on the survivors (restored from the last checkpoint, the
     /// logged inputs replayed, this call redone), so the result is that of an uninterrupted run.
+    /// Under reuse, one box per group of bitwise identical boxes with bitwise identical work is
+    /// stepped, and its result goes to all of them; the input log keeps the work of every box,
+    /// so a replay rebuilds each box on its own, to the same bits.
     pub fn step(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
+        let out = if self.classes.is_empty() {
+            let out = self.step_physical(step, work)?;
+            for w in work {
+                *self.done_steps.entry(w.id).or_insert(0) += w.steps;
+            }
+            out
+        } else {
+            let plan = self.classes.plan(work)?;
+            self.last_step = step;
+            self.copy_boxes(&plan.copies)?;
+            let res = self.step_physical(step, &plan.physical)?;
+            for w in &plan.physical {
+                *self.done_steps.entry(w.id).or_insert(0) += w.steps;
+            }
+            self.classes.apply(&plan);
+            work.iter()
+                .zip(&plan.source)
+                .map(|(w, &k)| {
+                    let mut r = res[k];
+                    r.id = w.id;
+                    r
+                })
+                .collect()
+        };
+        self.log.record(step, work);
+        Ok(out)
+    }
+
+    /// [`MdPool::step`] of every box as named (no reuse), without logging the inputs.
+    fn step_physical(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
         let start = Instant::now();
         self.last_step = step;
         let n = self.endpoints.len();
@@ -381,7 +472,6 @@ impl MdPool {
         if !failed.is_empty() {
             self.recover(step, failed, work, &mut out)?;
         }
-        self.log.record(step, work);
         self.times.step_wall += start.elapsed().as_secs_f64();
         self.times.md_compute += slowest;
         self.times.calls += 1;
@@ -539,9 +629,29 @@ impl MdPool {
         Ok(())
     }
 
-    /// States of the named boxes, in the order of `ids`.
+    /// States of the named boxes, in the order of `ids` (under reuse, a box's state is its
+    /// representative's, under its own id).
     /// An endpoint found lost here is replaced first (its boxes rebuilt on the survivors).
     pub fn snapshot(&mut self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError> {
+        if self.classes.is_empty() {
+            return self.snapshot_physical(ids);
+        }
+        let mut reps: Vec<PointId> = ids.iter().map(|&id| self.classes.rep(id)).collect();
+        reps.sort_unstable();
+        reps.dedup();
+        let states = self.snapshot_physical(&reps)?;
+        let by_id: IdMap<&BoxState> = states.iter().map(|s| (s.meta.id, s)).collect();
+        ids.iter()
+            .map(|&id| {
+                let mut s = (*by_id.get(&self.classes.rep(id)).ok_or(MdError::UnknownBox(id))?).clone();
+                s.meta.id = id;
+                Ok(s)
+            })
+            .collect()
+    }
+
+    /// The states the endpoints hold for the named boxes.
+    fn snapshot_physical(&mut self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError> {
         let mut out = Vec::with_capacity(ids.len());
         let mut k = 0;
         while k < ids.len() {
@@ -569,6 +679,39 @@ impl MdPool {
     /// box, so the boxes must have been opened first (with the same specs). Refuses a state of
     /// a box this pool does not hold, before touching any endpoint.
     pub fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
+        if !self.classes.is_empty() {
+            // Boxes whose state a restored box holds, and that are not restored themselves,
+            // take that state first; the restored boxes that take part in reuse form classes by
+            // the content of the states restored.
+            let restored: IdMap<()> = states.iter().map(|s| (s.meta.id, ())).collect();
+            let mut keep = Vec::new();
+            for s in &states {
+                if self.classes.rep(s.meta.id) == s.meta.id {
+                    keep.extend(self.classes.dependants(s.meta.id).into_iter().filter(|d| !restored.contains_key(d)).map(|d| (s.meta.id, d)));
+                }
+            }
+            self.copy_boxes(&keep)?;
+            for (_, d) in &keep {
+                self.classes.detach(*d);
+            }
+            let mut hashes = Vec::new();
+            for s in &states {
+                if self.classes.contains(s.meta.id) {
+                    hashes.push((s.meta.id, content_hash(s)?));
+                }
+            }
+            self.restore_physical(states)?;
+            self.classes.join(&hashes);
+        } else {
+            self.restore_physical(states)?;
+        }
+        // Until the caller names the checkpoint these states came from, a loss cannot be replayed.
+        self.log.invalidate("the boxes were restored from states that name no checkpoint".into());
+        Ok(())
+    }
+
+    /// Puts states into the endpoints that own their boxes.
+    fn restore_physical(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
         let mut parts: Vec<Vec<BoxState>> = vec![Vec::new(); self.endpoints.len()];
         for s in states {
             let e = *self.owner.get(&s.meta.id).ok_or(MdError::UnknownBox(s.meta.id))?;
@@ -582,8 +725,6 @@ impl MdPool {
         for (e, r) in results.into_iter().enumerate() {
             r.map_err(|err| lost(&*self.endpoints[e], "restore", err))?;
         }
-        // Until the caller names the checkpoint these states came from, a loss cannot be replayed.
-        self.log.invalidate("the boxes were restored from states that name no checkpoint".into());
         Ok(())
     }
 
@@ -1116,6 +1257,93 @@ mod tests {
         pool.step(1, &work).unwrap();
         let e = pool.step(2, &work).unwrap_err().to_string();
         assert!(e.contains("cannot be replayed") && e.contains("outgrew its bound"), "{e}");
+    }
+
+    /// 6 boxes, ids 0-3 bitwise alike (0 K, the same strain), 4-5 alike among themselves, for
+    /// 6 calls whose work splits, regroups, leaves boxes out (as the tolerance mode does, then
+    /// catches them up with a longer call) and adds energy; with or without reuse, on endpoints
+    /// lost at their call `fail_at` (0: never), a checkpoint after call `checkpoint`.
+    fn run_shared(reuse: bool, fail_at: &[u64], checkpoint: Option<u64>) -> (Vec<String>, String, MdPool) {
+        let (eps, _): (Vec<_>, Vec<_>) = fail_at.iter().map(|&f| flaky(if f == 0 { u64::MAX } else { f })).unzip();
+        let mut pool = MdPool::new(eps).unwrap();
+        let pot = PotentialSource::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/potentials/Cu_u3.eam"))).unwrap();
+        let specs: Vec<BoxSpec> = (0..6)
+            .map(|id| {
+                let mut s = BoxSpec::lattice(id, crate::LatticeKind::Fcc, 3.615, [2, 2, 2]);
+                s.strain = if id < 4 { [-0.02, 0.0, 0.0] } else { [0.01, 0.0, 0.0] };
+                s.seed = 7;
+                s
+            })
+            .collect();
+        pool.open(&pot, &specs).unwrap();
+        if reuse {
+            pool.enable_reuse(&pool.box_ids()).unwrap();
+            assert_eq!(pool.reuse_classes(), 2);
+        }
+        let mut out = Vec::new();
+        for step in 1..=STEPS {
+            let l = |a: f64| [[a, 0.0, 0.0], [0.0; 3], [0.0; 3]];
+            let mut work: Vec<BoxWork> = (0..6).map(|id| BoxWork::new(id, l(1e-3), 3, 0.001)).collect();
+            match step {
+                // Ids 2 and 3 split off; 4 and 5 too.
+                2 => {
+                    work[2].velocity_gradient = l(-1e-3);
+                    work[3].velocity_gradient = l(-1e-3);
+                    work[5].velocity_gradient = l(2e-3);
+                }
+                // Id 1 and id 3 left out (skipped); the others as they were.
+                3 => {
+                    work.retain(|w| w.id != 1 && w.id != 3);
+                }
+                // Id 1 catches up (two calls' steps); id 0 gets energy (never shared).
+                4 => {
+                    work[1].steps = 6;
+                    work[0].energy_to_add_ev = 1e-3;
+                }
+                _ => {}
+            }
+            let res = pool.step(step, &work).unwrap();
+            out.push(format!("{res:?}"));
+            if checkpoint == Some(step) {
+                let saved = pool.snapshot(&pool.box_ids()).unwrap();
+                pool.mark_checkpoint(
+                    step,
+                    Arc::new(move |ids: &[PointId]| Ok(saved.iter().filter(|s| ids.contains(&s.meta.id)).cloned().collect())),
+                );
+            }
+        }
+        let states = pool.snapshot(&pool.box_ids()).unwrap();
+        (out, serde_json::to_string(&states).unwrap(), pool)
+    }
+
+    #[test]
+    fn exact_reuse_is_bitwise_stepping_every_box_and_replays_the_same() {
+        let (plain, plain_states, plain_pool) = run_shared(false, &[0], None);
+        let (shared, shared_states, pool) = run_shared(true, &[0], None);
+        assert_eq!(shared, plain);
+        assert_eq!(shared_states, plain_states);
+        let done = |p: &MdPool| (0..6).map(|id| p.md_steps_done(id)).sum::<u64>();
+        // Plain: 6 boxes x 6 calls x 3 steps, less 2 left out at call 3, plus id 1's 3 more at 4.
+        assert_eq!(done(&plain_pool), 6 * 6 * 3 - 2 * 3 + 3);
+        // Shared: call 1 steps 2 boxes (two classes), calls 2-3 four (0-1, 2-3, 4, 5; the
+        // left-out ids take their representative's state), call 4 all six (id 0's energy, id 1's
+        // catch-up, and ids 2 and 3 no longer one class), as do 5 and 6 (classes do not merge
+        // again): 3 x (2 + 4 + 4 + 5 + 6 + 6) + 6.
+        assert_eq!(done(&pool), 3 * (2 + 4 + 4 + 5 + 6 + 6) + 6);
+        // Endpoints lost mid-run (no checkpoint, and after one) rebuild their boxes to the bits.
+        for (fail, ck) in [(vec![0, 3, 0], None), (vec![5, 0], Some(2)), (vec![0, 0, 4], Some(3))] {
+            let (r, states, pool) = run_shared(true, &fail, ck);
+            assert_eq!(r, plain, "{fail:?} {ck:?}");
+            assert_eq!(states, plain_states, "{fail:?} {ck:?}");
+            assert_eq!(pool.recoveries().len(), 1);
+        }
+        // A restore (a resumed run) keeps every box's state, shared or not.
+        let (_, _, mut pool) = run_shared(true, &[0, 0], None);
+        let states = pool.snapshot(&pool.box_ids()).unwrap();
+        pool.restore(states.clone()).unwrap();
+        assert_eq!(pool.snapshot(&pool.box_ids()).unwrap(), states);
+        pool.restore(states[..2].to_vec()).unwrap();
+        assert_eq!(pool.snapshot(&pool.box_ids()).unwrap(), states);
     }
 
     #[test]

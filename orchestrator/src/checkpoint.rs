@@ -85,7 +85,8 @@ pub struct SavedPoints {
 /// The MD side: the closure's per-point state and every box.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SavedMd {
-    /// The continuum step counter of the MD closure.
+    /// The continuum step of the capture (the MD closures take their step from the solver's
+    /// batch; kept so checkpoints stay readable both ways).
     pub step: u64,
     /// Indexed by global point index; `None` for points of non-MD bodies.
     pub points: Vec<Option<SavedMdPoint>>,
@@ -100,6 +101,9 @@ pub struct SavedMdPoint {
     pub pending_ev: f64,
     /// eV.
     pub added_ev: f64,
+    /// The tolerance mode's state of the box (absent in checkpoints of runs without it).
+    #[serde(default)]
+    pub skip: coupling::Skip,
 }
 
 /// What the run driver carries from step to step.
@@ -208,9 +212,9 @@ impl Checkpoint {
                 let points = m
                     .points
                     .iter()
-                    .map(|p| p.as_ref().map(|s| SavedMdPoint { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev }))
+                    .map(|p| p.as_ref().map(|s| SavedMdPoint { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev, skip: s.skip }))
                     .collect();
-                Some(SavedMd { step: m.step, points, boxes })
+                Some(SavedMd { step: sim.step, points, boxes })
             }
         };
         let t = &sim.initial;
@@ -268,9 +272,8 @@ impl Checkpoint {
                 m.points = saved
                     .points
                     .iter()
-                    .map(|p| p.as_ref().map(|s| MdPointState { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev }))
+                    .map(|p| p.as_ref().map(|s| MdPointState { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev, skip: s.skip }))
                     .collect();
-                m.step = saved.step;
             }
             (None, Some(_)) => bail!("the checkpoint has MD boxes but the scene has no md bodies"),
             (Some(_), None) => bail!("the scene has md bodies but the checkpoint has no MD boxes"),

@@ -257,7 +257,7 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], comp
     for s in sweeps {
         let _ = write!(csv, "{},", s.key);
     }
-    csv.push_str("method,status,pressure_l1,pressure_l2,pressure_spike,wall_seconds,compute_seconds,steps,closure_evaluations,energy_drift,md_atom_steps,");
+    csv.push_str("method,status,pressure_l1,pressure_l2,pressure_spike,wall_seconds,compute_seconds,steps,closure_evaluations,energy_drift,md_atom_steps,md_atom_steps_avoided,");
     for &t in times {
         let _ = write!(csv, "{},", error_column(component, t));
     }
@@ -273,7 +273,7 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], comp
         let compute = s["time_breakdown_s"]["setup"].as_f64().unwrap_or(0.0) + s["time_breakdown_s"]["continuum"].as_f64().unwrap_or(0.0);
         let _ = write!(
             csv,
-            "{},{},{},{},{},{},{compute:e},{},{},{},{:e},",
+            "{},{},{},{},{},{},{compute:e},{},{},{},{:e},{:e},",
             field(s, &["method"]),
             field(s, &["status"]),
             field(s, &["errors", "pressure_l1"]),
@@ -283,7 +283,8 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], comp
             field(s, &["steps"]),
             field(s, &["closure_evaluations"]),
             field(s, &["conservation", "energy_drift"]),
-            r.atom_steps,
+            s["md"]["atom_steps_done"].as_f64().unwrap_or(r.atom_steps),
+            s["md"]["atom_steps_avoided"].as_f64().unwrap_or(0.0),
         );
         for k in 0..times.len() {
             match r.scores.get(k) {

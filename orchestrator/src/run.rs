@@ -124,7 +124,7 @@ fn md_shared(loaded: &LoadedScene, opts: &RunOptions) -> Result<Option<Arc<Mutex
         }
     }));
     tracing::info!("MD on {}", pool.endpoint_names().join(", "));
-    Ok(Some(Arc::new(Mutex::new(MdShared { pool, potential, points: Vec::new(), step: 0 }))))
+    Ok(Some(Arc::new(Mutex::new(MdShared::new(pool, potential)))))
 }
 
 /// Default run directory: `runs/<scene>-<UTC timestamp>`.
@@ -340,11 +340,6 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
             report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, true);
             return Ok(Outcome::Cancelled { checkpoint: path, step: sim.step });
         }
-        if let Some(md) = &md
-            && let Ok(mut m) = md.lock()
-        {
-            m.step = sim.step + 1;
-        }
         let t = Instant::now();
         let result = sim.step();
         continuum_s += t.elapsed().as_secs_f64();
@@ -411,6 +406,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     let summary = summary(loaded, opts, &sim, times, max_kinetic, max_abs_momentum, errors, direct_json, failure.as_deref(), md.as_ref())?;
     output::write_atomic(&dir.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
     report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, true);
+    if let Some(done) = summary["md"]["atom_steps_done"].as_f64() {
+        let requested = summary["md"]["atom_steps_requested"].as_f64().unwrap_or(done);
+        tracing::info!("MD atom-steps: {done:.3e} done of {requested:.3e} ({:.3e} avoided by reuse)", requested - done);
+    }
     // The run's last log line: its error against the direct MD.
     match direct.map(|d| d.line) {
         Some(Ok(line)) => tracing::info!("{line}"),
@@ -532,6 +531,54 @@ fn direct_md_errors(scene: &Scene, dir: &Path, reached: f64) -> Option<DirectSco
     })
 }
 
+/// summary.json `md`: MD atom-steps done and avoided per md body (relaxation included in
+/// both: `requested` is what `reuse = "off"` would have done), and the extremes the boxes saw.
+fn md_cost_json(m: &MdShared) -> Value {
+    let mut total = (0.0, 0.0, 0.0, 0.0);
+    let bodies: serde_json::Map<String, Value> = m
+        .bodies
+        .iter()
+        .map(|b| {
+            let atoms = b.atoms_per_box as f64;
+            let relax = (b.boxes as u64 * b.relax_steps) as f64 * atoms;
+            let done_steps: u64 = (b.first..b.first + b.boxes).map(|id| m.pool.md_steps_done(id as u64)).sum();
+            let requested = relax + b.requested_md_steps as f64 * atoms;
+            let done = relax + done_steps as f64 * atoms;
+            let by_tolerance = b.skipped_md_steps as f64 * atoms;
+            let by_sharing = requested - done - by_tolerance;
+            total = (total.0 + requested, total.1 + done, total.2 + by_tolerance, total.3 + by_sharing);
+            let json = json!({
+                "reuse": b.reuse.describe(),
+                "boxes": b.boxes,
+                "atoms_per_box": b.atoms_per_box,
+                "atom_steps_requested": requested,
+                "atom_steps_done": done,
+                "atom_steps_avoided": requested - done,
+                "avoided_by_tolerance": by_tolerance,
+                "avoided_by_exact_sharing": by_sharing,
+            });
+            (b.name.clone(), json)
+        })
+        .collect();
+    let d = &m.diagnostics;
+    json!({
+        "atom_steps_requested": total.0,
+        "atom_steps_done": total.1,
+        "atom_steps_avoided": total.0 - total.1,
+        "avoided_by_tolerance": total.2,
+        "avoided_by_exact_sharing": total.3,
+        // Pool round trips of the run's continuum steps (one per step for all md bodies).
+        "pool_calls": m.pool.times.calls,
+        "bodies": bodies,
+        "diagnostics": {
+            "max_strain_rate_per_s": finite_or_null(d.max_strain_rate_per_s),
+            "min_box_length_over_cutoff": finite_or_null(d.min_box_length_over_cutoff),
+            "cutoff_a": finite_or_null(m.cutoff_a),
+            "max_neighbor_rebuilds_per_call": d.max_rebuilds_per_call,
+        },
+    })
+}
+
 struct SummaryTimes {
     wall: f64,
     setup: f64,
@@ -631,6 +678,7 @@ fn summary<const D: usize>(
         },
         "command_line": opts.command_line,
         "state_digest": output::state_digest(&sim.points, sim.step, sim.time),
+        "md": md.as_ref().map(|m| md_cost_json(m)),
         "md_recovery": md.as_ref().map(|m| {
             let r = m.pool.recoveries();
             json!({

@@ -216,6 +216,12 @@ pub struct MdMaterial {
     /// 1D, seed otherwise).
     #[serde(default = "default_deformation", with = "names::named")]
     pub deformation: Deformation,
+    /// MD-call avoidance: `off` (the default: every box every step), `exact` (boxes with
+    /// bitwise identical states and work are computed once; results bitwise those of `off`)
+    /// or `{ tolerance = GPa, max_interval = continuum steps }` (a box is not stepped while its
+    /// predicted stress change stays below the tolerance; see `coupling::reuse`).
+    #[serde(default)]
+    pub reuse: coupling::Reuse,
 }
 
 fn default_orientation() -> [[i32; 3]; 3] {

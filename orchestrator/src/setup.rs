@@ -48,10 +48,13 @@ fn closure(body: &ResolvedBody, points: std::ops::Range<usize>, md: Option<&Arc<
             let shared = md.ok_or_else(|| SetupError::MdUnavailable(body.name.clone()))?;
             let specs: Vec<_> = points.map(|p| crate::md::box_spec(p as u64, body, m)).collect();
             let settings = MdSettings {
+                body: body.name.clone(),
                 dt_ps: m.timestep_fs * 1e-3,
                 energy_consistency: m.energy_consistency,
                 wave_speed: m.lattice_properties.wave_speed,
+                c11_gpa: m.lattice_properties.c11_gpa,
                 stress_sampling: m.stress_sampling,
+                reuse: m.reuse,
             };
             Box::new(
                 MdClosure::open(shared.clone(), settings, &specs).map_err(|source| SetupError::Md { body: body.name.clone(), source })?,

@@ -222,6 +222,38 @@ fn a_worker_killed_mid_job_is_replaced_from_the_checkpoint_and_without_survivors
     );
 }
 
+#[test]
+fn under_md_reuse_a_worker_killed_mid_job_is_replayed_to_the_same_digest() {
+    // The left body (0 K, alike boxes) shares its computation exactly, the right one (50 K)
+    // skips boxes within a tolerance; `exact` alone gives the digest of `off`.
+    let reuse: Vec<&str> = LONGER.iter().copied().chain(["bodies.left.material.reuse=\"exact\"", "bodies.right.material.reuse={ tolerance = 0.05, max_interval = 4 }"]).collect();
+    let (tmp, token) = setup();
+    let exact: Vec<&str> = LONGER.iter().copied().chain(["bodies.left.material.reuse=\"exact\"", "bodies.right.material.reuse=\"exact\""]).collect();
+    assert_eq!(run_digest(&tmp.path().join("exact"), &exact), run_digest(&tmp.path().join("off"), &LONGER), "exact reuse changed the run");
+    let straight = run_digest(&tmp.path().join("straight"), &reuse);
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(tmp.path().join("straight/summary.json")).unwrap()).unwrap();
+    let md = &summary["md"];
+    assert!(md["bodies"]["left"]["avoided_by_exact_sharing"].as_f64().unwrap() > 0.0, "{md}");
+    assert!(md["bodies"]["right"]["avoided_by_tolerance"].as_f64().unwrap() > 0.0, "{md}");
+
+    let state = tmp.path().join("state");
+    let server = Server::start(&state, &token, &tmp.path().join("serve.log"), &[]);
+    let a = worker(&server, &token, &tmp.path().join("a.log"), "1");
+    let _b = worker(&server, &token, &tmp.path().join("b.log"), "1");
+    server.wait_live(2);
+    let job = server.submit(&token, &reuse, 10);
+    wait_for_checkpoint(&state, &job);
+    a.signal("-KILL");
+    let last = watch(&server, &job).pop().unwrap();
+    let log = server.proc.log();
+    assert_eq!(last.state, pb::JobState::Completed as i32, "{last:?}\n{log}");
+    assert_eq!(server.client(false).get(&job).unwrap().state_digest, straight, "{log}");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(state.join("jobs").join(&job).join("run/summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["md_recovery"]["lost_workers"], 1, "{}", summary["md_recovery"]);
+    assert!(!log.contains("rolling back") && !log.contains("resuming"), "{log}");
+}
+
 /// Checks the job's summary.json: one lost worker (at `lost_addr`), whose boxes (fewer than
 /// all 16) alone were restored, on `survivor` (its log shows one restore, of exactly those),
 /// and replayed from the checkpoint up to the step of the loss. Returns how many boxes.

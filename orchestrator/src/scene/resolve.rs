@@ -84,6 +84,7 @@ pub struct ResolvedMd {
     pub relax_steps: usize,
     pub relax_box: bool,
     pub deformation: DeformMode,
+    pub reuse: coupling::Reuse,
     /// Measured once, by validation.
     pub lattice_properties: LatticeProperties,
     pub atoms_per_box: u64,

@@ -119,6 +119,7 @@ impl Scene {
                                 // `auto` is resolved by validation; seed is its non-1D choice.
                                 Deformation::Seed | Deformation::Auto => DeformMode::Seed,
                             },
+                            reuse: m.reuse,
                             lattice_properties,
                             atoms_per_box,
                         }))
@@ -345,6 +346,14 @@ impl Scene {
                 }
                 if !(md.timestep_fs > 0.0 && md.timestep_fs <= 5.0) {
                     return Err(loc.err(&k("material.timestep_fs"), md.timestep_fs, "the MD time step must lie in (0, 5] fs"));
+                }
+                if let coupling::Reuse::Tolerance { tolerance_gpa, max_interval } = md.reuse {
+                    if !(tolerance_gpa.is_finite() && tolerance_gpa >= 0.0) {
+                        return Err(loc.err(&k("material.reuse.tolerance"), tolerance_gpa, "the tolerance (GPa) must be a finite number >= 0 (0: never skip a box)"));
+                    }
+                    if !(1..=100_000).contains(&max_interval) {
+                        return Err(loc.err(&k("material.reuse.max_interval"), max_interval, "allowed: 1 to 100000 continuum steps"));
+                    }
                 }
                 if md.precision != MdPrecision::Double {
                     return Err(loc.err(&k("material.precision"), format!("{:?}", md.precision.scene_name()), MdPrecision::allowed()));
