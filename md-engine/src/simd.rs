@@ -10,13 +10,17 @@
 //! energy, virial) is accumulated serially in the scalar's pair order. So every path gives
 //! the same bits as the `reference` oracle, and a digest blessed on one path holds on all.
 //!
-//! Layout: the neighbour list stays CSR (`NeighborList`); the geometry pass gathers
-//! neighbour positions and image shifts lane-wise, tests the cut-off and compacts the pairs
+//! Layout: the neighbour list stays CSR (`NeighborList`); the geometry pass loads neighbour
+//! positions from a copy padded to 4 f64 per atom (8 row loads and a transpose rather than
+//! gathers, which are slow on Zen 4), decodes image codes into shifts `n * L` arithmetically
+//! (the same product as the scalar's shift table), tests the cut-off and compacts the pairs
 //! inside it (AVX-512 `vcompress` in registers; AVX2 by mask bits) into structure-of-arrays
 //! buffers (dx, dy, dz, r, i, j). Rows are processed in blocks of about [`BLOCK`] pairs: the
 //! vector pass writes a block's per-pair terms into a small buffer that stays in L1, then a
-//! serial pass accumulates them. Spline coefficients are gathered (rows of 7 f64, LAMMPS
-//! layout); recomputing them from a compact table would change the bits.
+//! serial pass accumulates them. Spline coefficients are read as whole rows (7 f64, LAMMPS
+//! layout) and transposed in registers; element gathers measured 1.4x slower for the whole
+//! kernel, and recomputing coefficients from a compact table would change the bits. A list
+//! whose image table is not `neighbor::build`'s enumeration falls back to gathers.
 
 use crate::error::MdError;
 use crate::neighbor::NeighborList;
@@ -74,9 +78,9 @@ impl SimdPath {
         Self::ALL.into_iter().filter(|p| p.is_supported()).collect()
     }
 
-    /// The path `auto` takes: AVX-512 where the CPU has it, else scalar. The AVX2 path gathers
-    /// its spline rows and positions element by element and measured slower than scalar on
-    /// AMD Zen 4 (md-worker/docs/simd-measurements.md), so it runs only when asked for.
+    /// The path `auto` takes: AVX-512 where the CPU has it, else scalar. The AVX2 path (4
+    /// lanes, compaction by mask bits) measured no faster than scalar on AMD Zen 4
+    /// (md-worker/docs/simd-measurements.md), so it runs only when asked for.
     pub fn best() -> SimdPath {
         if SimdPath::Avx512.is_supported() { SimdPath::Avx512 } else { SimdPath::Scalar }
     }
@@ -240,9 +244,9 @@ pub(crate) fn eam_forces_one(
     assert!(t.rhor[t.type2rhor[0][0]].len() > t.nr && t.z2r[t.type2z2r[0][0]].len() > t.nr);
     let xp = xu.as_ptr() as *const f64;
     let sp = shift.as_ptr() as *const f64;
-    // AVX-512 decodes image codes arithmetically and checks atoms and codes as it loads;
-    // otherwise the gathers need the list checked here.
-    let images = if path == SimdPath::Avx512 { Images::of(list, l) } else { None };
+    // The geometry passes decode image codes arithmetically and check atoms and codes as they
+    // load; for a list whose images they cannot decode, the gathers need it checked here.
+    let images = Images::of(list, l);
     if images.is_none() {
         assert!(list.j.iter().all(|&j| (j as usize) < n) && list.code.iter().all(|&c| (c as usize) < shift.len()));
     }
@@ -274,7 +278,10 @@ pub(crate) fn eam_forces_one(
                         None => avx512::geometry(xu[i1], js, codes, xp, sp, tab.cut2, s, i1, np),
                     },
                     #[cfg(target_arch = "x86_64")]
-                    SimdPath::Avx2 => avx2::geometry(xu[i1], js, codes, xp, sp, tab.cut2, s, i1, np),
+                    SimdPath::Avx2 => match &images {
+                        Some(img) => avx2::geometry4(xu[i1], js, codes, x4, img, n, tab.cut2, s, i1, np),
+                        None => avx2::geometry(xu[i1], js, codes, xp, sp, tab.cut2, s, i1, np),
+                    },
                     _ => unreachable!("checked above"),
                 }
             };
@@ -704,6 +711,107 @@ mod avx2 {
         _mm256_add_pd(a, b)
     }
 
+    /// Four consecutive f64 at each of `base + off[l]` (l = 0..4), transposed: out[c][l].
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    unsafe fn rows4(base: *const f64, off: [i32; 4]) -> [__m256d; 4] {
+        // SAFETY: the caller's offsets address 4 readable f64 each.
+        unsafe {
+            let ld = |l: usize| _mm256_loadu_pd(base.offset(off[l] as isize));
+            let (a0, a1, a2, a3) = (ld(0), ld(1), ld(2), ld(3));
+            let (t0, t1) = (_mm256_unpacklo_pd(a0, a1), _mm256_unpackhi_pd(a0, a1));
+            let (t2, t3) = (_mm256_unpacklo_pd(a2, a3), _mm256_unpackhi_pd(a2, a3));
+            [
+                _mm256_permute2f128_pd::<0x20>(t0, t2),
+                _mm256_permute2f128_pd::<0x20>(t1, t3),
+                _mm256_permute2f128_pd::<0x31>(t0, t2),
+                _mm256_permute2f128_pd::<0x31>(t1, t3),
+            ]
+        }
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn offsets(v: __m128i) -> [i32; 4] {
+        let mut o = [0i32; 4];
+        // SAFETY: o holds 4 i32.
+        unsafe { _mm_storeu_si128(o.as_mut_ptr() as *mut __m128i, v) };
+        o
+    }
+
+    /// As `avx512::geometry4`, 4 lanes.
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn geometry4(
+        xi: [f64; 3],
+        js: &[u32],
+        codes: &[u16],
+        x4: *const f64,
+        img: &super::Images,
+        n: usize,
+        cut2: f64,
+        s: &mut Scratch,
+        i: usize,
+        mut np: usize,
+    ) -> usize {
+        let (x0, x1, x2) = (_mm256_set1_pd(xi[0]), _mm256_set1_pd(xi[1]), _mm256_set1_pd(xi[2]));
+        let cut = _mm256_set1_pd(cut2);
+        let half = _mm256_set1_pd(0.5);
+        let (s12, inv12, s2, inv2) =
+            (_mm256_set1_pd(img.s12), _mm256_set1_pd(1.0 / img.s12), _mm256_set1_pd(img.s2), _mm256_set1_pd(1.0 / img.s2));
+        let h = [_mm256_set1_pd(img.h[0]), _mm256_set1_pd(img.h[1]), _mm256_set1_pd(img.h[2])];
+        let l = [_mm256_set1_pd(img.l[0]), _mm256_set1_pd(img.l[1]), _mm256_set1_pd(img.l[2])];
+        let len = js.len();
+        let mut k = 0;
+        while k < len {
+            let rem = (len - k).min(4);
+            let (mut jb, mut cb) = ([0i32; 4], [0i32; 4]);
+            for l in 0..rem {
+                (jb[l], cb[l]) = (js[k + l] as i32, codes[k + l] as i32);
+                if js[k + l] as usize >= n || codes[k + l] as usize >= img.ncodes {
+                    super::bad_list(n, img.ncodes);
+                }
+            }
+            // SAFETY: atoms and codes were checked; the scalar stores stay in the buffers.
+            unsafe {
+                let [xj, yj, zj, _] = rows4(x4, jb.map(|j| 4 * j));
+                let c = _mm256_cvtepi32_pd(_mm_loadu_si128(cb.as_ptr() as *const __m128i));
+                let a = _mm256_round_pd::<0x0b>(_mm256_mul_pd(_mm256_add_pd(c, half), inv12));
+                let rest = _mm256_sub_pd(c, _mm256_mul_pd(a, s12));
+                let b = _mm256_round_pd::<0x0b>(_mm256_mul_pd(_mm256_add_pd(rest, half), inv2));
+                let cc = _mm256_sub_pd(rest, _mm256_mul_pd(b, s2));
+                let sx = _mm256_mul_pd(_mm256_sub_pd(a, h[0]), l[0]);
+                let sy = _mm256_mul_pd(_mm256_sub_pd(b, h[1]), l[1]);
+                let sz = _mm256_mul_pd(_mm256_sub_pd(cc, h[2]), l[2]);
+                let dx = _mm256_sub_pd(_mm256_sub_pd(x0, xj), sx);
+                let dy = _mm256_sub_pd(_mm256_sub_pd(x1, yj), sy);
+                let dz = _mm256_sub_pd(_mm256_sub_pd(x2, zj), sz);
+                let r2 = add(add(mul(dx, dx), mul(dy, dy)), mul(dz, dz));
+                let mut m = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LT_OQ>(r2, cut)) as u32 & ((1u32 << rem) - 1);
+                if m != 0 {
+                    let (mut ax, mut ay, mut az, mut ar) = ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
+                    _mm256_storeu_pd(ax.as_mut_ptr(), dx);
+                    _mm256_storeu_pd(ay.as_mut_ptr(), dy);
+                    _mm256_storeu_pd(az.as_mut_ptr(), dz);
+                    _mm256_storeu_pd(ar.as_mut_ptr(), r2);
+                    while m != 0 {
+                        let l = m.trailing_zeros() as usize;
+                        *s.dx.get_unchecked_mut(np) = ax[l];
+                        *s.dy.get_unchecked_mut(np) = ay[l];
+                        *s.dz.get_unchecked_mut(np) = az[l];
+                        *s.r.get_unchecked_mut(np) = ar[l];
+                        *s.j.get_unchecked_mut(np) = jb[l];
+                        *s.i.get_unchecked_mut(np) = i as i32;
+                        np += 1;
+                        m &= m - 1;
+                    }
+                }
+            }
+            k += 4;
+        }
+        np
+    }
+
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn geometry(
@@ -775,10 +883,7 @@ mod avx2 {
                 let r = _mm256_sqrt_pd(_mm256_loadu_pd(s.r.as_ptr().add(q)));
                 _mm256_storeu_pd(s.r.as_mut_ptr().add(q), r);
                 let (m7, p) = index(r, t);
-                let c3 = gather(m7, t.dens.add(3));
-                let c4 = gather(m7, t.dens.add(4));
-                let c5 = gather(m7, t.dens.add(5));
-                let c6 = gather(m7, t.dens.add(6));
+                let [c3, c4, c5, c6] = rows4(t.dens.add(3), offsets(m7));
                 let v = add(mul(add(mul(add(mul(c3, p), c4), p), c5), p), c6);
                 _mm256_storeu_pd(s.blk.as_mut_ptr().add(k), v);
             }
@@ -798,18 +903,12 @@ mod avx2 {
                 let q = q0 + k;
                 let r = _mm256_loadu_pd(s.r.as_ptr().add(q));
                 let (m7, p) = index(r, t);
-                let d0 = gather(m7, t.dens);
-                let d1 = gather(m7, t.dens.add(1));
-                let d2 = gather(m7, t.dens.add(2));
+                let o = offsets(m7);
+                let [d0, d1, d2, _] = rows4(t.dens, o);
                 let rho_p = add(mul(add(mul(d0, p), d1), p), d2);
-                let z0 = gather(m7, t.z2);
-                let z1 = gather(m7, t.z2.add(1));
-                let z2 = gather(m7, t.z2.add(2));
+                let [z0, z1, z2, z3] = rows4(t.z2, o);
+                let [z4, z5, z6, _] = rows4(t.z2.add(4), o);
                 let z2p = add(mul(add(mul(z0, p), z1), p), z2);
-                let z3 = gather(m7, t.z2.add(3));
-                let z4 = gather(m7, t.z2.add(4));
-                let z5 = gather(m7, t.z2.add(5));
-                let z6 = gather(m7, t.z2.add(6));
                 let z2v = add(mul(add(mul(add(mul(z3, p), z4), p), z5), p), z6);
                 let recip = _mm256_div_pd(one, r);
                 let phi = mul(z2v, recip);
