@@ -3,6 +3,7 @@
 //! 108 and 500 atoms and a 32,000-atom box. Prints min and median over the rounds; the min is
 //! the least disturbed figure on a shared machine. Times are the thread's CPU time.
 //!   cargo bench -p md-engine --bench eam_kernel [-- ROUNDS]
+//! MSCALE_MD_SIMD=PATH times one path, MSCALE_BENCH_CELLS=5 one box size (for profilers).
 use md_engine::kernel::{self, BoxMeta, BoxView, DeformMode};
 use md_engine::lattice::{self, LatticeKind};
 use md_engine::neighbor::NeighborList;
@@ -88,7 +89,12 @@ fn main() {
         Err(_) => SimdPath::supported(),
     };
     println!("paths: {paths:?}; load: {}", std::fs::read_to_string("/proc/loadavg").unwrap_or_default().trim());
-    for cells in [3usize, 5, 20] {
+    // MSCALE_BENCH_CELLS=5 (comma-separated) times those box sizes alone.
+    let sizes: Vec<usize> = match std::env::var("MSCALE_BENCH_CELLS") {
+        Ok(v) => v.split(',').map(|c| c.trim().parse().expect("MSCALE_BENCH_CELLS")).collect(),
+        Err(_) => vec![3, 5, 20],
+    };
+    for cells in sizes {
         let mut b = Box1::new(&pot, cells);
         let n = b.x.len();
         let evals = (1_000_000 / n).max(10);

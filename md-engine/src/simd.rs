@@ -532,7 +532,12 @@ mod avx512 {
                 if _mm256_cmpge_epu32_mask(jv, nmax) | _mm256_cmpge_epu32_mask(cv, cmax) != 0 {
                     super::bad_list(n, img.ncodes);
                 }
-                let [xj, yj, zj, _] = rows4(x4, &offsets(_mm256_slli_epi32::<2>(jv)));
+                // Row offsets straight from the list (extracting them from jv costs more).
+                let mut o = [0i32; 8];
+                for l in 0..rem {
+                    o[l] = (*js.get_unchecked(k + l) as i32) << 2;
+                }
+                let [xj, yj, zj, _] = rows4(x4, &o);
                 // code = ((a + h0) s1 + b + h1) s2 + c + h2, decoded exactly in f64 (< 2^16).
                 let c = _mm512_cvtepi32_pd(cv);
                 let a = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(c, half), inv12));
