@@ -2,15 +2,18 @@
 //! and the `reference` (serial) and `cpu` (rayon over boxes) back ends.
 //!
 //! Both back ends run the same per-box kernels ([`crate::kernel`]); they differ only in how
-//! boxes are spread over threads. Each box is integrated serially in a fixed order, so the
-//! result of a box is bitwise the same whatever the thread count, the batch order, or the
-//! back end (`reference` and `cpu` agree bit for bit).
+//! boxes are spread over threads and in the EAM kernel path (`reference`: scalar always;
+//! `cpu`: [`crate::simd::selected`], AVX-512 where the CPU has it, which gives the scalar's
+//! bits). Each box is integrated serially in a fixed order, so the result of a box is bitwise
+//! the same whatever the thread count, the batch order, the path, or the back end
+//! (`reference` and `cpu` agree bit for bit).
 
 use crate::error::MdError;
 use crate::kernel::{self, BoxMeta, BoxView, DeformMode, Deformation};
 use crate::lattice::{self, LatticeKind};
 use crate::neighbor::NeighborList;
 use crate::potential::Potential;
+use crate::simd::SimdPath;
 use crate::units::BOLTZ;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -358,15 +361,21 @@ struct Engine {
     index: BTreeMap<PointId, usize>,
 }
 
-/// How boxes are spread over threads.
+/// How boxes are spread over threads, and which EAM kernel path they take.
 trait Spread: Sync {
     fn map<J: Send, R: Send>(&self, jobs: Vec<J>, f: impl Fn(J) -> R + Sync + Send) -> Vec<R>;
+    /// The kernel path ([`crate::simd`]; every path gives the same bits).
+    fn simd(&self) -> Result<SimdPath, MdError>;
 }
 
 struct Serial;
 impl Spread for Serial {
     fn map<J: Send, R: Send>(&self, jobs: Vec<J>, f: impl Fn(J) -> R + Sync + Send) -> Vec<R> {
         jobs.into_iter().map(f).collect()
+    }
+    /// The oracle stays scalar.
+    fn simd(&self) -> Result<SimdPath, MdError> {
+        Ok(SimdPath::Scalar)
     }
 }
 
@@ -379,6 +388,10 @@ impl Spread for Rayon {
             Some(pool) => pool.install(run),
             None => run(),
         }
+    }
+    /// `MSCALE_MD_SIMD`, else `SimdPath::best()` (AVX-512 where the CPU has it).
+    fn simd(&self) -> Result<SimdPath, MdError> {
+        crate::simd::selected()
     }
 }
 
@@ -416,7 +429,8 @@ impl Engine {
         }
         let pot = &*self.pot;
         let masses = &self.masses;
-        let states = spread.map(specs.iter().collect(), |s| prepare_box(pot, masses, s));
+        let path = spread.simd()?;
+        let states = spread.map(specs.iter().collect(), |s| kernel::with_simd(path, || prepare_box(pot, masses, s)));
         let states = states.into_iter().collect::<Result<Vec<_>, _>>()?;
         self.install(states);
         Ok(())
@@ -436,6 +450,7 @@ impl Engine {
             validate_work(&self.pot, w, self.batch.meta[k].mode)?;
             which.push(k);
         }
+        let path = spread.simd()?;
         let pot = &*self.pot;
         let masses = &self.masses;
         let mut slots: Vec<Option<BoxView>> = self.batch.views().into_iter().map(Some).collect();
@@ -445,7 +460,8 @@ impl Engine {
             jobs.push((view, w, o));
         }
         // Every box runs; the first diverged box (in work order) is the call's error.
-        let done = spread.map(jobs, |(mut view, w, o)| advance_box(pot, masses, &mut view, w).map(|r| *o = r));
+        let done =
+            spread.map(jobs, |(mut view, w, o)| kernel::with_simd(path, || advance_box(pot, masses, &mut view, w).map(|r| *o = r)));
         done.into_iter().collect()
     }
 

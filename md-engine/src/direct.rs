@@ -95,6 +95,8 @@ pub struct Bar {
     slab_a: f64,
     bar_len_ref: f64,
     time_ps: f64,
+    /// The EAM kernel path (`MSCALE_MD_SIMD`, else `SimdPath::best()`; the same bits on all).
+    simd: crate::simd::SimdPath,
 }
 
 /// x after the initial strain: x' = integral_0^x (1 + e(s)) ds.
@@ -177,13 +179,15 @@ impl Bar {
             slab_a: s.slab_a,
             bar_len_ref,
             time_ps: 0.0,
+            simd: crate::simd::selected()?,
         };
         let pot = bar.pot.clone();
         let (mut rho, mut fp) = (std::mem::take(&mut bar.rho), std::mem::take(&mut bar.fp));
+        let simd = bar.simd;
         {
             let mut b = bar.view();
             kernel::rebuild(&pot, &mut b);
-            kernel::compute_forces(&pot, &mut b, &mut rho, &mut fp);
+            kernel::with_simd(simd, || kernel::compute_forces(&pot, &mut b, &mut rho, &mut fp));
         }
         bar.rho = rho;
         bar.fp = fp;
@@ -265,7 +269,7 @@ impl Bar {
             if kernel::needs_rebuild(&pot, &b) {
                 kernel::rebuild(&pot, &mut b);
             }
-            kernel::compute_forces(&pot, &mut b, &mut rho, &mut fp);
+            kernel::with_simd(self.simd, || kernel::compute_forces(&pot, &mut b, &mut rho, &mut fp));
             for i in 0..b.x.len() {
                 if frozen[i] {
                     continue;

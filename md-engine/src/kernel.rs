@@ -5,6 +5,7 @@
 
 use crate::neighbor::{self, NeighborList};
 use crate::potential::Potential;
+use crate::simd::SimdPath;
 use crate::units::{BOLTZ, EV_PER_A3_TO_GPA, FTM2V, MVV2E};
 use serde::{Deserialize, Serialize};
 
@@ -197,6 +198,8 @@ struct ForceScratch {
     /// Pairs within the cut-off, row by row (`pair_end[i]` closes row i).
     pairs: Vec<Pair>,
     pair_end: Vec<u32>,
+    /// The vector paths' buffers ([`crate::simd`]).
+    simd: crate::simd::Scratch,
 }
 
 /// A pair within the cut-off found by the density pass.
@@ -209,6 +212,31 @@ struct Pair {
 
 thread_local! {
     static SCRATCH: std::cell::RefCell<ForceScratch> = std::cell::RefCell::new(ForceScratch::default());
+    /// The EAM path [`compute_forces`] takes on this thread ([`with_simd`]); scalar unless set.
+    static PATH: std::cell::Cell<SimdPath> = const { std::cell::Cell::new(SimdPath::Scalar) };
+}
+
+/// Run `f` with [`compute_forces`] on `path` on this thread (restored after, also on panic).
+/// Every path gives bitwise the same results ([`crate::simd`]); only the speed differs. Code
+/// outside such a call (the `reference` back end, tests) takes the scalar path.
+///
+/// # Panics
+/// If this CPU does not run `path` ([`SimdPath::is_supported`]).
+pub fn with_simd<R>(path: SimdPath, f: impl FnOnce() -> R) -> R {
+    assert!(path.is_supported(), "simd path {path} is not supported by this CPU");
+    struct Restore(SimdPath);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            PATH.with(|p| p.set(self.0));
+        }
+    }
+    let _restore = Restore(PATH.with(|p| p.replace(path)));
+    f()
+}
+
+/// The path [`compute_forces`] takes on this thread now.
+pub fn simd_path() -> SimdPath {
+    PATH.with(|p| p.get())
 }
 
 /// Make sure the box has a neighbour list (lists of idle boxes are released; rebuilding
@@ -269,7 +297,10 @@ pub fn compute_forces(pot: &Potential, b: &mut BoxView, rho: &mut Vec<f64>, fp: 
             *f = [0.0; 3];
         }
         let (pe, w) = match pot {
-            Potential::Eam(t) if t.masses.len() == 1 => eam_forces::<true>(t, b, s, rho, fp),
+            Potential::Eam(t) if t.masses.len() == 1 => match simd_path() {
+                SimdPath::Scalar => eam_forces::<true>(t, b, s, rho, fp),
+                path => crate::simd::eam_forces_one(path, t, b.types, b.list, &s.xu, &s.shift, l, b.f, rho, fp, &mut s.simd),
+            },
             Potential::Eam(t) => eam_forces::<false>(t, b, s, rho, fp),
             Potential::LjCut(lj) => lj_forces(lj, b, s),
         };

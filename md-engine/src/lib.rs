@@ -24,6 +24,7 @@ pub mod kernel;
 pub mod lattice;
 pub mod neighbor;
 pub mod potential;
+pub mod simd;
 pub mod units;
 
 pub use backend::{

@@ -23,7 +23,7 @@ pub mod wire;
 
 #[cfg(feature = "cuda")]
 pub use md_engine::cuda;
-pub use md_engine::{backend, data, direct, error, kernel, lattice, neighbor, potential, units};
+pub use md_engine::{backend, data, direct, error, kernel, lattice, neighbor, potential, simd, units};
 
 pub use md_engine::{
     BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, DeformMode, Diagnostics, EamFormat, InitialAtoms, LatticeKind, LjCut, MdBackend,

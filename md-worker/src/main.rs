@@ -348,7 +348,7 @@ fn bench(
     let atom_steps = (natoms as u64 * steps) as f64;
     println!(
         "{}",
-        json!({"backend": backend, "threads": if backend == "reference" { 1 } else { threads.unwrap_or_else(rayon::current_num_threads) }, "atoms": natoms, "boxes": boxes,
+        json!({"backend": backend, "simd": match backend { "cpu" => md_worker::simd::selected()?.name(), "reference" => "scalar", _ => "none" }, "threads": if backend == "reference" { 1 } else { threads.unwrap_or_else(rayon::current_num_threads) }, "atoms": natoms, "boxes": boxes,
                "steps": steps, "repetitions": times.len(), "median_s": med,
                "atom_steps_per_s": atom_steps / med, "ns_per_atom_step": med / atom_steps * 1e9})
     );

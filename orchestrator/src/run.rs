@@ -672,6 +672,9 @@ fn summary<const D: usize>(
             "version": env!("CARGO_PKG_VERSION"),
             "commit": option_env!("MSCALE_COMMIT").unwrap_or("unknown"),
             "features": crate::FEATURES,
+            // The EAM kernel path of this process's cpu back end (MSCALE_MD_SIMD or the CPU's
+            // widest; every path gives the same bits): scalar, avx2 or avx512.
+            "md_simd": md_worker::simd::selected_name(),
             "backend": backend,
             "precision": precision,
             "inputs": inputs,
