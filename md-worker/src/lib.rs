@@ -10,6 +10,7 @@
 
 pub mod device;
 pub mod join;
+pub mod metrics;
 #[cfg(feature = "mpi")]
 pub mod mpi;
 pub mod null;
