@@ -338,3 +338,32 @@ fn http_off_loopback_needs_tls() {
     assert_eq!(o.status.code(), Some(1), "{}", mscale_testkit::text(&o));
     assert!(String::from_utf8_lossy(&o.stderr).contains("--http on 0.0.0.0:0 without TLS"), "{}", mscale_testkit::text(&o));
 }
+
+#[test]
+fn with_tls_the_http_port_serves_https_with_the_same_certificate() {
+    let (tmp, token_file) = mscale_testkit::token_dir(TOKEN);
+    let (ca, cert, key) = mscale_testkit::tls_certificates(tmp.path());
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_mscale"));
+    cmd.args(["serve", "--state", tmp.path().join("s").to_str().unwrap(), "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"]).args([
+        "--token-file",
+        token_file.to_str().unwrap(),
+        "--tls-cert",
+        cert.to_str().unwrap(),
+        "--tls-key",
+        key.to_str().unwrap(),
+    ]);
+    let mut server = Announcing::start(&mut cmd, &tmp.path().join("serve.log"));
+    server.line("mscale serve: listening on ");
+    let url = server.line("mscale serve: dashboard and metrics on ");
+    assert!(url.starts_with("https://127.0.0.1:"), "{url}");
+    let curl =
+        |args: &[&str]| Command::new("curl").args(["-sS", "--max-time", "20"]).args(args).output().expect("curl is needed for this test");
+    let o = curl(&["--cacert", ca.to_str().unwrap(), "-H", &format!("Authorization: Bearer {TOKEN}"), &format!("{url}/metrics")]);
+    assert!(o.status.success(), "{}", mscale_testkit::text(&o));
+    let body = String::from_utf8_lossy(&o.stdout);
+    assert!(body.contains("mscale_jobs{state=\"queued\"} 0"), "{body}");
+    // Plain HTTP to it, or TLS trusting no authority, is not served.
+    let plain = http_get(url.trim_start_matches("https://"), "/metrics", &[("authorization", &format!("Bearer {TOKEN}"))], LIMIT);
+    assert!(plain.map_or(true, |r| r.status != 200), "plain HTTP was served on the TLS port");
+    assert!(!curl(&[&format!("{url}/metrics")]).status.success(), "curl trusted the server without its authority");
+}

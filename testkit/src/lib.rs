@@ -325,3 +325,33 @@ pub fn prometheus_samples(text: &str) -> Vec<(String, std::collections::BTreeMap
     }
     out
 }
+
+/// A certificate authority `ca.pem` and a server certificate `server.pem` (key `server.key`)
+/// for localhost and 127.0.0.1 in `dir`, made with openssl; returns the three paths.
+pub fn tls_certificates(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
+    let run = |args: &[&str]| {
+        let o = Command::new("openssl").args(args).current_dir(dir).output().expect("openssl is needed for the TLS tests");
+        assert!(o.status.success(), "openssl {args:?}: {}", text(&o));
+    };
+    let ca = [
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=mscale test CA",
+    ];
+    run(&ca);
+    run(&["req", "-newkey", "rsa:2048", "-nodes", "-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=localhost"]);
+    std::fs::write(dir.join("san.ext"), "subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n").expect("write san.ext");
+    let sign = ["x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out", "server.pem"];
+    run(&[&sign[..], &["-days", "2", "-extfile", "san.ext"]].concat());
+    (dir.join("ca.pem"), dir.join("server.pem"), dir.join("server.key"))
+}

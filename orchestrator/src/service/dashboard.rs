@@ -149,25 +149,41 @@ pub(crate) fn job_page(core: &Core, id: &str) -> Result<String, JobError> {
     let j = core.get(id)?;
     let p = percent(&j);
     let live = !j.state.is_final();
+    // The stored events: the log (newest first) and the last drift, as the script shows them.
+    let events: Vec<pb::JobEvent> = lock(&core.store).events_after(id, 0, 100_000)?.iter().map(super::convert::event_of).collect();
+    let drift = events.iter().rev().find(|e| e.energy_drift != 0.0).map_or(String::new(), |e| format!("{:.3e}", e.energy_drift));
+    let mut log = String::new();
+    // A live page's script replays every event into the log itself.
+    for e in events.iter().rev().filter(|e| !live && !e.message.is_empty()).take(200) {
+        let ev = event_json(e);
+        let _ = write!(
+            log,
+            "<div>#{} {} {}: {}</div>",
+            e.sequence,
+            ev["kind"].as_str().unwrap_or(""),
+            ev["state"].as_str().unwrap_or(""),
+            esc(&e.message)
+        );
+    }
     let body = format!(
         "<p><a href=\"/\">all jobs</a></p><h1>job {eid}</h1>\
          <div id=\"job\" data-id=\"{eid}\" data-state=\"{st}\" data-seq=\"0\" data-received=\"0\">\
          <dl><dt>scene</dt><dd>{scene}</dd><dt>state</dt><dd id=\"state\" class=\"state {st}\">{st}</dd>\
          <dt>progress</dt><dd><progress id=\"bar\" max=\"100\" value=\"{p:.1}\"></progress> <span id=\"pct\">{p:.1} %</span></dd>\
-         <dt>step</dt><dd id=\"step\">{step} / {steps}</dd><dt>simulated time</dt><dd id=\"simtime\">{sim:e} s</dd>\
-         <dt>ETA</dt><dd id=\"eta\">{eta}</dd><dt>energy drift |E-E0|/scale</dt><dd id=\"drift\"></dd>\
+         <dt>step</dt><dd id=\"step\">{step} / {steps}</dd><dt>simulated time</dt><dd id=\"simtime\">{sim:.4e} s</dd>\
+         <dt>ETA</dt><dd id=\"eta\">{eta}</dd><dt>energy drift |E-E0|/scale</dt><dd id=\"drift\">{drift}</dd>\
          <dt>state digest</dt><dd id=\"digest\">{digest}</dd><dt>note</dt><dd id=\"note\">{err}</dd></dl>\
          <h2>workers</h2><table><tr><th>worker</th><th>address</th><th>state</th><th>boxes</th><th>measured atom-steps/s</th>\
          <th>advertised atom-steps/s</th></tr><tbody id=\"workers\"><tr><td colspan=\"6\">MD in the orchestrator's process, or none yet</td></tr></tbody></table>\
          <h2>stress profile (newest snapshot)</h2><img id=\"plot\" alt=\"stress profile\" width=\"640\" height=\"320\" src=\"/jobs/{eid}/stress.svg\">\
-         <h2>events</h2><div id=\"log\"></div><h2>results</h2><div id=\"results\">{results}</div></div>{script}",
+         <h2>events</h2><div id=\"log\">{log}</div><h2>results</h2><div id=\"results\">{results}</div></div>{script}",
         eid = esc(&j.id),
         st = j.state.as_str(),
         scene = esc(&j.scene),
         step = j.step,
         steps = j.steps,
         sim = j.sim_time,
-        eta = if live { "unknown" } else { "" },
+        eta = if live { "unknown" } else { "none (ended)" },
         digest = esc(&j.state_digest),
         err = esc(&j.error),
         results = if live { "(when the job has ended)".to_string() } else { results(core, id) },
@@ -207,7 +223,7 @@ fn newest_snapshot(core: &Core, id: &str) -> Option<(u64, f64, String)> {
 /// `GET /jobs/ID/stress.svg`: sigma_xx (GPa) against x (nm) of the newest snapshot.
 pub(crate) fn stress_svg(core: &Core, id: &str) -> Result<String, JobError> {
     core.get(id)?;
-    let (w, h, (l, r, t, b)) = (640.0, 320.0, (70.0, 15.0, 30.0, 45.0));
+    let (w, h, (l, r, t, b)) = (640.0, 320.0, (70.0, 35.0, 30.0, 45.0));
     let mut svg = format!(
         "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" viewBox=\"0 0 {w} {h}\" font-family=\"sans-serif\" font-size=\"12\"><rect width=\"{w}\" height=\"{h}\" fill=\"white\"/>"
     );
