@@ -1,10 +1,13 @@
 //! `MSCALE_REQUIRE_MPI=1` (set by CI, which provides MPI): the MPI tests of tests/mpi.rs run
-//! and fail when MPI is absent, instead of being ignored.
+//! and fail when MPI is absent, instead of being ignored. `MSCALE_REQUIRE_BROWSER=1` (CI,
+//! after `bash deploy/setup.sh browser`): likewise the headless-Chromium test of the dashboard.
 
 fn main() {
-    println!("cargo::rustc-check-cfg=cfg(require_mpi)");
-    println!("cargo::rerun-if-env-changed=MSCALE_REQUIRE_MPI");
-    if std::env::var("MSCALE_REQUIRE_MPI").is_ok_and(|v| v == "1") {
-        println!("cargo::rustc-cfg=require_mpi");
+    for (var, cfg) in [("MSCALE_REQUIRE_MPI", "require_mpi"), ("MSCALE_REQUIRE_BROWSER", "require_browser")] {
+        println!("cargo::rustc-check-cfg=cfg({cfg})");
+        println!("cargo::rerun-if-env-changed={var}");
+        if std::env::var(var).is_ok_and(|v| v == "1") {
+            println!("cargo::rustc-cfg={cfg}");
+        }
     }
 }

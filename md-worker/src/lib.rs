@@ -11,6 +11,7 @@
 pub mod device;
 pub mod ids;
 pub mod join;
+pub mod metrics;
 #[cfg(feature = "mpi")]
 pub mod mpi;
 pub mod null;

@@ -34,6 +34,11 @@ enum Cmd {
         /// Worker threads for the cpu back end (default: all cores).
         #[arg(long)]
         threads: Option<usize>,
+        /// Serve Prometheus metrics (GET /metrics, text format) on this address; prints
+        /// `metrics on ADDR` after the `listening on` line. Unauthenticated: bind it to a
+        /// loopback or cluster-internal address.
+        #[arg(long, value_name = "ADDR")]
+        metrics: Option<String>,
         #[command(flatten)]
         join: md_worker::join::JoinArgs,
     },
@@ -131,7 +136,7 @@ enum Cmd {
 fn main() {
     let cli = Cli::parse();
     let res = match cli.cmd {
-        Cmd::Serve { listen, device, threads, join } => serve(&listen, &device, threads, &join),
+        Cmd::Serve { listen, device, threads, metrics, join } => serve(&listen, &device, threads, metrics.as_deref(), &join),
         Cmd::Eval { potential, data, forces } => eval(&potential, &data, forces),
         Cmd::Run { potential, data, steps, dt, velocity_gradient, remap, thermo, write_data, dump } => {
             run(&potential, &data, steps, dt, &velocity_gradient, &remap, thermo, write_data, dump)
@@ -364,7 +369,7 @@ fn kind_atoms(k: LatticeKind) -> usize {
 }
 
 /// `md-worker serve`.
-fn serve(listen: &str, device: &str, threads: Option<usize>, join: &md_worker::join::JoinArgs) -> Result<()> {
+fn serve(listen: &str, device: &str, threads: Option<usize>, metrics: Option<&str>, join: &md_worker::join::JoinArgs) -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
         .with_writer(std::io::stderr)
@@ -416,6 +421,14 @@ fn serve(listen: &str, device: &str, threads: Option<usize>, join: &md_worker::j
         let addr = listener.local_addr()?;
         println!("listening on {addr}");
         std::io::stdout().flush()?;
+        let counters = Arc::new(md_worker::metrics::WorkerMetrics::new());
+        if let Some(m) = metrics {
+            let l = tokio::net::TcpListener::bind(m).await.map_err(|e| bad(format!("--metrics {m}: {e}")))?;
+            // The reader of the first line may have gone: a closed stdout is no error here.
+            let _ = writeln!(std::io::stdout(), "metrics on {}", l.local_addr()?);
+            let _ = std::io::stdout().flush();
+            tokio::spawn(md_worker::metrics::serve_http(l, md_worker::metrics::router(counters.clone()), None, std::future::pending()));
+        }
         // With --orchestrator: register and heartbeat (src/join.rs); a refusal ends the worker.
         let joined = md_worker::join::Join::start(join, addr, kind).map_err(|e| bad(format!("{e:#}")))?;
         let shutdown = async {
@@ -424,7 +437,9 @@ fn serve(listen: &str, device: &str, threads: Option<usize>, join: &md_worker::j
                 _ = joined.failed() => {}
             }
         };
-        md_worker::server::serve(listener, opts, shutdown).await.map_err(|e| anyhow::anyhow!("serving on {addr}: {e}"))?;
+        md_worker::server::serve_with_metrics(listener, opts, counters, shutdown)
+            .await
+            .map_err(|e| anyhow::anyhow!("serving on {addr}: {e}"))?;
         joined.outcome()
     })
 }

@@ -7,6 +7,7 @@
 
 use crate::backend::MdBackend;
 use crate::error::MdError;
+use crate::metrics::{Timed, WorkerMetrics};
 use crate::pool::PotentialSource;
 use crate::potential::Potential;
 use crate::wire;
@@ -37,6 +38,9 @@ pub struct WorkerService {
     potentials: Shared<HashMap<String, Arc<Potential>>>,
     sessions: Shared<HashMap<u64, Shared<Box<dyn MdBackend>>>>,
     next_session: AtomicU64,
+    /// What it counts (`--metrics`), and the atoms of every open box by (session, point).
+    metrics: Arc<WorkerMetrics>,
+    atoms: Shared<HashMap<(u64, crate::PointId), u64>>,
     /// Potential files as received, by SHA-256: the `mpi` back end ships them to its ranks.
     #[cfg(feature = "mpi")]
     sources: Shared<HashMap<String, PotentialSource>>,
@@ -48,14 +52,31 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 
 impl WorkerService {
     pub fn new(opts: ServeOptions) -> Self {
+        Self::with_metrics(opts, Arc::default())
+    }
+
+    /// A service that counts into `metrics`.
+    pub fn with_metrics(opts: ServeOptions, metrics: Arc<WorkerMetrics>) -> Self {
         WorkerService {
             opts,
             potentials: Default::default(),
             sessions: Default::default(),
             next_session: AtomicU64::new(1),
+            metrics,
+            atoms: Default::default(),
             #[cfg(feature = "mpi")]
             sources: Default::default(),
         }
+    }
+
+    /// Records the atoms of boxes opened in `session`.
+    fn opened(&self, session: u64, boxes: &[(crate::PointId, u64)]) {
+        let mut atoms = lock(&self.atoms);
+        for &(id, n) in boxes {
+            atoms.insert((session, id), n);
+        }
+        self.metrics.boxes.set(atoms.len() as i64);
+        self.metrics.atoms.set(atoms.values().sum::<u64>() as i64);
     }
 
     fn session(&self, id: u64) -> Result<Shared<Box<dyn MdBackend>>, Status> {
@@ -134,12 +155,14 @@ impl MdWorker for WorkerService {
         let specs = req.boxes.iter().map(wire::spec_from_pb).collect::<Result<Vec<_>, _>>().map_err(wire::status)?;
         if req.session != 0 {
             let backend = self.session(req.session)?;
+            let opened: Vec<_> = specs.iter().map(|s| (s.id, crate::metrics::spec_atoms(s))).collect();
             let name = blocking(move || {
                 let mut b = lock(&backend);
                 b.open(&specs)?;
                 Ok(b.name().to_string())
             })
             .await?;
+            self.opened(req.session, &opened);
             return Ok(Response::new(pb::OpenResponse { session: req.session, backend: name, precision: "double".into() }));
         }
         if crate::join::draining() {
@@ -147,6 +170,7 @@ impl MdWorker for WorkerService {
         }
         let name = if req.backend.is_empty() { self.opts.backend.clone() } else { req.backend.clone() };
         let threads = self.opts.threads.clone();
+        let opened: Vec<_> = specs.iter().map(|s| (s.id, crate::metrics::spec_atoms(s))).collect();
         #[cfg(feature = "mpi")]
         let source = lock(&self.sources).get(&pref.sha256).cloned();
         let backend = blocking(move || {
@@ -161,6 +185,8 @@ impl MdWorker for WorkerService {
         let backend_name = backend.name().to_string();
         let session = self.next_session.fetch_add(1, Ordering::Relaxed);
         lock(&self.sessions).insert(session, Arc::new(Mutex::new(backend)));
+        self.opened(session, &opened);
+        self.metrics.sessions.set(lock(&self.sessions).len() as i64);
         tracing::info!(session, boxes = req.boxes.len(), backend = %backend_name, "opened boxes");
         Ok(Response::new(pb::OpenResponse { session, backend: backend_name, precision: "double".into() }))
     }
@@ -170,6 +196,7 @@ impl MdWorker for WorkerService {
     async fn step(&self, req: Request<tonic::Streaming<pb::StepBatch>>) -> Result<Response<Self::StepStream>, Status> {
         let mut inbound = req.into_inner();
         let sessions = self.sessions.clone();
+        let (metrics, atoms) = (self.metrics.clone(), self.atoms.clone());
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tokio::spawn(async move {
             while let Some(batch) = inbound.next().await {
@@ -180,6 +207,10 @@ impl MdWorker for WorkerService {
                         .cloned()
                         .ok_or_else(|| Status::not_found(format!("no session {}", batch.session)))?;
                     let work = batch.work.iter().map(wire::work_from_pb).collect::<Result<Vec<_>, _>>().map_err(wire::status)?;
+                    let sizes: Vec<(u64, u64)> = {
+                        let atoms = lock(&atoms);
+                        work.iter().map(|w| (w.steps, atoms.get(&(batch.session, w.id)).copied().unwrap_or(0))).collect()
+                    };
                     let (results, secs) = blocking(move || {
                         let t = std::time::Instant::now();
                         let mut out = vec![crate::BoxResult::default(); work.len()];
@@ -187,6 +218,7 @@ impl MdWorker for WorkerService {
                         Ok((out, t.elapsed().as_secs_f64()))
                     })
                     .await?;
+                    metrics.batch(sizes, secs);
                     Ok(pb::StepResults {
                         step: batch.step,
                         results: results.iter().map(wire::result_to_pb).collect(),
@@ -206,11 +238,14 @@ impl MdWorker for WorkerService {
     async fn snapshot(&self, req: Request<pb::SnapshotRequest>) -> Result<Response<pb::SnapshotResponse>, Status> {
         let req = req.into_inner();
         let backend = self.session(req.session)?;
-        let states = blocking(move || {
+        let start = std::time::Instant::now();
+        let states: Vec<Vec<u8>> = blocking(move || {
             let states = lock(&backend).snapshot(&req.point_ids)?;
             states.iter().map(|s| serde_json::to_vec(s).map_err(|e| MdError::invalid("box state", e.to_string()))).collect()
         })
         .await?;
+        self.metrics.snapshot_seconds.observe(start.elapsed().as_secs_f64());
+        self.metrics.snapshot_bytes.observe(states.iter().map(Vec::len).sum::<usize>() as f64);
         Ok(Response::new(pb::SnapshotResponse { states }))
     }
 
@@ -223,12 +258,18 @@ impl MdWorker for WorkerService {
             .map(|b| serde_json::from_slice(b).map_err(|e| Status::invalid_argument(format!("box state: {e}"))))
             .collect::<Result<Vec<_>, _>>()?;
         tracing::info!(session = req.session, boxes = states.len(), "restored boxes");
+        self.metrics.restores.inc();
+        self.metrics.restored_boxes.inc_by(states.len() as u64);
         blocking(move || lock(&backend).restore(states)).await?;
         Ok(Response::new(pb::RestoreResponse {}))
     }
 
     async fn close(&self, req: Request<pb::CloseRequest>) -> Result<Response<pb::CloseResponse>, Status> {
-        lock(&self.sessions).remove(&req.get_ref().session);
+        let session = req.get_ref().session;
+        lock(&self.sessions).remove(&session);
+        lock(&self.atoms).retain(|k, _| k.0 != session);
+        self.opened(session, &[]);
+        self.metrics.sessions.set(lock(&self.sessions).len() as i64);
         Ok(Response::new(pb::CloseResponse {}))
     }
 }
@@ -239,9 +280,21 @@ pub async fn serve(
     opts: ServeOptions,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
-    let service = MdWorkerServer::new(WorkerService::new(opts))
+    serve_with_metrics(listener, opts, Arc::default(), shutdown).await
+}
+
+/// [`serve`], counting into `metrics` (which `md-worker serve --metrics` exposes).
+pub async fn serve_with_metrics(
+    listener: tokio::net::TcpListener,
+    opts: ServeOptions,
+    metrics: Arc<WorkerMetrics>,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    let rpc = metrics.rpc.clone();
+    let service = MdWorkerServer::new(WorkerService::with_metrics(opts, metrics))
         .max_decoding_message_size(wire::MAX_MESSAGE)
         .max_encoding_message_size(wire::MAX_MESSAGE);
+    let service = Timed::new(service, rpc);
     let settings = mscale_proto::server::Settings {
         timeout: None,
         stream_window: Some(wire::HTTP2_STREAM_WINDOW),

@@ -371,8 +371,12 @@ pub fn write(run_dir: &Path, ck: &Checkpoint) -> Result<PathBuf> {
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let path = dir.join(file_name(ck.step));
     let tmp = crate::atomic::temp_path(&path);
+    let start = std::time::Instant::now();
     // The rename reaches the disk (the directory is synced) before older checkpoints are removed.
-    crate::atomic::write(&path, &encode(ck)?)?;
+    let bytes = encode(ck)?;
+    crate::atomic::write(&path, &bytes)?;
+    let written = Written { step: ck.step, bytes: bytes.len() as u64, seconds: start.elapsed().as_secs_f64() };
+    WRITTEN.lock().unwrap_or_else(|p| p.into_inner()).insert(run_dir.to_path_buf(), written);
     // Temporary files of writers that died (a killed orchestrator) are removed too.
     for e in std::fs::read_dir(&dir).with_context(|| format!("cannot list {}", dir.display()))?.flatten() {
         let name = e.file_name().to_string_lossy().into_owned();
@@ -386,6 +390,22 @@ pub fn write(run_dir: &Path, ck: &Checkpoint) -> Result<PathBuf> {
         }
     }
     Ok(path)
+}
+
+/// The newest checkpoint this process wrote into a run directory: its step, size and the
+/// time to encode and durably write it (the job service's metrics read it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Written {
+    pub step: u64,
+    pub bytes: u64,
+    pub seconds: f64,
+}
+
+static WRITTEN: std::sync::Mutex<std::collections::BTreeMap<PathBuf, Written>> = std::sync::Mutex::new(std::collections::BTreeMap::new());
+
+/// What [`write`] last wrote into `run_dir` in this process, if anything.
+pub fn last_written(run_dir: &Path) -> Option<Written> {
+    WRITTEN.lock().unwrap_or_else(|p| p.into_inner()).get(run_dir).copied()
 }
 
 /// Reads the named MD boxes from the checkpoint file `path` when called (a lost worker's boxes,

@@ -73,6 +73,11 @@ enum Command {
         /// replayed on the job's other workers.
         #[arg(long, value_name = "auto|SECONDS", default_value = "auto", value_parser = md_worker::recovery::StepDeadline::parse)]
         step_deadline: md_worker::recovery::StepDeadline,
+        /// Serve the dashboard and Prometheus `/metrics` over HTTP on this address (HTTPS with
+        /// --tls-cert; the same token). Prints `mscale serve: dashboard and metrics on URL`
+        /// after the `listening on` line.
+        #[arg(long, value_name = "ADDR")]
+        http: Option<String>,
     },
     /// List the workers registered with a running `mscale serve`.
     Workers {
@@ -225,9 +230,20 @@ fn main() -> ExitCode {
 
 fn dispatch(cli: Cli) -> i32 {
     match cli.command {
-        Command::Serve { state, listen, token_file, checkpoint_every, tls_cert, tls_key, local_workers, worker_timeout, step_deadline } => {
+        Command::Serve {
+            state,
+            listen,
+            token_file,
+            checkpoint_every,
+            tls_cert,
+            tls_key,
+            local_workers,
+            worker_timeout,
+            step_deadline,
+            http,
+        } => {
             let pool = orchestrator::service::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline };
-            report(orchestrator::service::serve_command(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key), pool))
+            report(orchestrator::service::serve_command(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key), pool, http))
         }
         Command::Workers { conn } => {
             report(conn.ca().and_then(|_| orchestrator::client::workers(&conn.server, conn.token_file.as_deref())))

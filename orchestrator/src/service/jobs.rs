@@ -153,6 +153,7 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
                 stop.store(false, Ordering::SeqCst);
                 kind = assigned.first().map(WorkerRecord::kind);
                 core.note(id, &format!("a worker was declared lost; checkpointed after step {step} and continues on the live workers"));
+                core.metrics.recovery("move");
                 continue;
             }
             Attempt::Done(Outcome::Failed(_, why)) if !assigned.is_empty() => why.clone(),
@@ -201,6 +202,7 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
         let from = from.map_or("the start (no checkpoint yet)".to_string(), |s| format!("its checkpoint of step {s}"));
         let onto = survivors.iter().map(|w| w.id.as_str()).collect::<Vec<_>>().join(", ");
         core.note(id, &format!("worker {names} was lost at step {at}; rolled back to {from} onto {onto}"));
+        core.metrics.recovery("rollback");
         tracing::warn!(
             "job {id}: worker {names} was lost at step {at} ({why}); its boxes could not be replayed alone, so the whole job is rolling back to {from} onto {onto}"
         );
@@ -272,10 +274,13 @@ fn attempt(
             }
         }
         core4.note(&id4, &r.to_string());
+        core4.metrics.recovery("replay");
     }));
     // The run writes a checkpoint after these steps (before it reports their progress).
     let every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { loaded.scene.output.checkpoint_every_steps };
     let (core2, id2, assigned2, last_step) = (core.clone(), id.clone(), assigned.to_vec(), last_step.clone());
+    let run_dir2 = run_dir.to_path_buf();
+    core.metrics.new_attempt(&id);
     let last = Mutex::new(Instant::now() - Duration::from_secs(1));
     opts.progress = Some(Arc::new(move |p: &Progress| {
         last_step.store(p.step, Ordering::SeqCst);
@@ -290,6 +295,22 @@ fn attempt(
         *last = now;
         let rate = p.session_steps as f64 / p.elapsed_s.max(1e-9);
         let workers = if assigned2.is_empty() { Vec::new() } else { job_workers(&core2, &assigned2, lock(&md_slot).as_ref()) };
+        let load = lock(&md_slot).as_ref().and_then(|m| m.try_lock().ok().map(|m| m.pool.endpoint_load())).unwrap_or_default();
+        core2.metrics.sample(&super::metrics::Sample {
+            job: &id2,
+            step: p.step,
+            steps: p.steps,
+            steps_per_second: rate,
+            session_seconds: p.elapsed_s,
+            load: &load,
+            workers: &workers,
+        });
+        if let Some(w) = crate::checkpoint::last_written(&run_dir2).filter(|w| checkpoint && w.step == p.step) {
+            core2.metrics.checkpoint(&id2, w.bytes, w.seconds);
+        }
+        if p.done {
+            core2.metrics.job_over(&id2);
+        }
         let detail = pb::JobEvent {
             end_time_s: p.end_time,
             eta_s: if p.session_steps > 0 { (p.steps - p.step.min(p.steps)) as f64 / rate } else { -1.0 },

@@ -43,11 +43,14 @@
 pub mod api;
 mod auth;
 mod convert;
+mod dashboard;
 mod error;
 mod events;
 mod fetch;
+mod http;
 mod inputs;
 mod jobs;
+mod metrics;
 mod shared;
 pub mod store;
 pub mod workers;
@@ -89,6 +92,8 @@ pub struct ServeOptions {
     pub worker_timeout: Duration,
     /// Bound on each call to a worker.
     pub step_deadline: md_worker::recovery::StepDeadline,
+    /// Where to serve the dashboard and `/metrics` (`--http`), over TLS when `tls` is set.
+    pub http: Option<String>,
 }
 
 /// The worker pool options of `mscale serve`.
@@ -111,6 +116,7 @@ pub fn serve_command(
     checkpoint_every: u64,
     tls: Option<(PathBuf, PathBuf)>,
     pool: PoolOptions,
+    http: Option<String>,
 ) -> Result<i32> {
     anyhow::ensure!(
         pool.worker_timeout_s.is_finite() && pool.worker_timeout_s > 0.0,
@@ -141,6 +147,7 @@ pub fn serve_command(
         local_ca,
         worker_timeout: Duration::from_secs_f64(pool.worker_timeout_s),
         step_deadline: pool.step_deadline,
+        http,
     })?;
     Ok(crate::exit::OK)
 }
@@ -150,6 +157,15 @@ pub fn serve_command(
 pub fn serve(opts: ServeOptions) -> Result<()> {
     let addr: SocketAddr =
         opts.listen.parse().with_context(|| format!("--listen {:?} is not an address like 127.0.0.1:50100", opts.listen))?;
+    let http_addr: Option<SocketAddr> = match &opts.http {
+        Some(h) => Some(h.parse().with_context(|| format!("--http {h:?} is not an address like 127.0.0.1:8080"))?),
+        None => None,
+    };
+    if let Some(h) = http_addr.filter(|h| !h.ip().is_loopback() && opts.tls.is_none()) {
+        bail!(
+            "refusing to serve --http on {h} without TLS: the dashboard's token must not cross a network in clear text; pass --tls-cert and --tls-key (the HTTP port then serves HTTPS with them), or use a loopback address"
+        );
+    }
     if !addr.ip().is_loopback() && opts.tls.is_none() {
         bail!(
             "refusing to listen on {addr} without TLS: tokens must not cross a network in clear text; pass --tls-cert and --tls-key, or listen on a loopback address (127.0.0.1 or [::1])"
@@ -164,6 +180,15 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         Core::new(store, registry, opts.state_dir.clone(), opts.token, opts.checkpoint_every, opts.local_workers, opts.step_deadline);
     let listener = std::net::TcpListener::bind(addr).with_context(|| format!("cannot listen on {addr}"))?;
     listener.set_nonblocking(true)?;
+    let http_listener = match http_addr {
+        Some(h) => {
+            let l = std::net::TcpListener::bind(h).with_context(|| format!("cannot listen on --http {h}"))?;
+            l.set_nonblocking(true)?;
+            Some(l)
+        }
+        None => None,
+    };
+    let http_tls = opts.tls.as_ref().map(|(cert, key)| http::tls_acceptor(cert, key)).transpose()?;
     let bound = listener.local_addr()?;
     // Started from this (the main) thread: they die with the process (see LocalWorkers), and
     // are killed when `_local` is dropped, after the runner stopped.
@@ -198,6 +223,7 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         let service = OrchestratorServer::new(api::JobService::new(core.clone()))
             .max_decoding_message_size(MAX_MESSAGE)
             .max_encoding_message_size(MAX_MESSAGE);
+        let service = md_worker::metrics::Timed::new(service, core.metrics.rpc.clone());
         let router = mscale_proto::server::router(&mut builder, service)
             .await
             .map_err(|e| anyhow::anyhow!("cannot set up the gRPC services: {e}"))?;
@@ -205,6 +231,18 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         println!("mscale serve: listening on {bound}");
         use std::io::Write;
         let _ = std::io::stdout().flush();
+        if let Some(l) = http_listener {
+            let l = tokio::net::TcpListener::from_std(l)?;
+            let scheme = if http_tls.is_some() { "https" } else { "http" };
+            // After the gRPC line, which scripts and tests read first; its reader may be gone.
+            let _ = writeln!(std::io::stdout(), "mscale serve: dashboard and metrics on {scheme}://{}", l.local_addr()?);
+            let _ = std::io::stdout().flush();
+            let mut stop = core.stop_watchers.subscribe();
+            let router = http::router(core.clone(), http_tls.is_some());
+            tokio::spawn(md_worker::metrics::serve_http(l, router, http_tls.clone(), async move {
+                let _ = stop.wait_for(|s| *s).await;
+            }));
+        }
         tracing::info!("state in {}", opts.state_dir.display());
         let shutdown = async {
             let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).ok();

@@ -48,6 +48,8 @@ pub(crate) struct Core {
     /// Abort handles of the running job's workers, by address: a worker declared lost gets its
     /// calls aborted (its boxes are then replayed on the others).
     pub(crate) aborts: Mutex<HashMap<String, md_worker::recovery::AbortHandle>>,
+    /// What `/metrics` exposes.
+    pub(crate) metrics: super::metrics::Metrics,
 }
 
 /// The job on the runner thread.
@@ -92,6 +94,7 @@ impl Core {
             next_id: AtomicU64::new(0),
             step_deadline,
             aborts: Mutex::new(HashMap::new()),
+            metrics: super::metrics::Metrics::new(),
         })
     }
 
