@@ -253,6 +253,7 @@ impl Bar {
         let (mut rho, mut fp) = (std::mem::take(&mut self.rho), std::mem::take(&mut self.fp));
         // Out of the bar while its view borrows the rest.
         let frozen = std::mem::take(&mut self.frozen);
+        let simd = self.simd;
         for _ in 0..steps {
             for i in 0..self.x.len() {
                 if frozen[i] {
@@ -269,7 +270,7 @@ impl Bar {
             if kernel::needs_rebuild(&pot, &b) {
                 kernel::rebuild(&pot, &mut b);
             }
-            kernel::with_simd(self.simd, || kernel::compute_forces(&pot, &mut b, &mut rho, &mut fp));
+            kernel::with_simd(simd, || kernel::compute_forces(&pot, &mut b, &mut rho, &mut fp));
             for i in 0..b.x.len() {
                 if frozen[i] {
                     continue;
