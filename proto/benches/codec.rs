@@ -4,6 +4,8 @@
 //! `extern_path` mapping), on one batch of 20,000 boxes each way. Prints medians of 31 runs of
 //! encode (into a reused buffer) and decode, and checks that both write the same bytes.
 
+#![allow(clippy::unwrap_used)] // a benchmark: a failed encode or decode is a bug to see at once
+
 use mscale_proto::coupling::v1 as pb;
 use mscale_proto::fast::{Doubles, ResultItem, StepBatch, StepResults, WorkItem};
 use prost::Message;
