@@ -19,7 +19,7 @@
 
 use crate::backend::{BoxState, BoxWork, PointId};
 use crate::error::MdError;
-use crate::pool::IdMap;
+use crate::ids::IdMap;
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 
