@@ -134,6 +134,8 @@ fn default_temperature() -> f64 {
 }
 
 /// A body's material closure: a constitutive law by name, or `md`.
+// One per body, built once per run: the size of the md variant costs nothing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(tag = "law", rename_all = "kebab-case")]
 pub enum Material {
@@ -830,7 +832,11 @@ impl Scene {
                 }
                 if let coupling::Reuse::Tolerance { tolerance_gpa, max_interval } = md.reuse {
                     if !(tolerance_gpa.is_finite() && tolerance_gpa >= 0.0) {
-                        return Err(loc.err(&k("material.reuse.tolerance"), tolerance_gpa, "the tolerance (GPa) must be a finite number >= 0 (0: never skip a box)"));
+                        return Err(loc.err(
+                            &k("material.reuse.tolerance"),
+                            tolerance_gpa,
+                            "the tolerance (GPa) must be a finite number >= 0 (0: never skip a box)",
+                        ));
                     }
                     if !(1..=100_000).contains(&max_interval) {
                         return Err(loc.err(&k("material.reuse.max_interval"), max_interval, "allowed: 1 to 100000 continuum steps"));
