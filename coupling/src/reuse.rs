@@ -208,7 +208,10 @@ mod tests {
         let m = |t: &str| serde_json::from_str::<M>(t).map(|m| m.reuse);
         assert_eq!(m(r#"{"reuse":"off"}"#).unwrap(), Reuse::Off);
         assert_eq!(m(r#"{"reuse":"exact"}"#).unwrap(), Reuse::Exact);
-        assert_eq!(m(r#"{"reuse":{"tolerance":0.1}}"#).unwrap(), Reuse::Tolerance { tolerance_gpa: 0.1, max_interval: DEFAULT_MAX_INTERVAL });
+        assert_eq!(
+            m(r#"{"reuse":{"tolerance":0.1}}"#).unwrap(),
+            Reuse::Tolerance { tolerance_gpa: 0.1, max_interval: DEFAULT_MAX_INTERVAL }
+        );
         assert!(m(r#"{"reuse":"sometimes"}"#).unwrap_err().to_string().contains("allowed \"off\", \"exact\""));
         let t = Reuse::Tolerance { tolerance_gpa: 0.05, max_interval: 7 };
         assert_eq!(serde_json::to_string(&M { reuse: t }).unwrap(), r#"{"reuse":{"tolerance":0.05,"max_interval":7}}"#);

@@ -687,7 +687,9 @@ impl MdPool {
             let mut keep = Vec::new();
             for s in &states {
                 if self.classes.rep(s.meta.id) == s.meta.id {
-                    keep.extend(self.classes.dependants(s.meta.id).into_iter().filter(|d| !restored.contains_key(d)).map(|d| (s.meta.id, d)));
+                    keep.extend(
+                        self.classes.dependants(s.meta.id).into_iter().filter(|d| !restored.contains_key(d)).map(|d| (s.meta.id, d)),
+                    );
                 }
             }
             self.copy_boxes(&keep)?;

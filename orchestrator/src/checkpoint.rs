@@ -212,7 +212,9 @@ impl Checkpoint {
                 let points = m
                     .points
                     .iter()
-                    .map(|p| p.as_ref().map(|s| SavedMdPoint { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev, skip: s.skip }))
+                    .map(|p| {
+                        p.as_ref().map(|s| SavedMdPoint { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev, skip: s.skip })
+                    })
                     .collect();
                 Some(SavedMd { step: sim.step, points, boxes })
             }
@@ -272,7 +274,9 @@ impl Checkpoint {
                 m.points = saved
                     .points
                     .iter()
-                    .map(|p| p.as_ref().map(|s| MdPointState { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev, skip: s.skip }))
+                    .map(|p| {
+                        p.as_ref().map(|s| MdPointState { last: s.last, pending_ev: s.pending_ev, added_ev: s.added_ev, skip: s.skip })
+                    })
                     .collect();
             }
             (None, Some(_)) => bail!("the checkpoint has MD boxes but the scene has no md bodies"),

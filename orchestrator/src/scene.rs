@@ -134,6 +134,8 @@ fn default_temperature() -> f64 {
 }
 
 /// A body's material closure: a constitutive law by name, or `md`.
+// One per body, built once per run: the size of the md variant costs nothing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(tag = "law", rename_all = "kebab-case")]
 pub enum Material {
