@@ -25,6 +25,8 @@ const HEADER: &str = "\
 # state_digest after `steps` steps.
 # regenerate: MSCALE_BLESS=1 cargo test -p mscale-tests --test golden_digests
 # (rewrites digests and steps; add a new scene as an entry with `file` and `set`, then bless)
+# One digest per scene holds on every MD kernel path (MSCALE_MD_SIMD=scalar|avx2|avx512): the
+# paths give bitwise the same results (md-engine/src/simd.rs), so a digest never depends on the CPU.
 ";
 
 #[derive(Debug, Clone, serde::Deserialize)]
