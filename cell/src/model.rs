@@ -94,6 +94,8 @@ pub struct Model {
     pub alpha: f64,
     pub threshold: f64,
     pub hysteresis: f64,
+    /// Some(width): the continuous ramp switch instead of events.
+    pub ramp: Option<f64>,
     /// Dirichlet potential at x = 0 (V).
     pub phi_left: f64,
     /// Electron number flux in +x at both ends (1/(nm^2 s)), where the end cell is an electrode.
@@ -225,6 +227,7 @@ impl Model {
             alpha: scene.interface.alpha,
             threshold: scene.interface.threshold_v,
             hysteresis: scene.interface.hysteresis_v,
+            ramp: (scene.interface.switch == "ramp").then_some(scene.interface.ramp_width_v),
             phi_left: scene.boundary.phi_left_v,
             electron_flux,
             right,
@@ -355,8 +358,18 @@ impl Model {
             // An interface: no electrons or anions cross (8.60)-(8.61); cations by the
             // threshold law (8.23) with the mean diffusivity, when the switch is open.
             let k = self.interfaces.binary_search(&f).unwrap_or(0);
-            let f_p = if open.get(k).copied().unwrap_or(false) {
-                let d = self.alpha * 0.5 * (self.d_p[a] + self.d_p[b]);
+            let factor = match self.ramp {
+                Some(w) => ((dphi.abs() - (self.threshold - w)) / w).clamp(0.0, 1.0),
+                None => {
+                    if open.get(k).copied().unwrap_or(false) {
+                        1.0
+                    } else {
+                        0.0
+                    }
+                }
+            };
+            let f_p = if factor > 0.0 {
+                let d = factor * self.alpha * 0.5 * (self.d_p[a] + self.d_p[b]);
                 let v = -(d / self.vt) * dphi / dx;
                 -d * (y[3 * b] - y[3 * a]) / dx + v * self.face_value(y, f, 0, v)
             } else {

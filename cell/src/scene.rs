@@ -141,6 +141,22 @@ pub struct Interface {
     /// of the switch at the threshold; the thesis has none and steps at a fixed dt).
     #[serde(default = "default_hysteresis")]
     pub hysteresis_v: f64,
+    /// "events": the thesis's switch, located as a root of |dphi| - threshold (with the
+    /// hysteresis), the integrator restarting at every flip; "ramp": the flux factor rises
+    /// linearly from 0 at threshold_v - ramp_width_v to 1 at threshold_v (a continuous
+    /// regularisation whose limit ramp_width_v -> 0 is the sliding mode the events chatter
+    /// about; no restarts).
+    #[serde(default = "default_switch")]
+    pub switch: String,
+    #[serde(default = "default_ramp")]
+    pub ramp_width_v: f64,
+}
+
+fn default_switch() -> String {
+    "events".into()
+}
+fn default_ramp() -> f64 {
+    0.01
 }
 
 fn default_alpha() -> f64 {
@@ -155,7 +171,13 @@ fn default_hysteresis() -> f64 {
 
 impl Default for Interface {
     fn default() -> Self {
-        Interface { alpha: default_alpha(), threshold_v: default_threshold(), hysteresis_v: default_hysteresis() }
+        Interface {
+            alpha: default_alpha(),
+            threshold_v: default_threshold(),
+            hysteresis_v: default_hysteresis(),
+            switch: default_switch(),
+            ramp_width_v: default_ramp(),
+        }
     }
 }
 
@@ -374,6 +396,10 @@ impl CellScene {
         if i.hysteresis_v > i.threshold_v {
             return Err(err(locate, "interface.hysteresis_v", i.hysteresis_v, format!("must not exceed interface.threshold_v = {}", i.threshold_v)));
         }
+        if !["events", "ramp"].contains(&i.switch.as_str()) {
+            return Err(err(locate, "interface.switch", format!("{:?}", i.switch), "allowed: \"events\", \"ramp\""));
+        }
+        positive(locate, "interface.ramp_width_v", i.ramp_width_v)?;
         let b = &self.boundary;
         finite(locate, "boundary.electron_current_ma_per_cm2", b.electron_current_ma_per_cm2)?;
         finite(locate, "boundary.phi_left_v", b.phi_left_v)?;
