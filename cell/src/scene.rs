@@ -385,7 +385,9 @@ impl CellScene {
                     locate,
                     "grid.cells",
                     self.grid.cells,
-                    format!("the {name} ({w} nm) must hold a whole number (>= 1) of cells of {dx} nm; choose cells so that every region width is a multiple of the cell size"),
+                    format!(
+                        "the {name} ({w} nm) must hold a whole number (>= 1) of cells of {dx} nm; choose cells so that every region width is a multiple of the cell size"
+                    ),
                 ));
             }
         }
@@ -394,7 +396,12 @@ impl CellScene {
         non_negative(locate, "interface.threshold_v", i.threshold_v)?;
         non_negative(locate, "interface.hysteresis_v", i.hysteresis_v)?;
         if i.hysteresis_v > i.threshold_v {
-            return Err(err(locate, "interface.hysteresis_v", i.hysteresis_v, format!("must not exceed interface.threshold_v = {}", i.threshold_v)));
+            return Err(err(
+                locate,
+                "interface.hysteresis_v",
+                i.hysteresis_v,
+                format!("must not exceed interface.threshold_v = {}", i.threshold_v),
+            ));
         }
         if !["events", "ramp"].contains(&i.switch.as_str()) {
             return Err(err(locate, "interface.switch", format!("{:?}", i.switch), "allowed: \"events\", \"ramp\""));
@@ -408,10 +415,20 @@ impl CellScene {
             return Err(err(locate, "boundary.right", format!("{:?}", b.right), "allowed: \"insulating\", \"reservoir\""));
         }
         if self.anode.is_some() && b.right == "reservoir" {
-            return Err(err(locate, "boundary.right", "\"reservoir\"", "a reservoir closes an electrolyte alone; a full cell ends in its cathode (\"insulating\")"));
+            return Err(err(
+                locate,
+                "boundary.right",
+                "\"reservoir\"",
+                "a reservoir closes an electrolyte alone; a full cell ends in its cathode (\"insulating\")",
+            ));
         }
         if self.anode.is_none() && b.electron_current_ma_per_cm2 != 0.0 {
-            return Err(err(locate, "boundary.electron_current_ma_per_cm2", b.electron_current_ma_per_cm2, "an electrolyte alone carries no electrons; set 0 or add [anode] and [cathode]"));
+            return Err(err(
+                locate,
+                "boundary.electron_current_ma_per_cm2",
+                b.electron_current_ma_per_cm2,
+                "an electrolyte alone carries no electrons; set 0 or add [anode] and [cathode]",
+            ));
         }
         let s = &self.scheme;
         if FaceState::parse(&s.face_state).is_none() {
@@ -429,7 +446,12 @@ impl CellScene {
         match s.integrator.as_str() {
             "bdf" => {
                 if s.timestep_s.is_some() {
-                    return Err(err(locate, "scheme.timestep_s", s.timestep_s.unwrap_or(0.0), "bdf chooses its own steps; remove timestep_s"));
+                    return Err(err(
+                        locate,
+                        "scheme.timestep_s",
+                        s.timestep_s.unwrap_or(0.0),
+                        "bdf chooses its own steps; remove timestep_s",
+                    ));
                 }
             }
             "explicit-euler" => {
@@ -439,7 +461,9 @@ impl CellScene {
                         locate,
                         "scheme.timestep_s",
                         "",
-                        format!("explicit-euler needs timestep_s; it is stable only for dt <= {bound:.3e} s (diffusion dx^2/(2D) and dielectric relaxation eps eps0 kT/(e^2 D c)); use integrator = \"bdf\""),
+                        format!(
+                            "explicit-euler needs timestep_s; it is stable only for dt <= {bound:.3e} s (diffusion dx^2/(2D) and dielectric relaxation eps eps0 kT/(e^2 D c)); use integrator = \"bdf\""
+                        ),
                     ));
                 };
                 positive(locate, "scheme.timestep_s", dt)?;
@@ -448,7 +472,10 @@ impl CellScene {
                         locate,
                         "scheme.timestep_s",
                         dt,
-                        format!("explicit Euler is unstable here: it needs dt <= {bound:.3e} s (diffusion dx^2/(2D) and dielectric relaxation eps eps0 kT/(e^2 D c), the stiffest region), that is {:.3e} steps to end_time_s; use integrator = \"bdf\"", s.end_time_s / bound),
+                        format!(
+                            "explicit Euler is unstable here: it needs dt <= {bound:.3e} s (diffusion dx^2/(2D) and dielectric relaxation eps eps0 kT/(e^2 D c), the stiffest region), that is {:.3e} steps to end_time_s; use integrator = \"bdf\"",
+                            s.end_time_s / bound
+                        ),
                     ));
                 }
                 let steps = (s.end_time_s / dt).ceil();
@@ -457,7 +484,10 @@ impl CellScene {
                         locate,
                         "scheme.timestep_s",
                         dt,
-                        format!("{steps:.3e} explicit steps to end_time_s exceed scheme.max_steps = {}; use integrator = \"bdf\"", s.max_steps),
+                        format!(
+                            "{steps:.3e} explicit steps to end_time_s exceed scheme.max_steps = {}; use integrator = \"bdf\"",
+                            s.max_steps
+                        ),
                     ));
                 }
             }
@@ -466,7 +496,12 @@ impl CellScene {
         let mut times = self.output.times_s.clone();
         for (k, t) in times.iter().enumerate() {
             if !(t.is_finite() && *t >= 0.0 && *t <= s.end_time_s) {
-                return Err(err(locate, "output.times_s", format!("{:?}", self.output.times_s), format!("entry {k} = {t}: times must lie in [0, end_time_s = {}]", s.end_time_s)));
+                return Err(err(
+                    locate,
+                    "output.times_s",
+                    format!("{:?}", self.output.times_s),
+                    format!("entry {k} = {t}: times must lie in [0, end_time_s = {}]", s.end_time_s),
+                ));
             }
         }
         times.sort_by(f64::total_cmp);

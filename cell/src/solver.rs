@@ -12,8 +12,9 @@
 use crate::model::Model;
 use diffsol::matrix::sparsity::MatrixSparsity;
 use diffsol::{
-    ConstantOp, FaerContext, FaerSparseLU, FaerSparseMat, FaerVec, LaLinearOp, LinearOp, Matrix, NonLinearOp, NonLinearOpJacobian, OdeBuilder, OdeEquations, OdeEquationsRef, OdeSolverMethod, OdeSolverStopReason, Op,
-    OdeSolverState, ParameterisedOp, UnitCallable, Vector, BdfState,
+    BdfState, ConstantOp, FaerContext, FaerSparseLU, FaerSparseMat, FaerVec, LaLinearOp, LinearOp, Matrix, NonLinearOp,
+    NonLinearOpJacobian, OdeBuilder, OdeEquations, OdeEquationsRef, OdeSolverMethod, OdeSolverState, OdeSolverStopReason, Op,
+    ParameterisedOp, UnitCallable, Vector,
 };
 use diffsol_la::LinearSolver as LaLinearSolver;
 use std::cell::{Cell, RefCell};
@@ -552,17 +553,11 @@ fn bdf(
     on_snapshot: &mut dyn FnMut(&Snapshot<'_>) -> Control,
 ) -> Result<(Vec<f64>, Vec<bool>), SolveError> {
     let n = model.n;
-    let atol: Vec<f64> =
-        (0..3 * n).map(|j| if j % 3 == 2 { settings.atol_potential } else { settings.atol_concentration }).collect();
+    let atol: Vec<f64> = (0..3 * n).map(|j| if j % 3 == 2 { settings.atol_potential } else { settings.atol_concentration }).collect();
     let eqn = CellEqn::new(model.clone(), y0.clone(), open0);
     let fail = |t: f64, steps: u64, e: diffsol::DiffsolError| SolveError::Integrator { t, steps, why: e.to_string() };
-    let mut problem = OdeBuilder::<M>::new()
-        .rtol(settings.rtol)
-        .atol(atol)
-        .t0(0.0)
-        .h0(1e-3)
-        .build_from_eqn(eqn)
-        .map_err(|e| fail(0.0, 0, e))?;
+    let mut problem =
+        OdeBuilder::<M>::new().rtol(settings.rtol).atol(atol).t0(0.0).h0(1e-3).build_from_eqn(eqn).map_err(|e| fail(0.0, 0, e))?;
     problem.ode_options.max_error_test_failures = 60;
     // Newton to well below the local error (default 0.2 of it): the Poisson rows, linear,
     // then hold to ~1e-12 of their terms.
@@ -704,7 +699,14 @@ mod tests {
             grid: Grid { cells },
             physics: Physics::default(),
             anode: None,
-            electrolyte: Electrolyte { width_nm: 1.0, eps_r: 10.0, d_p_cm2_per_s: 1.7e-4, d_n_cm2_per_s: 0.0, p0_per_nm3: 6.0, n0_per_nm3: 6.0 },
+            electrolyte: Electrolyte {
+                width_nm: 1.0,
+                eps_r: 10.0,
+                d_p_cm2_per_s: 1.7e-4,
+                d_n_cm2_per_s: 0.0,
+                p0_per_nm3: 6.0,
+                n0_per_nm3: 6.0,
+            },
             cathode: None,
             interface: Interface::default(),
             boundary: CellBoundary { phi_left_v: 1e-3, right: "reservoir".into(), ..Default::default() },

@@ -39,7 +39,8 @@ pub fn is_cell_scene(path: &Path) -> bool {
 /// Reads, overrides, parses and validates a cell scene.
 pub fn load(path: &Path, sets: &[String]) -> Result<LoadedCell, SceneError> {
     let file = path.display().to_string();
-    let bad = |problem: String| SceneError { file: file.clone(), location: String::new(), key: String::new(), value: String::new(), problem };
+    let bad =
+        |problem: String| SceneError { file: file.clone(), location: String::new(), key: String::new(), value: String::new(), problem };
     let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read the scene file: {e}")))?;
     let (text, overrides): (String, BTreeMap<String, String>) = scene::apply_overrides(&file, &text, sets)?;
     let default_name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "cell".into());
@@ -374,7 +375,10 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
         "L2 error (8.85) against the finest run",
         "cells",
         "error",
-        &[Series { label: "phi (V)", points: phi_series, line: true }, Series { label: "p - n (e/nm^3)", points: charge_series, line: true }],
+        &[
+            Series { label: "phi (V)", points: phi_series, line: true },
+            Series { label: "p - n (e/nm^3)", points: charge_series, line: true },
+        ],
     )
     .map_err(report::ReportError::Io)?;
     Ok(runs.len())

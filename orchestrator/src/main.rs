@@ -261,16 +261,18 @@ fn dispatch(cli: Cli) -> i32 {
             conn.ca().and_then(|_| orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, file.as_deref(), &out)),
         ),
         Command::Health { conn } => report(conn.ca().and_then(|_| orchestrator::client::health(&conn.server, conn.token_file.as_deref()))),
-        Command::Check { scene, set, .. } if orchestrator::cell_run::is_cell_scene(&scene) => match orchestrator::cell_run::load(&scene, &set) {
-            Ok(loaded) => {
-                print!("{}", orchestrator::cell_run::check_text(&loaded));
-                exit::OK
+        Command::Check { scene, set, .. } if orchestrator::cell_run::is_cell_scene(&scene) => {
+            match orchestrator::cell_run::load(&scene, &set) {
+                Ok(loaded) => {
+                    print!("{}", orchestrator::cell_run::check_text(&loaded));
+                    exit::OK
+                }
+                Err(e) => {
+                    eprintln!("mscale: {e}");
+                    exit::BAD_INPUT
+                }
             }
-            Err(e) => {
-                eprintln!("mscale: {e}");
-                exit::BAD_INPUT
-            }
-        },
+        }
         Command::Check { scene, set, estimate } => match scene::load(&scene, &set) {
             Ok(loaded) => {
                 print!("{}", loaded.scene.to_toml());
