@@ -5,6 +5,7 @@
 //! library, so tests drive the same code users do.
 
 pub mod atomic;
+pub mod cell_run;
 pub mod checkpoint;
 pub mod client;
 pub mod exit;

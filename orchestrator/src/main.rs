@@ -277,6 +277,18 @@ fn dispatch(cli: Cli) -> i32 {
             conn.ca().and_then(|_| orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, file.as_deref(), &out)),
         ),
         Command::Health { conn } => report(conn.ca().and_then(|_| orchestrator::client::health(&conn.server, conn.token_file.as_deref()))),
+        Command::Check { scene, set, .. } if orchestrator::cell_run::is_cell_scene(&scene) => {
+            match orchestrator::cell_run::load(&scene, &set) {
+                Ok(loaded) => {
+                    print!("{}", orchestrator::cell_run::check_text(&loaded));
+                    exit::OK
+                }
+                Err(e) => {
+                    eprintln!("mscale: {e}");
+                    exit::BAD_INPUT
+                }
+            }
+        }
         Command::Check { scene, set, estimate } => match scene::load(&scene, &set) {
             Ok(loaded) => {
                 print!("{}", loaded.scene.to_toml());
@@ -311,6 +323,23 @@ fn dispatch(cli: Cli) -> i32 {
                 exit::BAD_INPUT
             }
         },
+        Command::Report(ReportCommand::ErrorVsTime { scene, sweep, set, out, .. }) if orchestrator::cell_run::is_cell_scene(&scene) => {
+            let out = out.unwrap_or_else(|| orchestrator::report::default_out(&scene));
+            match orchestrator::cell_run::error_vs_time(&scene, &set, &sweep, &out) {
+                Ok(n) => {
+                    println!("{n} runs; report in {}/report.csv and report.png", out.display());
+                    exit::OK
+                }
+                Err(e @ orchestrator::report::ReportError::Scene(_)) => {
+                    eprintln!("mscale: {e}");
+                    exit::BAD_INPUT
+                }
+                Err(e) => {
+                    eprintln!("mscale: {e}");
+                    exit::RUN_FAILED
+                }
+            }
+        }
         Command::Report(ReportCommand::ErrorVsTime { scene, sweep, set, out, workers, reference, reference_times, replicas }) => {
             let out = out.unwrap_or_else(|| orchestrator::report::default_out(&scene));
             let reference = match reference.map(|r| orchestrator::report::ReferenceSpec::load(&r, &reference_times)).transpose() {
@@ -345,6 +374,9 @@ fn dispatch(cli: Cli) -> i32 {
                 (None, Some(dir)) => dir.join("scene.resolved.toml"),
                 (None, None) => unreachable!("clap requires a scene without --resume"),
             };
+            if orchestrator::cell_run::is_cell_scene(&scene) {
+                return run_cell(&scene, &set, out, checkpoint_every, resume);
+            }
             let loaded = match scene::load(&scene, &set) {
                 Ok(l) => l,
                 Err(e) => {
@@ -397,6 +429,45 @@ fn dispatch(cli: Cli) -> i32 {
                 Err(e) => report(Err(e)),
             }
         }
+    }
+}
+
+/// `mscale run` of a cell scene (`kind = "cell"`).
+fn run_cell(scene: &std::path::Path, set: &[String], out: Option<PathBuf>, checkpoint_every: u64, resume: Option<PathBuf>) -> i32 {
+    let loaded = match orchestrator::cell_run::load(scene, set) {
+        Ok(l) => l,
+        Err(e) => {
+            eprintln!("mscale: {e}");
+            return exit::BAD_INPUT;
+        }
+    };
+    let out = resume.clone().or(out).unwrap_or_else(|| orchestrator::cell_run::default_out_dir(&loaded.scene));
+    let mut opts = run::RunOptions::new(out.clone(), std::env::args().collect());
+    opts.checkpoint_every = checkpoint_every;
+    opts.resume = resume.is_some();
+    match orchestrator::checkpoint::stop_on_signals() {
+        Ok(flag) => opts.cancel = Some(flag),
+        Err(e) => eprintln!("mscale: warning: cannot handle SIGINT/SIGTERM: {e}"),
+    }
+    match orchestrator::cell_run::run(&loaded, &opts) {
+        Ok(run::Outcome::Completed(summary)) => {
+            println!(
+                "completed {} steps in {:.2} s; outputs in {}",
+                summary["steps"],
+                summary["wall_seconds"].as_f64().unwrap_or(0.0),
+                out.display()
+            );
+            exit::OK
+        }
+        Ok(run::Outcome::Failed(_, why)) => {
+            eprintln!("mscale: the run failed: {why}\n(outputs so far are in {})", out.display());
+            exit::RUN_FAILED
+        }
+        Ok(run::Outcome::Cancelled { step, .. }) => {
+            eprintln!("mscale: cancelled after step {step}");
+            exit::RUN_FAILED
+        }
+        Err(e) => report(Err(e)),
     }
 }
 

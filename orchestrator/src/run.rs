@@ -129,10 +129,15 @@ fn md_shared(loaded: &LoadedScene, opts: &RunOptions) -> Result<Option<Arc<Mutex
 
 /// Default run directory: `runs/<scene>-<UTC timestamp>`.
 pub fn default_out_dir(scene: &Scene) -> PathBuf {
+    default_out_dir_named(&scene.name)
+}
+
+/// `runs/<name>-<UTC timestamp>`.
+pub fn default_out_dir_named(name: &str) -> PathBuf {
     let t = time::OffsetDateTime::now_utc();
     PathBuf::from("runs").join(format!(
         "{}-{:04}{:02}{:02}T{:02}{:02}{:02}Z",
-        scene.name,
+        name,
         t.year(),
         u8::from(t.month()),
         t.day(),
@@ -451,7 +456,7 @@ fn momentum_scale<const D: usize>(sim: &Simulation<D>) -> f64 {
     (0..p.len()).map(|k| p.mass[k] * p.v[k].iter().map(|v| v * v).sum::<f64>().sqrt()).sum()
 }
 
-fn progress_bar(enabled: bool, steps: u64, end_time: f64) -> Option<indicatif::ProgressBar> {
+pub(crate) fn progress_bar(enabled: bool, steps: u64, end_time: f64) -> Option<indicatif::ProgressBar> {
     if !enabled {
         return None;
     }

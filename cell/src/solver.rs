@@ -1,0 +1,792 @@
+//! Time integration of the cell's index-1 DAE `M y' = f(y)` (M = diag(1, 1, 0) per cell) by
+//! diffsol's variable-order BDF over faer's sparse LU, with
+//! - a Jacobian by finite differences over 15 column colours (the residual of a cell depends
+//!   on cells i-2..=i+2 only), so one Jacobian costs 15 right-hand sides at any N;
+//! - consistent initialisation: phi solved from the initial p, n (and diffsol's own algebraic
+//!   solve at every (re)start);
+//! - the threshold switches as root functions: at a root the step is cut back to it, the
+//!   switch flips, and the integrator restarts from there (order 1), so no step straddles a
+//!   discontinuity of the right-hand side;
+//! - an explicit-Euler path that the scene validator only admits below its stability bound.
+
+use crate::model::Model;
+use diffsol::matrix::sparsity::MatrixSparsity;
+use diffsol::{
+    BdfState, ConstantOp, FaerContext, FaerSparseLU, FaerSparseMat, FaerVec, LaLinearOp, LinearOp, Matrix, NonLinearOp,
+    NonLinearOpJacobian, OdeBuilder, OdeEquations, OdeEquationsRef, OdeSolverMethod, OdeSolverState, OdeSolverStopReason, Op,
+    ParameterisedOp, UnitCallable, Vector,
+};
+use diffsol_la::LinearSolver as LaLinearSolver;
+use std::cell::{Cell, RefCell};
+use std::time::Instant;
+
+type M = FaerSparseMat<f64>;
+
+/// The integrator's unit of time (s): diffsol's smallest step is f64::EPSILON in its own
+/// unit, and the first steps of a cell are ~1e-18 s, so it integrates in picoseconds.
+pub const T_UNIT: f64 = 1e-12;
+type V = FaerVec<f64>;
+
+thread_local! {
+    /// Seconds in factorisations (set_linearisation minus the Jacobian inside it) and in
+    /// triangular solves, of this thread's integrations.
+    static LU_SETUP_S: Cell<f64> = const { Cell::new(0.0) };
+    static LU_SOLVE_S: Cell<f64> = const { Cell::new(0.0) };
+    static JAC_S: Cell<f64> = const { Cell::new(0.0) };
+}
+
+/// faer's sparse LU, timed.
+#[derive(Default)]
+pub struct TimedLu {
+    inner: FaerSparseLU<f64>,
+}
+
+impl LaLinearSolver<M> for TimedLu {
+    fn set_linearisation<C: LaLinearOp<V = V, T = f64, M = M, C = FaerContext>>(&mut self, op: &C) {
+        let jac_before = JAC_S.with(|c| c.get());
+        let t = Instant::now();
+        self.inner.set_linearisation(op);
+        let jac = JAC_S.with(|c| c.get()) - jac_before;
+        LU_SETUP_S.with(|c| c.set(c.get() + t.elapsed().as_secs_f64() - jac));
+    }
+    fn set_sparsity<C: LaLinearOp<V = V, T = f64, M = M, C = FaerContext>>(&mut self, op: &C) {
+        self.inner.set_sparsity(op);
+    }
+    fn solve_in_place(&self, b: &mut V) -> Result<(), diffsol::LaError> {
+        let t = Instant::now();
+        let r = self.inner.solve_in_place(b);
+        LU_SOLVE_S.with(|c| c.set(c.get() + t.elapsed().as_secs_f64()));
+        r
+    }
+    fn solve_transpose_in_place(&self, b: &mut V) -> Result<(), diffsol::LaError> {
+        self.inner.solve_transpose_in_place(b)
+    }
+}
+
+/// The equations as diffsol sees them.
+pub struct CellEqn {
+    pub model: Model,
+    /// Switch state of each interface (constant within an integration segment).
+    pub open: RefCell<Vec<bool>>,
+    /// The state a segment starts from.
+    pub y_start: RefCell<Vec<f64>>,
+    jac_sparsity: <M as Matrix>::Sparsity,
+    mass_sparsity: <M as Matrix>::Sparsity,
+    /// CSC structure of the Jacobian pattern (columns in order, rows sorted).
+    col_ptr: Vec<usize>,
+    row_idx: Vec<usize>,
+    ctx: FaerContext,
+    pub rhs_calls: Cell<u64>,
+    pub jac_evals: Cell<u64>,
+    pub rhs_s: Cell<f64>,
+}
+
+fn pattern(n: usize) -> (Vec<usize>, Vec<usize>) {
+    let s = Model::STENCIL;
+    let mut col_ptr = vec![0];
+    let mut row_idx = Vec::with_capacity(3 * n * 3 * (2 * s + 1));
+    for j in 0..3 * n {
+        let c = j / 3;
+        for r in c.saturating_sub(s)..=(c + s).min(n - 1) {
+            for v in 0..3 {
+                row_idx.push(3 * r + v);
+            }
+        }
+        col_ptr.push(row_idx.len());
+    }
+    (col_ptr, row_idx)
+}
+
+impl CellEqn {
+    pub fn new(model: Model, y0: Vec<f64>, open: Vec<bool>) -> CellEqn {
+        let n = model.n;
+        let (col_ptr, row_idx) = pattern(n);
+        let mut indices = Vec::with_capacity(row_idx.len());
+        for j in 0..3 * n {
+            for &r in &row_idx[col_ptr[j]..col_ptr[j + 1]] {
+                indices.push((r, j));
+            }
+        }
+        let jac_sparsity = <<M as Matrix>::Sparsity as MatrixSparsity<M>>::try_from_indices(3 * n, 3 * n, indices)
+            .expect("the banded Jacobian pattern is valid");
+        let mass: Vec<(usize, usize)> = (0..n).flat_map(|i| [(3 * i, 3 * i), (3 * i + 1, 3 * i + 1)]).collect();
+        let mass_sparsity =
+            <<M as Matrix>::Sparsity as MatrixSparsity<M>>::try_from_indices(3 * n, 3 * n, mass).expect("the mass pattern is valid");
+        CellEqn {
+            model,
+            open: RefCell::new(open),
+            y_start: RefCell::new(y0),
+            jac_sparsity,
+            mass_sparsity,
+            col_ptr,
+            row_idx,
+            ctx: FaerContext::default(),
+            rhs_calls: Cell::new(0),
+            jac_evals: Cell::new(0),
+            rhs_s: Cell::new(0.0),
+        }
+    }
+
+    fn eval(&self, x: &[f64], out: &mut [f64]) {
+        let t = Instant::now();
+        self.model.rhs(x, &self.open.borrow(), out);
+        for i in 0..self.model.n {
+            out[3 * i] *= T_UNIT;
+            out[3 * i + 1] *= T_UNIT;
+        }
+        self.rhs_calls.set(self.rhs_calls.get() + 1);
+        self.rhs_s.set(self.rhs_s.get() + t.elapsed().as_secs_f64());
+    }
+
+    /// The Jacobian's values in CSC order, by coloured forward differences.
+    pub fn fd_jacobian(&self, x: &[f64], vals: &mut [f64]) {
+        let t = Instant::now();
+        let n3 = x.len();
+        let mut f0 = vec![0.0; n3];
+        self.eval(x, &mut f0);
+        let cmax = (0..n3).filter(|j| j % 3 != 2).map(|j| x[j].abs()).fold(0.0, f64::max);
+        let typical = [1e-6 * cmax.max(1.0), 1e-6 * cmax.max(1.0), self.model.vt];
+        let sqrt_eps = f64::EPSILON.sqrt();
+        let colours = 3 * (2 * Model::STENCIL + 1);
+        let period = 2 * Model::STENCIL + 1;
+        let mut xp = x.to_vec();
+        let mut f1 = vec![0.0; n3];
+        let mut h = vec![0.0; n3];
+        for colour in 0..colours {
+            let (cell0, var) = (colour / 3, colour % 3);
+            let mut j = 3 * cell0 + var;
+            while j < n3 {
+                let hj = sqrt_eps * x[j].abs().max(typical[var]);
+                // An exactly representable step.
+                let xj = x[j] + hj;
+                h[j] = xj - x[j];
+                xp[j] = xj;
+                j += 3 * period;
+            }
+            self.eval(&xp, &mut f1);
+            let mut j = 3 * cell0 + var;
+            while j < n3 {
+                for k in self.col_ptr[j]..self.col_ptr[j + 1] {
+                    let r = self.row_idx[k];
+                    vals[k] = (f1[r] - f0[r]) / h[j];
+                }
+                xp[j] = x[j];
+                j += 3 * period;
+            }
+        }
+        // The Poisson rows are linear: their entries exactly, so that a Newton iteration with
+        // a current matrix satisfies them to round-off.
+        for j in 0..n3 {
+            let (c, var) = (j / 3, j % 3);
+            for k in self.col_ptr[j]..self.col_ptr[j + 1] {
+                let r = self.row_idx[k];
+                if r % 3 == 2 {
+                    vals[k] = self.model.poisson_derivative(r / 3, c, var);
+                }
+            }
+        }
+        self.jac_evals.set(self.jac_evals.get() + 1);
+        JAC_S.with(|c| c.set(c.get() + t.elapsed().as_secs_f64()));
+    }
+}
+
+pub struct CellRhs<'a> {
+    eqn: &'a CellEqn,
+}
+pub struct CellMass<'a> {
+    eqn: &'a CellEqn,
+}
+pub struct CellInit<'a> {
+    eqn: &'a CellEqn,
+}
+pub struct CellRoot<'a> {
+    eqn: &'a CellEqn,
+}
+
+macro_rules! cell_op {
+    ($name:ident, $nout:expr) => {
+        impl Op for $name<'_> {
+            type M = M;
+            type V = V;
+            type T = f64;
+            type C = FaerContext;
+            fn nstates(&self) -> usize {
+                self.eqn.model.len()
+            }
+            fn nout(&self) -> usize {
+                #[allow(clippy::redundant_closure_call)]
+                ($nout)(self.eqn)
+            }
+            fn nparams(&self) -> usize {
+                0
+            }
+            fn context(&self) -> &FaerContext {
+                &self.eqn.ctx
+            }
+        }
+    };
+}
+
+cell_op!(CellRhs, |e: &CellEqn| e.model.len());
+cell_op!(CellMass, |e: &CellEqn| e.model.len());
+cell_op!(CellInit, |e: &CellEqn| e.model.len());
+cell_op!(CellRoot, |e: &CellEqn| e.model.interfaces.len());
+
+impl NonLinearOp for CellRhs<'_> {
+    fn call_inplace(&self, x: &V, _t: f64, y: &mut V) {
+        y.for_each_batch_host([x], |y, [x], _| self.eqn.eval(x, y));
+    }
+}
+
+impl NonLinearOpJacobian for CellRhs<'_> {
+    fn jac_mul_inplace(&self, x: &V, _t: f64, v: &V, y: &mut V) {
+        // A directional difference (diffsol uses the assembled matrix for its Newton solves).
+        y.for_each_batch_host([x, v], |y, [x, v], _| {
+            let vnorm = v.iter().map(|a| a * a).sum::<f64>().sqrt();
+            if vnorm == 0.0 {
+                y.iter_mut().for_each(|a| *a = 0.0);
+                return;
+            }
+            let xnorm = x.iter().map(|a| a * a).sum::<f64>().sqrt();
+            let h = f64::EPSILON.sqrt() * (1.0 + xnorm) / vnorm;
+            let xp: Vec<f64> = x.iter().zip(v).map(|(a, b)| a + h * b).collect();
+            let mut f0 = vec![0.0; x.len()];
+            self.eqn.eval(x, &mut f0);
+            self.eqn.eval(&xp, y);
+            for (a, b) in y.iter_mut().zip(&f0) {
+                *a = (*a - b) / h;
+            }
+        });
+    }
+    fn jacobian_inplace(&self, x: &V, _t: f64, y: &mut M) {
+        let xs = x.clone_as_vec();
+        let vals = y.inner_mut()[0].val_mut();
+        assert_eq!(vals.len(), self.eqn.row_idx.len(), "Jacobian pattern mismatch");
+        self.eqn.fd_jacobian(&xs, vals);
+    }
+    fn jacobian_sparsity(&self) -> Option<<M as Matrix>::Sparsity> {
+        Some(self.eqn.jac_sparsity.clone())
+    }
+}
+
+impl LinearOp for CellMass<'_> {
+    fn gemv_inplace(&self, x: &V, _t: f64, beta: f64, y: &mut V) {
+        y.for_each_batch_host([x], |y, [x], _| {
+            for (i, (yi, xi)) in y.iter_mut().zip(x).enumerate() {
+                *yi = if i % 3 == 2 { beta * *yi } else { xi + beta * *yi };
+            }
+        });
+    }
+    fn matrix_inplace(&self, _t: f64, y: &mut M) {
+        for v in y.inner_mut()[0].val_mut() {
+            *v = 1.0;
+        }
+    }
+    fn sparsity(&self) -> Option<<M as Matrix>::Sparsity> {
+        Some(self.eqn.mass_sparsity.clone())
+    }
+}
+
+impl ConstantOp for CellInit<'_> {
+    fn call_inplace(&self, _t: f64, y: &mut V) {
+        let start = self.eqn.y_start.borrow();
+        y.for_each_batch_host([], |y, [], _| y.copy_from_slice(&start));
+    }
+}
+
+impl NonLinearOp for CellRoot<'_> {
+    fn call_inplace(&self, x: &V, _t: f64, y: &mut V) {
+        y.for_each_batch_host([x], |y, [x], _| self.eqn.model.switch_functions(x, &self.eqn.open.borrow(), y));
+    }
+}
+
+impl Op for CellEqn {
+    type M = M;
+    type V = V;
+    type T = f64;
+    type C = FaerContext;
+    fn nstates(&self) -> usize {
+        self.model.len()
+    }
+    fn nout(&self) -> usize {
+        self.model.len()
+    }
+    fn nparams(&self) -> usize {
+        0
+    }
+    fn context(&self) -> &FaerContext {
+        &self.ctx
+    }
+}
+
+impl<'a> OdeEquationsRef<'a> for CellEqn {
+    type Rhs = CellRhs<'a>;
+    type Mass = CellMass<'a>;
+    type Init = CellInit<'a>;
+    type Root = CellRoot<'a>;
+    type Out = ParameterisedOp<'a, UnitCallable<M>>;
+    type Reset = ParameterisedOp<'a, UnitCallable<M>>;
+}
+
+impl OdeEquations for CellEqn {
+    fn rhs(&self) -> CellRhs<'_> {
+        CellRhs { eqn: self }
+    }
+    fn mass(&self) -> Option<CellMass<'_>> {
+        Some(CellMass { eqn: self })
+    }
+    fn init(&self) -> CellInit<'_> {
+        CellInit { eqn: self }
+    }
+    fn root(&self) -> Option<CellRoot<'_>> {
+        if self.model.interfaces.is_empty() || self.model.ramp.is_some() { None } else { Some(CellRoot { eqn: self }) }
+    }
+    fn set_params(&mut self, _p: &V) {}
+    fn get_params(&self, _p: &mut V) {}
+}
+
+/// Integration settings.
+#[derive(Debug, Clone)]
+pub struct Settings {
+    pub rtol: f64,
+    pub atol_concentration: f64,
+    pub atol_potential: f64,
+    pub end_time: f64,
+    /// Times of the snapshots (sorted, within [0, end_time]).
+    pub output_times: Vec<f64>,
+    pub max_steps: u64,
+    /// Some(dt): explicit Euler at this step (the validator has checked the bound).
+    pub explicit_dt: Option<f64>,
+}
+
+/// A state handed to the caller.
+pub struct Snapshot<'a> {
+    /// Accepted steps so far.
+    pub step: u64,
+    pub t: f64,
+    pub y: &'a [f64],
+    pub open: &'a [bool],
+    /// A snapshot at one of the output times (false: an accepted step only).
+    pub output: bool,
+}
+
+/// What the caller wants after a step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Control {
+    Continue,
+    Stop,
+}
+
+/// Step statistics and checks of a run.
+#[derive(Debug, Clone, Default)]
+pub struct Stats {
+    pub steps: u64,
+    pub error_test_failures: u64,
+    pub newton_iterations: u64,
+    pub newton_failures: u64,
+    pub lu_setups: u64,
+    pub jacobian_evaluations: u64,
+    pub rhs_evaluations: u64,
+    /// Switch flips (root events) and so integrator restarts.
+    pub switch_events: u64,
+    pub switch_log: Vec<(f64, usize, bool)>,
+    pub min_step: f64,
+    pub max_step: f64,
+    pub t: f64,
+    pub wall_s: f64,
+    pub rhs_s: f64,
+    pub jacobian_s: f64,
+    pub lu_factor_s: f64,
+    pub lu_solve_s: f64,
+    /// Largest Poisson-row residual over accepted steps, relative to the largest sum of the
+    /// magnitudes of a row's terms ([`Model::poisson_residual`]).
+    pub max_poisson_residual: f64,
+    /// Largest relative drifts of the cation and electron inventories over accepted steps.
+    pub max_cation_drift: f64,
+    pub max_electron_drift: f64,
+    /// Largest |(eps0/e)(G0 - GN) - Q| over accepted steps, relative to the inventory
+    /// sum (p + n) dx.
+    pub max_gauss_error: f64,
+    pub min_p: f64,
+    pub stopped: bool,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SolveError {
+    #[error("the integrator failed at t = {t:e} s after {steps} steps: {why}")]
+    Integrator { t: f64, steps: u64, why: String },
+    #[error("the state is not finite at t = {t:e} s after {steps} steps")]
+    NotFinite { t: f64, steps: u64 },
+    #[error("scheme.max_steps = {0} accepted steps reached before end_time_s")]
+    MaxSteps(u64),
+}
+
+struct Monitor<'m> {
+    model: &'m Model,
+    cations0: f64,
+    electrons0: f64,
+}
+
+impl Monitor<'_> {
+    fn check(&self, y: &[f64], open: &[bool], stats: &mut Stats) -> bool {
+        if !y.iter().all(|v| v.is_finite()) {
+            return false;
+        }
+        let (r, scale) = self.model.poisson_residual(y, open);
+        stats.max_poisson_residual = stats.max_poisson_residual.max(r / scale.max(f64::MIN_POSITIVE));
+        let tot = self.model.totals(y);
+        stats.max_cation_drift = stats.max_cation_drift.max((tot.cations - self.cations0).abs() / self.cations0.abs().max(1.0));
+        stats.max_electron_drift = stats.max_electron_drift.max((tot.electrons - self.electrons0).abs() / self.electrons0.abs().max(1.0));
+        let (lhs, q, _) = self.model.gauss(y, open);
+        let inventory = tot.cations + tot.electrons + tot.anions;
+        stats.max_gauss_error = stats.max_gauss_error.max((lhs - q).abs() / inventory.max(f64::MIN_POSITIVE));
+        stats.min_p = stats.min_p.min(tot.min_p);
+        true
+    }
+}
+
+/// Integrates the cell from its consistent initial state to `settings.end_time`, calling
+/// `on_snapshot` at every accepted step (output = false) and at every output time.
+pub fn integrate(
+    model: &Model,
+    settings: &Settings,
+    on_snapshot: &mut dyn FnMut(&Snapshot<'_>) -> Control,
+) -> Result<(Vec<f64>, Vec<bool>, Stats), SolveError> {
+    LU_SETUP_S.with(|c| c.set(0.0));
+    LU_SOLVE_S.with(|c| c.set(0.0));
+    JAC_S.with(|c| c.set(0.0));
+    let wall = Instant::now();
+    let y0 = model.initial_state();
+    let open0 = model.initial_open(&y0);
+    let tot0 = model.totals(&y0);
+    let monitor = Monitor { model, cations0: tot0.cations, electrons0: tot0.electrons };
+    let mut stats = Stats { min_step: f64::INFINITY, min_p: f64::INFINITY, ..Default::default() };
+    let mut outputs = settings.output_times.iter().copied().peekable();
+    // Snapshots at t = 0.
+    while outputs.peek().is_some_and(|&t| t <= 0.0) {
+        outputs.next();
+        if on_snapshot(&Snapshot { step: 0, t: 0.0, y: &y0, open: &open0, output: true }) == Control::Stop {
+            stats.stopped = true;
+            return Ok((y0, open0, stats));
+        }
+    }
+    monitor.check(&y0, &open0, &mut stats);
+    let result = match settings.explicit_dt {
+        Some(dt) => explicit(model, settings, &monitor, y0, open0, dt, &mut outputs, &mut stats, on_snapshot),
+        None => bdf(model, settings, &monitor, y0, open0, &mut outputs, &mut stats, on_snapshot),
+    };
+    stats.wall_s = wall.elapsed().as_secs_f64();
+    stats.jacobian_s = JAC_S.with(|c| c.get());
+    stats.lu_factor_s = LU_SETUP_S.with(|c| c.get());
+    stats.lu_solve_s = LU_SOLVE_S.with(|c| c.get());
+    if stats.min_step == f64::INFINITY {
+        stats.min_step = 0.0;
+    }
+    result.map(|(y, open)| (y, open, stats))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn explicit(
+    model: &Model,
+    settings: &Settings,
+    monitor: &Monitor<'_>,
+    mut y: Vec<f64>,
+    mut open: Vec<bool>,
+    dt: f64,
+    outputs: &mut std::iter::Peekable<impl Iterator<Item = f64>>,
+    stats: &mut Stats,
+    on_snapshot: &mut dyn FnMut(&Snapshot<'_>) -> Control,
+) -> Result<(Vec<f64>, Vec<bool>), SolveError> {
+    let mut f = vec![0.0; y.len()];
+    let mut t = 0.0;
+    let mut g = vec![0.0; model.interfaces.len()];
+    while t < settings.end_time {
+        let target = outputs.peek().copied().unwrap_or(settings.end_time).min(settings.end_time);
+        let h = dt.min(target - t);
+        model.rhs(&y, &open, &mut f);
+        stats.rhs_evaluations += 1;
+        for i in 0..model.n {
+            y[3 * i] += h * f[3 * i];
+            y[3 * i + 1] += h * f[3 * i + 1];
+        }
+        model.solve_poisson(&mut y);
+        t = if target - t <= dt { target } else { t + h };
+        stats.steps += 1;
+        stats.min_step = stats.min_step.min(h);
+        stats.max_step = stats.max_step.max(h);
+        stats.t = t;
+        model.switch_functions(&y, &open, &mut g);
+        for (k, gk) in g.iter().enumerate() {
+            if *gk >= 0.0 && !open[k] || *gk < 0.0 && open[k] {
+                open[k] = !open[k];
+                stats.switch_events += 1;
+                stats.switch_log.push((t, k, open[k]));
+            }
+        }
+        if !monitor.check(&y, &open, stats) {
+            return Err(SolveError::NotFinite { t, steps: stats.steps });
+        }
+        if stats.steps > settings.max_steps {
+            return Err(SolveError::MaxSteps(settings.max_steps));
+        }
+        let is_output = outputs.peek().is_some_and(|&o| t >= o);
+        if is_output {
+            outputs.next();
+        }
+        if on_snapshot(&Snapshot { step: stats.steps, t, y: &y, open: &open, output: is_output }) == Control::Stop {
+            stats.stopped = true;
+            break;
+        }
+    }
+    Ok((y, open))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn bdf(
+    model: &Model,
+    settings: &Settings,
+    monitor: &Monitor<'_>,
+    y0: Vec<f64>,
+    open0: Vec<bool>,
+    outputs: &mut std::iter::Peekable<impl Iterator<Item = f64>>,
+    stats: &mut Stats,
+    on_snapshot: &mut dyn FnMut(&Snapshot<'_>) -> Control,
+) -> Result<(Vec<f64>, Vec<bool>), SolveError> {
+    let n = model.n;
+    let atol: Vec<f64> = (0..3 * n).map(|j| if j % 3 == 2 { settings.atol_potential } else { settings.atol_concentration }).collect();
+    let eqn = CellEqn::new(model.clone(), y0.clone(), open0);
+    let fail = |t: f64, steps: u64, e: diffsol::DiffsolError| SolveError::Integrator { t, steps, why: e.to_string() };
+    let mut problem =
+        OdeBuilder::<M>::new().rtol(settings.rtol).atol(atol).t0(0.0).h0(1e-3).build_from_eqn(eqn).map_err(|e| fail(0.0, 0, e))?;
+    problem.ode_options.max_error_test_failures = 60;
+    // Newton to well below the local error (default 0.2 of it): the Poisson rows, linear,
+    // then hold to ~1e-12 of their terms.
+    problem.ode_options.nonlinear_solver_tolerance = 1e-3;
+    let mut y: Vec<f64>;
+    let mut t = 0.0;
+    let mut next_stop = outputs.peek().copied().unwrap_or(settings.end_time).min(settings.end_time);
+    if next_stop <= 0.0 {
+        next_stop = settings.end_time;
+    }
+    'segments: loop {
+        let remaining = settings.max_steps.saturating_sub(stats.steps);
+        if remaining == 0 {
+            return Err(SolveError::MaxSteps(settings.max_steps));
+        }
+        problem.ode_options.max_number_timesteps = remaining as usize;
+        // A restart (at a switch) that landed on the next stop time to within rounding.
+        if t > 0.0 && next_stop - t <= 1e-12 * next_stop.abs() {
+            let y_now = problem.eqn.y_start.borrow().clone();
+            let open = problem.eqn.open.borrow().clone();
+            if outputs.peek().is_some_and(|&o| (o - next_stop).abs() <= 1e-12 * o.max(1e-300)) {
+                outputs.next();
+            }
+            y = y_now;
+            if on_snapshot(&Snapshot { step: stats.steps, t, y: &y, open: &open, output: true }) == Control::Stop {
+                stats.stopped = true;
+                break 'segments;
+            }
+            if t >= settings.end_time * (1.0 - 1e-12) {
+                break 'segments;
+            }
+            next_stop = outputs.peek().copied().unwrap_or(settings.end_time).min(settings.end_time);
+        }
+        let restart: (f64, Vec<f64>, usize, f64);
+        {
+            // The start is consistent by construction (phi from the exact Poisson solve), so
+            // diffsol's own initial-condition Newton is not needed: dy = f(y) on the
+            // differential rows, and phi' from the differentiated constraint (index 1:
+            // M phi' = -(e/eps0)(p' - n')), so that the first predictor is consistent too.
+            let mut state = BdfState::new(&problem, 1).map_err(|e| fail(t, stats.steps, e))?;
+            state.as_mut().dy.for_each_batch_host([], |dy, [], _| model.solve_poisson_derivative(dy));
+            let mut solver = problem.bdf_solver::<TimedLu>(state).map_err(|e| fail(t, stats.steps, e))?;
+            solver.set_stop_time(next_stop / T_UNIT).map_err(|e| fail(t, stats.steps, e))?;
+            let base = stats.clone();
+            loop {
+                let before = solver.state().t * T_UNIT;
+                let reason = solver.step().map_err(|e| fail(before, stats.steps, e))?;
+                let st = solver.get_statistics();
+                stats.steps = base.steps + st.number_of_steps as u64;
+                stats.error_test_failures = base.error_test_failures + st.number_of_error_test_failures as u64;
+                stats.newton_iterations = base.newton_iterations + st.number_of_nonlinear_solver_iterations as u64;
+                stats.newton_failures = base.newton_failures + st.number_of_nonlinear_solver_fails as u64;
+                stats.lu_setups = base.lu_setups + st.number_of_linear_solver_setups as u64;
+                match reason {
+                    OdeSolverStopReason::RootFound(tau_root, _) => {
+                        let t_root = tau_root * T_UNIT;
+                        solver.state_mut_back(tau_root).map_err(|e| fail(t_root, stats.steps, e))?;
+                        let state = solver.state();
+                        let h = state.h;
+                        // Which switch: the root function closest to zero.
+                        let yr = state.y.clone_as_vec();
+                        let open = problem.eqn.open.borrow().clone();
+                        let mut g = vec![0.0; model.interfaces.len()];
+                        model.switch_functions(&yr, &open, &mut g);
+                        let k = (0..g.len()).min_by(|&a, &b| g[a].abs().total_cmp(&g[b].abs())).unwrap_or(0);
+                        restart = (t_root, yr, k, h);
+                        break;
+                    }
+                    OdeSolverStopReason::InternalTimestep | OdeSolverStopReason::TstopReached => {
+                        let state = solver.state();
+                        let tn = state.t * T_UNIT;
+                        let h = tn - before;
+                        stats.min_step = stats.min_step.min(h.abs());
+                        stats.max_step = stats.max_step.max(h.abs());
+                        stats.t = tn;
+                        t = tn;
+                        y = state.y.clone_as_vec();
+                        let open = problem.eqn.open.borrow().clone();
+                        if !monitor.check(&y, &open, stats) {
+                            return Err(SolveError::NotFinite { t, steps: stats.steps });
+                        }
+                        let is_output = reason == OdeSolverStopReason::TstopReached;
+                        if is_output && outputs.peek().is_some_and(|&o| (o - tn).abs() <= 1e-12 * o.max(1e-300)) {
+                            outputs.next();
+                        }
+                        let control = on_snapshot(&Snapshot { step: stats.steps, t: tn, y: &y, open: &open, output: is_output });
+                        if control == Control::Stop {
+                            stats.stopped = true;
+                            break 'segments;
+                        }
+                        if is_output {
+                            if tn >= settings.end_time * (1.0 - 1e-12) {
+                                break 'segments;
+                            }
+                            next_stop = outputs.peek().copied().unwrap_or(settings.end_time).min(settings.end_time);
+                            solver.set_stop_time(next_stop / T_UNIT).map_err(|e| fail(t, stats.steps, e))?;
+                        }
+                    }
+                }
+            }
+            stats.jacobian_evaluations = problem.eqn.jac_evals.get();
+            stats.rhs_evaluations = problem.eqn.rhs_calls.get();
+            stats.rhs_s = problem.eqn.rhs_s.get();
+        }
+        let (t_root, yr, k, h) = restart;
+        {
+            let mut open = problem.eqn.open.borrow_mut();
+            open[k] = !open[k];
+            stats.switch_events += 1;
+            stats.switch_log.push((t_root, k, open[k]));
+        }
+        // Project the interpolated state onto the constraint (the Poisson rows are linear,
+        // so this moves phi by no more than the solver's tolerance).
+        let mut yr = yr;
+        model.solve_poisson(&mut yr);
+        *problem.eqn.y_start.borrow_mut() = yr;
+        t = t_root;
+        problem.t0 = t_root / T_UNIT;
+        problem.h0 = h.abs().max(1e-6);
+    }
+    stats.jacobian_evaluations = problem.eqn.jac_evals.get();
+    stats.rhs_evaluations = problem.eqn.rhs_calls.get();
+    stats.rhs_s = problem.eqn.rhs_s.get();
+    let open = problem.eqn.open.borrow().clone();
+    Ok((y, open))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{CellBoundary, CellOutput, CellScene, CellScheme, Electrolyte, Grid, Interface, Physics};
+
+    fn small_scene(cells: usize) -> CellScene {
+        CellScene {
+            schema: 1,
+            kind: "cell".into(),
+            name: "t".into(),
+            description: String::new(),
+            grid: Grid { cells },
+            physics: Physics::default(),
+            anode: None,
+            electrolyte: Electrolyte {
+                width_nm: 1.0,
+                eps_r: 10.0,
+                d_p_cm2_per_s: 1.7e-4,
+                d_n_cm2_per_s: 0.0,
+                p0_per_nm3: 6.0,
+                n0_per_nm3: 6.0,
+            },
+            cathode: None,
+            interface: Interface::default(),
+            boundary: CellBoundary { phi_left_v: 1e-3, right: "reservoir".into(), ..Default::default() },
+            scheme: CellScheme {
+                integrator: "bdf".into(),
+                face_state: "van-leer".into(),
+                end_time_s: 1e-12,
+                rtol: 1e-6,
+                atol_concentration: 1e-9,
+                atol_potential_v: 1e-9,
+                timestep_s: None,
+                max_steps: 100_000,
+            },
+            output: CellOutput::default(),
+        }
+    }
+
+    #[test]
+    fn coloured_jacobian_matches_column_by_column_differences() {
+        let model = Model::new(&small_scene(12));
+        let mut y = model.initial_state();
+        for (k, v) in y.iter_mut().enumerate() {
+            *v += 1e-3 * ((k * 7919) % 13) as f64 / 13.0;
+        }
+        let eqn = CellEqn::new(model.clone(), y.clone(), vec![]);
+        let mut vals = vec![0.0; eqn.row_idx.len()];
+        eqn.fd_jacobian(&y, &mut vals);
+        let n3 = y.len();
+        let mut f0 = vec![0.0; n3];
+        model.rhs(&y, &[], &mut f0);
+        let mut f1 = vec![0.0; n3];
+        for j in 0..n3 {
+            let h = 1e-7 * y[j].abs().max(1e-3);
+            let mut yp = y.clone();
+            yp[j] += h;
+            model.rhs(&yp, &[], &mut f1);
+            let mut dense = vec![0.0; n3];
+            for r in 0..n3 {
+                dense[r] = (f1[r] - f0[r]) / h * if r % 3 == 2 { 1.0 } else { T_UNIT };
+            }
+            for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
+                let r = eqn.row_idx[k];
+                let scale = dense[r].abs().max(vals[k].abs()).max(1.0);
+                assert!((vals[k] - dense[r]).abs() < 1e-2 * scale, "J[{r},{j}] = {} vs {}", vals[k], dense[r]);
+                dense[r] = 0.0;
+            }
+            let outside = dense.iter().map(|v| v.abs()).fold(0.0, f64::max);
+            assert!(outside < 1e-6, "column {j} has entries outside the pattern: {outside}");
+        }
+    }
+
+    struct Logger;
+    impl log::Log for Logger {
+        fn enabled(&self, _: &log::Metadata<'_>) -> bool {
+            true
+        }
+        fn log(&self, r: &log::Record<'_>) {
+            if std::env::var("CELL_LOG").is_ok() {
+                eprintln!("{} {}", r.level(), r.args());
+            }
+        }
+        fn flush(&self) {}
+    }
+
+    #[test]
+    fn integrates_a_short_debye_transient() {
+        let _ = log::set_logger(&Logger).map(|()| log::set_max_level(log::LevelFilter::Trace));
+        let s = small_scene(std::env::var("CELL_N").ok().and_then(|v| v.parse().ok()).unwrap_or(50));
+        let model = Model::new(&s);
+        let env = |k: &str, d: f64| std::env::var(k).ok().and_then(|v| v.parse().ok()).unwrap_or(d);
+        let settings = Settings {
+            rtol: env("CELL_RTOL", 1e-6),
+            atol_concentration: env("CELL_ATOLC", 1e-9),
+            atol_potential: env("CELL_ATOLP", 1e-9),
+            end_time: 1e-12,
+            output_times: vec![],
+            max_steps: 100_000,
+            explicit_dt: None,
+        };
+        let (_y, _open, stats) = integrate(&model, &settings, &mut |_| Control::Continue).unwrap_or_else(|e| panic!("{e}"));
+        assert!(stats.steps > 0);
+    }
+}

@@ -1,0 +1,385 @@
+//! `mscale run` / `mscale check` / `mscale report error-vs-time` of a cell scene
+//! (`kind = "cell"`): the 1D Poisson-Nernst-Planck full cell of the `mscale-cell` crate.
+//!
+//! The scene file goes through the same `--set` overrides as every scene
+//! ([`scene::apply_overrides`]) and is then handed to the cell crate's own typed scene; its
+//! errors become [`SceneError`]s (exit code 2). A run writes, like an MPM run, its directory with
+//! `scene.resolved.toml`, `summary.json` (status, wall_seconds, steps, state_digest, totals,
+//! step statistics, time breakdown, provenance), `log.txt`-free progress on stderr (a bar on a
+//! terminal), and `profiles/profile_<step>.csv` (+ PNG) at the scene's output times and
+//! `profiles/profile_final.csv`.
+
+use crate::output::{self, Series};
+use crate::report::{self, Sweep};
+use crate::run::{Outcome, RunOptions};
+use crate::scene::{self, SceneError};
+use anyhow::{Context, Result};
+use mscale_cell::solver::{self, Control, Settings, Snapshot, Stats};
+use mscale_cell::{CellScene, Model};
+use serde_json::{Value, json};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+/// A cell scene read from a file.
+#[derive(Debug, Clone)]
+pub struct LoadedCell {
+    pub scene: CellScene,
+    pub path: PathBuf,
+    pub text: String,
+}
+
+/// Whether the file is a cell scene (`kind = "cell"`); false when it cannot be read or parsed
+/// (the MPM loader then reports the problem).
+pub fn is_cell_scene(path: &Path) -> bool {
+    std::fs::read_to_string(path).is_ok_and(|t| mscale_cell::scene::is_cell_text(&t))
+}
+
+/// Reads, overrides, parses and validates a cell scene.
+pub fn load(path: &Path, sets: &[String]) -> Result<LoadedCell, SceneError> {
+    let file = path.display().to_string();
+    let bad =
+        |problem: String| SceneError { file: file.clone(), location: String::new(), key: String::new(), value: String::new(), problem };
+    let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read the scene file: {e}")))?;
+    let (text, overrides): (String, BTreeMap<String, String>) = scene::apply_overrides(&file, &text, sets)?;
+    let default_name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "cell".into());
+    let scene = mscale_cell::scene::parse(&text, &overrides, &default_name).map_err(|e| SceneError {
+        file: file.clone(),
+        location: e.location,
+        key: e.key,
+        value: e.value,
+        problem: e.problem,
+    })?;
+    Ok(LoadedCell { scene, path: path.to_path_buf(), text })
+}
+
+/// `mscale check`: the resolved scene and the size of the work.
+pub fn check_text(loaded: &LoadedCell) -> String {
+    let s = &loaded.scene;
+    let model = Model::new(s);
+    format!(
+        "{}\n# work\n# cells = {}\n# unknowns = {}\n# dx_nm = {:e}\n# interfaces = {}\n# explicit_euler_bound_s = {:.3e}\n",
+        s.to_toml(),
+        model.n,
+        model.len(),
+        model.dx,
+        model.interfaces.len(),
+        mscale_cell::model::explicit_bound(s)
+    )
+}
+
+fn finite_or_null(v: f64) -> Value {
+    if v.is_finite() { json!(v) } else { Value::Null }
+}
+
+/// The profile CSV of a state: x_nm,p_per_nm3,n_per_nm3,phi_v,charge_e_per_nm3.
+pub fn profile_csv(model: &Model, y: &[f64]) -> String {
+    let mut out = String::from("x_nm,p_per_nm3,n_per_nm3,phi_v,charge_e_per_nm3\n");
+    for i in 0..model.n {
+        let (p, n, phi) = (y[3 * i], y[3 * i + 1], y[3 * i + 2]);
+        out.push_str(&format!("{:e},{:e},{:e},{:e},{:e}\n", model.x[i], p, n, phi, p - n));
+    }
+    out
+}
+
+fn write_profile(model: &Model, y: &[f64], t: f64, dir: &Path, stem: &str, plots: bool) -> Result<()> {
+    output::write_atomic(&dir.join(format!("{stem}.csv")), profile_csv(model, y).as_bytes())?;
+    if plots {
+        let pts = |k: usize| -> Vec<(f64, f64)> { (0..model.n).map(|i| (model.x[i], y[3 * i + k])).collect() };
+        let charge: Vec<(f64, f64)> = (0..model.n).map(|i| (model.x[i], y[3 * i] - y[3 * i + 1])).collect();
+        output::plot_profile(
+            &dir.join(format!("{stem}.png")),
+            &format!("concentrations at t = {t:.4e} s"),
+            "x (nm)",
+            "1/nm^3",
+            &[
+                Series { label: "p (cations)", points: pts(0), line: true },
+                Series { label: "n (electrons | anions)", points: pts(1), line: true },
+                Series { label: "p - n (e/nm^3)", points: charge, line: true },
+            ],
+        )?;
+        output::plot_profile(
+            &dir.join(format!("{stem}_phi.png")),
+            &format!("potential at t = {t:.4e} s"),
+            "x (nm)",
+            "phi (V)",
+            &[Series { label: "phi", points: pts(2), line: true }],
+        )?;
+    }
+    Ok(())
+}
+
+fn totals_json(model: &Model, y: &[f64]) -> Value {
+    let t = model.totals(y);
+    json!({
+        "cations_per_nm2": t.cations,
+        "electrons_per_nm2": t.electrons,
+        "anions_per_nm2": t.anions,
+        "cathode_electrons_per_nm2": t.cathode_electrons,
+        "net_charge_e_per_nm2": t.charge,
+        "min_p_per_nm3": t.min_p,
+    })
+}
+
+/// Default run directory: `runs/<scene>-<UTC timestamp>` (as for MPM scenes).
+pub fn default_out_dir(scene: &CellScene) -> PathBuf {
+    crate::run::default_out_dir_named(&scene.name)
+}
+
+/// Runs a cell scene into `opts.out`.
+pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
+    let start = Instant::now();
+    if opts.resume || opts.checkpoint_every > 0 {
+        return Err(anyhow::Error::new(SceneError {
+            file: loaded.path.display().to_string(),
+            location: String::new(),
+            key: String::new(),
+            value: String::new(),
+            problem: "a cell run has no checkpoints yet (--checkpoint-every / --resume); it restarts from its scene".into(),
+        }));
+    }
+    let scene = &loaded.scene;
+    let out = &opts.out;
+    let profiles = out.join("profiles");
+    std::fs::create_dir_all(&profiles).with_context(|| format!("cannot create {}", profiles.display()))?;
+    output::write_atomic(&out.join("scene.resolved.toml"), scene.to_toml().as_bytes())?;
+    let model = Model::new(scene);
+    let settings = Settings {
+        rtol: scene.scheme.rtol,
+        atol_concentration: scene.scheme.atol_concentration,
+        atol_potential: scene.scheme.atol_potential_v,
+        end_time: scene.scheme.end_time_s,
+        output_times: scene.output.times_s.clone(),
+        max_steps: scene.scheme.max_steps,
+        explicit_dt: if scene.scheme.integrator == "explicit-euler" { scene.scheme.timestep_s } else { None },
+    };
+    let y_init = model.initial_state();
+    let end = settings.end_time;
+    let bar = crate::run::progress_bar(opts.progress_bar, 1000, end);
+    let mut last_log = Instant::now();
+    let mut write_error: Option<anyhow::Error> = None;
+    let mut profile_index = Vec::new();
+    let mut output_s = 0.0;
+    let setup_s = start.elapsed().as_secs_f64();
+    let result = {
+        let mut on_snapshot = |s: &Snapshot<'_>| -> Control {
+            if s.output {
+                let t0 = Instant::now();
+                let stem = format!("profile_{}", s.step);
+                if let Err(e) = write_profile(&model, s.y, s.t, &profiles, &stem, scene.output.plots) {
+                    write_error = Some(e);
+                    return Control::Stop;
+                }
+                profile_index.push(format!("{},{:e},profiles/{stem}.csv", s.step, s.t));
+                output_s += t0.elapsed().as_secs_f64();
+            }
+            let permille = ((s.t / end) * 1000.0).clamp(0.0, 1000.0) as u64;
+            if let Some(b) = &bar {
+                b.set_position(permille);
+                b.set_message(format!("t = {:.3e} / {end:e} s, step {}", s.t, s.step));
+            } else if last_log.elapsed().as_secs_f64() > 10.0 {
+                last_log = Instant::now();
+                tracing::info!("step {} t = {:.4e} / {end:e} s", s.step, s.t);
+            }
+            if opts.cancel.as_ref().is_some_and(|c| c.load(Ordering::SeqCst)) {
+                return Control::Stop;
+            }
+            Control::Continue
+        };
+        solver::integrate(&model, &settings, &mut on_snapshot)
+    };
+    if let Some(b) = &bar {
+        b.finish_and_clear();
+    }
+    if let Some(e) = write_error {
+        return Err(e);
+    }
+    let wall = start.elapsed().as_secs_f64();
+    let (y, status, failure, stats) = match result {
+        Ok((y, _open, stats)) => {
+            let status = if stats.stopped { "cancelled" } else { "completed" };
+            (y, status, None, stats)
+        }
+        Err(e) => (y_init.clone(), "failed", Some(e.to_string()), Stats::default()),
+    };
+    let t_out = Instant::now();
+    write_profile(&model, &y, stats.t, &profiles, "profile_final", scene.output.plots)?;
+    let mut index = String::from("step,time_s,file\n");
+    for l in &profile_index {
+        index.push_str(l);
+        index.push('\n');
+    }
+    output::write_atomic(&profiles.join("index.csv"), index.as_bytes())?;
+    output_s += t_out.elapsed().as_secs_f64();
+    let summary = summary_json(loaded, opts, &model, &y_init, &y, &stats, status, failure.as_deref(), wall, setup_s, output_s)?;
+    output::write_atomic(&out.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    Ok(match (failure, stats.stopped) {
+        (Some(why), _) => Outcome::Failed(summary, why),
+        (None, true) => Outcome::Failed(summary, "stopped on request (a cell run keeps no checkpoint; rerun it)".into()),
+        (None, false) => Outcome::Completed(summary),
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn summary_json(
+    loaded: &LoadedCell,
+    opts: &RunOptions,
+    model: &Model,
+    y_init: &[f64],
+    y: &[f64],
+    stats: &Stats,
+    status: &str,
+    failure: Option<&str>,
+    wall: f64,
+    setup_s: f64,
+    output_s: f64,
+) -> Result<Value> {
+    let scene = &loaded.scene;
+    let (t0, t1) = (model.totals(y_init), model.totals(y));
+    let rel = |a: f64, b: f64| finite_or_null((b - a).abs() / a.abs().max(1.0));
+    let (gauss_lhs, gauss_q, field0) = model.gauss(y, &[]);
+    let mut inputs = serde_json::Map::new();
+    inputs.insert(loaded.path.display().to_string(), json!(output::sha256_file(&loaded.path)?));
+    let solver_s = stats.wall_s;
+    let other = (solver_s - stats.rhs_s - stats.jacobian_s - stats.lu_factor_s - stats.lu_solve_s).max(0.0);
+    // The rhs inside the Jacobian's differences is counted as Jacobian time.
+    Ok(json!({
+        "status": status,
+        "error": failure,
+        "scene": scene.name,
+        "kind": "cell",
+        "wall_seconds": wall,
+        "steps": stats.steps,
+        "simulated_time_s": stats.t,
+        "end_time_s": scene.scheme.end_time_s,
+        "cells": model.n,
+        "unknowns": model.len(),
+        "dx_nm": model.dx,
+        "integrator": if scene.scheme.integrator == "bdf" { "diffsol BDF (variable order 1-5), faer sparse LU" } else { "explicit Euler" },
+        "face_state": scene.scheme.face_state,
+        "totals": {
+            "initial": totals_json(model, y_init),
+            "final": totals_json(model, y),
+        },
+        "conservation": {
+            "cation_drift": rel(t0.cations, t1.cations),
+            "electron_drift": rel(t0.electrons, t1.electrons),
+            "max_cation_drift": finite_or_null(stats.max_cation_drift),
+            "max_electron_drift": finite_or_null(stats.max_electron_drift),
+        },
+        "checks": {
+            "max_poisson_residual_relative": finite_or_null(stats.max_poisson_residual),
+            "max_gauss_error_relative": finite_or_null(stats.max_gauss_error),
+            "gauss_final": { "eps0_over_e_times_field_jump": finite_or_null(gauss_lhs), "net_charge": finite_or_null(gauss_q), "field_at_x0_v_per_nm": finite_or_null(field0) },
+            "min_p_per_nm3": finite_or_null(stats.min_p),
+        },
+        "step_statistics": {
+            "accepted_steps": stats.steps,
+            "error_test_failures": stats.error_test_failures,
+            "newton_iterations": stats.newton_iterations,
+            "newton_failures": stats.newton_failures,
+            "lu_setups": stats.lu_setups,
+            "jacobian_evaluations": stats.jacobian_evaluations,
+            "rhs_evaluations": stats.rhs_evaluations,
+            "switch_events": stats.switch_events,
+            "switches": stats.switch_log.iter().map(|(t, k, open)| json!({"t_s": t, "interface": k, "open": open})).take(200).collect::<Vec<_>>(),
+            "min_step_s": finite_or_null(stats.min_step),
+            "max_step_s": finite_or_null(stats.max_step),
+        },
+        "time_breakdown_s": {
+            "setup": setup_s,
+            "solver": solver_s,
+            "rhs": stats.rhs_s - 0.0,
+            "jacobian": stats.jacobian_s,
+            "lu_factorisation": stats.lu_factor_s,
+            "lu_solve": stats.lu_solve_s,
+            "solver_other": other,
+            "output": output_s,
+        },
+        "provenance": {
+            "program": "mscale",
+            "version": env!("CARGO_PKG_VERSION"),
+            "commit": option_env!("MSCALE_COMMIT").unwrap_or("unknown"),
+            "precision": "f64",
+            "inputs": inputs,
+        },
+        "command_line": opts.command_line,
+        "state_digest": mscale_cell::state_digest(stats.steps, stats.t, y),
+    }))
+}
+
+/// `mscale report error-vs-time` of a cell scene: one run per combination of the sweeps; the
+/// error of each run is the thesis's (8.85), sqrt(sum (f_i - f(x_i))^2 / N), of phi and of
+/// p - n at the final time against the run with the most cells (interpolated linearly to the
+/// run's cell centres). Writes report.csv and report.png (error against cells).
+pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: &Path) -> Result<usize, report::ReportError> {
+    let combos = report::combinations(sweeps);
+    let mut runs = Vec::new();
+    for (k, combo) in combos.iter().enumerate() {
+        let mut all = sets.to_vec();
+        all.extend(combo.iter().cloned());
+        let loaded = load(scene_path, &all).map_err(report::ReportError::Scene)?;
+        let dir = out.join(format!("run{k}"));
+        let mut opts = RunOptions::new(dir.clone(), vec!["mscale".into(), "report".into()]);
+        opts.progress_bar = false;
+        let summary = match run(&loaded, &opts).map_err(report::ReportError::Io)? {
+            Outcome::Completed(s) => s,
+            Outcome::Failed(_, why) => return Err(report::ReportError::Io(anyhow::anyhow!("run {k} ({}) failed: {why}", combo.join(" ")))),
+            Outcome::Cancelled { .. } => return Err(report::ReportError::Io(anyhow::anyhow!("run {k} cancelled"))),
+        };
+        let rows = report::read_csv(&dir.join("profiles/profile_final.csv")).map_err(report::ReportError::Io)?;
+        let prof: Vec<[f64; 5]> = rows
+            .iter()
+            .skip(1)
+            .map(|r| {
+                let mut v = [0.0; 5];
+                for (i, x) in r.iter().take(5).enumerate() {
+                    v[i] = x.parse().unwrap_or(f64::NAN);
+                }
+                v
+            })
+            .collect();
+        runs.push((combo.join(" "), summary, prof));
+    }
+    let finest = runs.iter().enumerate().max_by_key(|(_, r)| r.1["cells"].as_u64().unwrap_or(0)).map(|(i, _)| i).unwrap_or(0);
+    let reference = runs[finest].2.clone();
+    let interp = |x: f64, col: usize| -> f64 {
+        let pts: Vec<(f64, f64)> = reference.iter().map(|r| (r[0], r[col])).collect();
+        report::interpolate(&pts, x)
+    };
+    let mut csv = String::from("run,settings,cells,wall_seconds,steps,phi_l2_error_v,charge_l2_error_e_per_nm3\n");
+    let (mut phi_series, mut charge_series) = (Vec::new(), Vec::new());
+    for (k, (settings, summary, prof)) in runs.iter().enumerate() {
+        let n = prof.len().max(1) as f64;
+        let err = |col: usize| (prof.iter().map(|r| (r[col] - interp(r[0], col)).powi(2)).sum::<f64>() / n).sqrt();
+        let (e_phi, e_q) = if k == finest { (f64::NAN, f64::NAN) } else { (err(3), err(4)) };
+        let cells = summary["cells"].as_u64().unwrap_or(0);
+        csv.push_str(&format!(
+            "{k},{settings},{cells},{},{},{},{}\n",
+            summary["wall_seconds"].as_f64().unwrap_or(f64::NAN),
+            summary["steps"],
+            if e_phi.is_finite() { format!("{e_phi:e}") } else { "reference".into() },
+            if e_q.is_finite() { format!("{e_q:e}") } else { "reference".into() },
+        ));
+        if e_phi.is_finite() && e_phi > 0.0 {
+            phi_series.push((cells as f64, e_phi));
+        }
+        if e_q.is_finite() && e_q > 0.0 {
+            charge_series.push((cells as f64, e_q));
+        }
+    }
+    output::write_atomic(&out.join("report.csv"), csv.as_bytes()).map_err(report::ReportError::Io)?;
+    output::plot_loglog(
+        &out.join("report.png"),
+        "L2 error (8.85) against the finest run",
+        "cells",
+        "error",
+        &[
+            Series { label: "phi (V)", points: phi_series, line: true },
+            Series { label: "p - n (e/nm^3)", points: charge_series, line: true },
+        ],
+    )
+    .map_err(report::ReportError::Io)?;
+    Ok(runs.len())
+}
