@@ -7,6 +7,7 @@ pub mod debye;
 pub mod model;
 pub mod scene;
 pub mod solver;
+pub mod units;
 
 pub use model::Model;
 pub use scene::{CellScene, CellSceneError};

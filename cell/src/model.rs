@@ -8,39 +8,9 @@
 //! flux in +x through face f (face f lies between cells f-1 and f) and `G[f] = eps_r dphi/dx`
 //! there.
 
-use crate::scene::CellScene;
+use crate::scene::{CellScene, FaceState, Switch};
 
-/// Elementary charge (C), Boltzmann's constant (J/K) and the vacuum permittivity
-/// (C/(V nm)), as in the thesis (8.6).
-pub const E_CHARGE: f64 = 1.602e-19;
-pub const K_B: f64 = 1.38e-23;
-pub const EPS0: f64 = 8.854e-21;
-
-/// 1 cm^2/s in nm^2/s.
-pub const CM2_PER_S: f64 = 1e14;
-
-/// How the drift's face concentration is chosen.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FaceState {
-    /// MUSCL states with the van Leer limiter (8.65)-(8.67), upwinded by the drift velocity.
-    VanLeer,
-    /// The upwind cell's value (first order).
-    Upwind,
-    /// The mean of the two cells (what the thesis's no-limiter runs do; it oscillates once
-    /// a cell's potential drop exceeds 2 kT/e).
-    Central,
-}
-
-impl FaceState {
-    pub fn parse(s: &str) -> Option<FaceState> {
-        match s {
-            "van-leer" => Some(FaceState::VanLeer),
-            "upwind" => Some(FaceState::Upwind),
-            "central" => Some(FaceState::Central),
-            _ => None,
-        }
-    }
-}
+pub use crate::units::{CM2_PER_S, E_CHARGE, EPS0, K_B};
 
 /// Material of a cell.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -111,35 +81,6 @@ pub struct Faces {
     pub f_p: Vec<f64>,
     pub f_n: Vec<f64>,
     pub g: Vec<f64>,
-}
-
-/// The stiffest stable explicit-Euler step of a scene (s): per region the diffusion bound
-/// dx^2/(2D) and the dielectric relaxation time lambda^2/D = eps eps0 kT/(e^2 D c) combined as
-/// 1/(1/a + 1/b), and in an electrode also eps eps0/sigma.
-pub fn explicit_bound(scene: &CellScene) -> f64 {
-    let dx = scene.length_nm() / scene.grid.cells as f64;
-    let kt = K_B * scene.physics.temperature_k;
-    let mut bound = f64::INFINITY;
-    let mut region = |eps_r: f64, d: f64, c: f64, sigma_si: Option<f64>| {
-        let mut rate = 2.0 * d / (dx * dx);
-        if c > 0.0 {
-            let lambda2 = eps_r * EPS0 * kt / (E_CHARGE * E_CHARGE * c);
-            rate += d / lambda2;
-        }
-        if let Some(s) = sigma_si {
-            // sigma/e per V nm s, over eps_r eps0 (C/(V nm)) times e: the relaxation rate (1/s).
-            rate = rate.max(s / (eps_r * 8.854e-12));
-        }
-        if rate > 0.0 {
-            bound = bound.min(1.0 / rate);
-        }
-    };
-    let el = &scene.electrolyte;
-    region(el.eps_r, (el.d_p_cm2_per_s.max(el.d_n_cm2_per_s)) * CM2_PER_S, el.p0_per_nm3.max(el.n0_per_nm3), None);
-    for e in [&scene.anode, &scene.cathode].into_iter().flatten() {
-        region(e.eps_r, e.d_p_cm2_per_s * CM2_PER_S, e.p0_per_nm3.max(e.n0_per_nm3), Some(e.sigma_s_per_m));
-    }
-    bound
 }
 
 /// The van Leer limited slope of a cell from its one-sided differences a, b:
@@ -223,11 +164,11 @@ impl Model {
             interfaces,
             vt,
             k_poisson: EPS0 / E_CHARGE,
-            face_state: FaceState::parse(&scene.scheme.face_state).unwrap_or(FaceState::VanLeer),
+            face_state: scene.scheme.face_state,
             alpha: scene.interface.alpha,
             threshold: scene.interface.threshold_v,
             hysteresis: scene.interface.hysteresis_v,
-            ramp: (scene.interface.switch == "ramp").then_some(scene.interface.ramp_width_v),
+            ramp: (scene.interface.switch == Switch::Ramp).then_some(scene.interface.ramp_width_v),
             phi_left: scene.boundary.phi_left_v,
             electron_flux,
             right,

@@ -711,8 +711,8 @@ mod tests {
             interface: Interface::default(),
             boundary: CellBoundary { phi_left_v: 1e-3, right: "reservoir".into(), ..Default::default() },
             scheme: CellScheme {
-                integrator: "bdf".into(),
-                face_state: "van-leer".into(),
+                integrator: crate::scene::Integrator::Bdf,
+                face_state: crate::scene::FaceState::VanLeer,
                 end_time_s: 1e-12,
                 rtol: 1e-6,
                 atol_concentration: 1e-9,

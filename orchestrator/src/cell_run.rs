@@ -65,7 +65,7 @@ pub fn check_text(loaded: &LoadedCell) -> String {
         model.len(),
         model.dx,
         model.interfaces.len(),
-        mscale_cell::model::explicit_bound(s)
+        s.explicit_bound()
     )
 }
 
@@ -152,7 +152,7 @@ pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
         end_time: scene.scheme.end_time_s,
         output_times: scene.output.times_s.clone(),
         max_steps: scene.scheme.max_steps,
-        explicit_dt: if scene.scheme.integrator == "explicit-euler" { scene.scheme.timestep_s } else { None },
+        explicit_dt: if scene.scheme.integrator == mscale_cell::scene::Integrator::ExplicitEuler { scene.scheme.timestep_s } else { None },
     };
     let y_init = model.initial_state();
     let end = settings.end_time;
@@ -256,7 +256,7 @@ fn summary_json(
         "cells": model.n,
         "unknowns": model.len(),
         "dx_nm": model.dx,
-        "integrator": if scene.scheme.integrator == "bdf" { "diffsol BDF (variable order 1-5), faer sparse LU" } else { "explicit Euler" },
+        "integrator": if scene.scheme.integrator == mscale_cell::scene::Integrator::Bdf { "diffsol BDF (variable order 1-5), faer sparse LU" } else { "explicit Euler" },
         "face_state": scene.scheme.face_state,
         "totals": {
             "initial": totals_json(model, y_init),

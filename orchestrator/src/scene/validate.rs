@@ -349,7 +349,11 @@ impl Scene {
                 }
                 if let coupling::Reuse::Tolerance { tolerance_gpa, max_interval } = md.reuse {
                     if !(tolerance_gpa.is_finite() && tolerance_gpa >= 0.0) {
-                        return Err(loc.err(&k("material.reuse.tolerance"), tolerance_gpa, "the tolerance (GPa) must be a finite number >= 0 (0: never skip a box)"));
+                        return Err(loc.err(
+                            &k("material.reuse.tolerance"),
+                            tolerance_gpa,
+                            "the tolerance (GPa) must be a finite number >= 0 (0: never skip a box)",
+                        ));
                     }
                     if !(1..=100_000).contains(&max_interval) {
                         return Err(loc.err(&k("material.reuse.max_interval"), max_interval, "allowed: 1 to 100000 continuum steps"));
