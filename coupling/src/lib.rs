@@ -151,7 +151,10 @@ impl MdShared {
         if work.is_empty() {
             return Ok(());
         }
-        let results = self.pool.step(step, &work).map_err(|e| ClosureError::Engine { context: format!("MD at continuum step {step}"), source: Box::new(e) })?;
+        let results = self
+            .pool
+            .step(step, &work)
+            .map_err(|e| ClosureError::Engine { context: format!("MD at continuum step {step}"), source: Box::new(e) })?;
         self.results.extend(results.into_iter().map(|r| (r.id, r)));
         Ok(())
     }
@@ -209,7 +212,9 @@ impl MdClosure {
         s.pool.open(&potential, specs).map_err(|e| ClosureError::Engine { context: "opening MD boxes".into(), source: Box::new(e) })?;
         if settings.reuse.exact_sharing() {
             let ids: Vec<u64> = specs.iter().map(|b| b.id).collect();
-            s.pool.enable_reuse(&ids).map_err(|e| ClosureError::Engine { context: "sharing identical MD boxes".into(), source: Box::new(e) })?;
+            s.pool
+                .enable_reuse(&ids)
+                .map_err(|e| ClosureError::Engine { context: "sharing identical MD boxes".into(), source: Box::new(e) })?;
         }
         let body = s.bodies.len();
         let first = specs.first().map_or(0, |b| b.id);

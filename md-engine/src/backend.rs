@@ -460,8 +460,7 @@ impl Engine {
             jobs.push((view, w, o));
         }
         // Every box runs; the first diverged box (in work order) is the call's error.
-        let done =
-            spread.map(jobs, |(mut view, w, o)| kernel::with_simd(path, || advance_box(pot, masses, &mut view, w).map(|r| *o = r)));
+        let done = spread.map(jobs, |(mut view, w, o)| kernel::with_simd(path, || advance_box(pot, masses, &mut view, w).map(|r| *o = r)));
         done.into_iter().collect()
     }
 
