@@ -26,7 +26,9 @@ const HEADER: &str = "\
 # regenerate: MSCALE_BLESS=1 cargo test -p mscale-tests --test golden_digests
 # (rewrites digests and steps; add a new scene as an entry with `file` and `set`, then bless)
 # One digest per scene holds on every MD kernel path (MSCALE_MD_SIMD=scalar|avx2|avx512): the
-# paths give bitwise the same results (md-engine/src/simd.rs), so a digest never depends on the CPU.
+# paths give bitwise the same results (md-engine/src/simd.rs), so an MD digest does not depend on
+# the CPU. The cell scenes' (scenes/pnp-*.toml) may: faer's sparse LU picks its SIMD kernels at
+# run time, so on another CPU type re-bless them and say so.
 ";
 
 #[derive(Debug, Clone, serde::Deserialize)]
