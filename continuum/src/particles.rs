@@ -121,6 +121,19 @@ impl<const D: usize> Particles<D> {
 }
 
 impl<const D: usize> Particles<D> {
+    /// The closure batch of the points in `range` (one body) for continuum step `step`.
+    pub fn batch(&mut self, step: u64, range: Range<usize>) -> crate::closure::ClosureBatch<'_> {
+        crate::closure::ClosureBatch {
+            step,
+            first: range.start,
+            vel_grad: &self.vel_grad[range.clone()],
+            def_grad: &self.def_grad[range.clone()],
+            mass: &self.mass[range.clone()],
+            volume: &self.volume[range.clone()],
+            stress: &mut self.stress[range],
+        }
+    }
+
     /// Identity deformation gradient (for callers building points by hand).
     pub fn identity() -> Mat3 {
         IDENTITY

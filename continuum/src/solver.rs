@@ -4,7 +4,7 @@
 //! is reduced in a fixed chunk order, so a run gives bitwise the same state for any number of
 //! threads.
 
-use crate::closure::{Closure, ClosureBatch, ClosureError};
+use crate::closure::{Closure, ClosureError};
 use crate::ddmp;
 use crate::diagnostics::Totals;
 use crate::grid::Grid;
@@ -208,16 +208,7 @@ impl<const D: usize> Simulation<D> {
         };
         for prepare in [true, false] {
             for (b, range) in sim.body_ranges.clone().into_iter().enumerate() {
-                let pts = &mut sim.points;
-                let batch = ClosureBatch {
-                    step: 0,
-                    first: range.start,
-                    vel_grad: &pts.vel_grad[range.clone()],
-                    def_grad: &pts.def_grad[range.clone()],
-                    mass: &pts.mass[range.clone()],
-                    volume: &pts.volume[range.clone()],
-                    stress: &mut pts.stress[range.clone()],
-                };
+                let batch = sim.points.batch(0, range);
                 let closure = &mut sim.closures[b];
                 let r = if prepare { closure.prepare(&batch, 0.0) } else { closure.initialize(batch) };
                 r.map_err(|source| SolverError::Closure { step: 0, source })?;
@@ -555,15 +546,7 @@ impl<const D: usize> Simulation<D> {
         // one call for all their bodies; then each is advanced.
         for prepare in [true, false] {
             for (b, range) in self.body_ranges.iter().enumerate() {
-                let batch = ClosureBatch {
-                    step,
-                    first: range.start,
-                    vel_grad: &pts.vel_grad[range.clone()],
-                    def_grad: &pts.def_grad[range.clone()],
-                    mass: &pts.mass[range.clone()],
-                    volume: &pts.volume[range.clone()],
-                    stress: &mut pts.stress[range.clone()],
-                };
+                let batch = pts.batch(step, range.clone());
                 let closure = &mut self.closures[b];
                 if prepare {
                     closure.prepare(&batch, dt).map_err(|source| SolverError::Closure { step, source })?;

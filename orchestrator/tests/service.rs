@@ -428,53 +428,10 @@ fn a_non_loopback_listen_address_is_refused_without_tls() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("refusing to listen on 0.0.0.0:0 without TLS"), "{}", text(&o));
 }
 
-/// A certificate authority and a server certificate for localhost and 127.0.0.1 (openssl).
-fn certificates(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
-    let run = |args: &[&str]| {
-        let o = Command::new("openssl").args(args).current_dir(dir).output().expect("openssl is needed for the TLS test");
-        assert!(o.status.success(), "openssl {args:?}: {}", text(&o));
-    };
-    run(&[
-        "req",
-        "-x509",
-        "-newkey",
-        "rsa:2048",
-        "-nodes",
-        "-keyout",
-        "ca.key",
-        "-out",
-        "ca.pem",
-        "-days",
-        "2",
-        "-subj",
-        "/CN=mscale test CA",
-    ]);
-    run(&["req", "-newkey", "rsa:2048", "-nodes", "-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=localhost"]);
-    std::fs::write(dir.join("san.ext"), "subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n").unwrap();
-    run(&[
-        "x509",
-        "-req",
-        "-in",
-        "server.csr",
-        "-CA",
-        "ca.pem",
-        "-CAkey",
-        "ca.key",
-        "-CAcreateserial",
-        "-out",
-        "server.pem",
-        "-days",
-        "2",
-        "-extfile",
-        "san.ext",
-    ]);
-    (dir.join("ca.pem"), dir.join("server.pem"), dir.join("server.key"))
-}
-
 #[test]
 fn tls_serves_clients_that_trust_its_authority() {
     let (tmp, token) = setup();
-    let (ca, cert, key) = certificates(tmp.path());
+    let (ca, cert, key) = mscale_testkit::tls_certificates(tmp.path());
     let log = tmp.path().join("serve.log");
     let mut cmd = Command::new(bin());
     cmd.args([
@@ -500,7 +457,7 @@ fn tls_serves_clients_that_trust_its_authority() {
     assert!(!plain.status.success(), "a plain client talked to the TLS server: {}", text(&plain));
     let other_ca = tmp.path().join("other");
     std::fs::create_dir_all(&other_ca).unwrap();
-    let (other, _, _) = certificates(&other_ca);
+    let (other, _, _) = mscale_testkit::tls_certificates(&other_ca);
     let wrong = server.client(&["health", "--ca-file", other.to_str().unwrap()]);
     assert!(!wrong.status.success(), "a client trusting another authority connected: {}", text(&wrong));
 }
