@@ -357,6 +357,27 @@ pub struct Settings {
     pub max_steps: u64,
     /// Some(dt): explicit Euler at this step (the validator has checked the bound).
     pub explicit_dt: Option<f64>,
+    /// Continue from this restart point (a checkpoint) instead of the initial state.
+    pub start: Option<Restart>,
+}
+
+/// A point from which the integration continues bit for bit as the run that never stopped:
+/// the BDF integrator restarts (order 1, fresh Jacobian and factorisation) at every output time
+/// and at every switch, from exactly the state, switch states and first step saved here, and
+/// nothing else carries over a restart. Explicit Euler has a restart point at every output
+/// time. A checkpoint of a cell run is one of these.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Restart {
+    /// Time (s).
+    pub t: f64,
+    pub y: Vec<f64>,
+    pub open: Vec<bool>,
+    /// First step of the next segment (integrator units, [`T_UNIT`]).
+    pub h0: f64,
+    /// Output times passed (the next segment stops at the following one).
+    pub outputs_done: usize,
+    /// The statistics and checks up to here.
+    pub stats: Stats,
 }
 
 /// A state handed to the caller.
@@ -368,6 +389,8 @@ pub struct Snapshot<'a> {
     pub open: &'a [bool],
     /// A snapshot at one of the output times (false: an accepted step only).
     pub output: bool,
+    /// Set where the integration restarts (see [`Restart`]): a checkpoint may be taken here.
+    pub restart: Option<&'a Restart>,
 }
 
 /// What the caller wants after a step.
@@ -378,7 +401,7 @@ pub enum Control {
 }
 
 /// Step statistics and checks of a run.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Stats {
     pub steps: u64,
     pub error_test_failures: u64,
@@ -390,6 +413,8 @@ pub struct Stats {
     /// Switch flips (root events) and so integrator restarts.
     pub switch_events: u64,
     pub switch_log: Vec<(f64, usize, bool)>,
+    /// Starts at infinity (saved as null).
+    #[serde(with = "infinite_as_null")]
     pub min_step: f64,
     pub max_step: f64,
     pub t: f64,
@@ -407,8 +432,21 @@ pub struct Stats {
     /// Largest |(eps0/e)(G0 - GN) - Q| over accepted steps, relative to the inventory
     /// sum (p + n) dx.
     pub max_gauss_error: f64,
+    /// Starts at infinity (saved as null).
+    #[serde(with = "infinite_as_null")]
     pub min_p: f64,
     pub stopped: bool,
+}
+
+/// +infinity, the start of a running minimum, as JSON's null (JSON has no infinity).
+mod infinite_as_null {
+    use serde::{Deserialize, Deserializer, Serializer};
+    pub fn serialize<S: Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+        if v.is_finite() { s.serialize_some(v) } else { s.serialize_none() }
+    }
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::INFINITY))
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -445,8 +483,9 @@ impl Monitor<'_> {
     }
 }
 
-/// Integrates the cell from its consistent initial state to `settings.end_time`, calling
-/// `on_snapshot` at every accepted step (output = false) and at every output time.
+/// Integrates the cell from its consistent initial state (or from `settings.start`) to
+/// `settings.end_time`, calling `on_snapshot` at every accepted step (output = false), at every
+/// output time and at every restart point.
 pub fn integrate(
     model: &Model,
     settings: &Settings,
@@ -457,24 +496,44 @@ pub fn integrate(
     JAC_S.with(|c| c.set(0.0));
     let wall = Instant::now();
     let y0 = model.initial_state();
-    let open0 = model.initial_open(&y0);
     let tot0 = model.totals(&y0);
     let monitor = Monitor { model, cations0: tot0.cations, electrons0: tot0.electrons };
-    let mut stats = Stats { min_step: f64::INFINITY, min_p: f64::INFINITY, ..Default::default() };
     let mut outputs = settings.output_times.iter().copied().peekable();
-    // Snapshots at t = 0.
-    while outputs.peek().is_some_and(|&t| t <= 0.0) {
-        outputs.next();
-        if on_snapshot(&Snapshot { step: 0, t: 0.0, y: &y0, open: &open0, output: true }) == Control::Stop {
-            stats.stopped = true;
-            return Ok((y0, open0, stats));
+    let start = match &settings.start {
+        Some(r) => {
+            for _ in 0..r.outputs_done {
+                outputs.next();
+            }
+            let mut r = r.clone();
+            r.stats.stopped = false;
+            r
         }
-    }
-    monitor.check(&y0, &open0, &mut stats);
-    let result = match settings.explicit_dt {
-        Some(dt) => explicit(model, settings, &monitor, y0, open0, dt, &mut outputs, &mut stats, on_snapshot),
-        None => bdf(model, settings, &monitor, y0, open0, &mut outputs, &mut stats, on_snapshot),
+        None => {
+            let open0 = model.initial_open(&y0);
+            let mut stats = Stats { min_step: f64::INFINITY, min_p: f64::INFINITY, ..Default::default() };
+            let mut done = 0;
+            // Snapshots at t = 0.
+            while outputs.peek().is_some_and(|&t| t <= 0.0) {
+                outputs.next();
+                done += 1;
+            }
+            monitor.check(&y0, &open0, &mut stats);
+            let r = Restart { t: 0.0, y: y0, open: open0, h0: 1e-3, outputs_done: done, stats };
+            let snap = Snapshot { step: 0, t: 0.0, y: &r.y, open: &r.open, output: done > 0, restart: Some(&r) };
+            if on_snapshot(&snap) == Control::Stop {
+                let mut stats = r.stats.clone();
+                stats.stopped = true;
+                return Ok((r.y, r.open, stats));
+            }
+            r
+        }
     };
+    let mut stats = start.stats.clone();
+    let result = match settings.explicit_dt {
+        Some(dt) => explicit(model, settings, &monitor, start, dt, &mut outputs, &mut stats, on_snapshot),
+        None => bdf(model, settings, &monitor, start, &mut outputs, &mut stats, on_snapshot),
+    };
+    // Times are of this session (a resumed run's earlier sessions are not added).
     stats.wall_s = wall.elapsed().as_secs_f64();
     stats.jacobian_s = JAC_S.with(|c| c.get());
     stats.lu_factor_s = LU_SETUP_S.with(|c| c.get());
@@ -490,15 +549,14 @@ fn explicit(
     model: &Model,
     settings: &Settings,
     monitor: &Monitor<'_>,
-    mut y: Vec<f64>,
-    mut open: Vec<bool>,
+    start: Restart,
     dt: f64,
     outputs: &mut std::iter::Peekable<impl Iterator<Item = f64>>,
     stats: &mut Stats,
     on_snapshot: &mut dyn FnMut(&Snapshot<'_>) -> Control,
 ) -> Result<(Vec<f64>, Vec<bool>), SolveError> {
+    let Restart { mut t, mut y, mut open, mut outputs_done, .. } = start;
     let mut f = vec![0.0; y.len()];
-    let mut t = 0.0;
     let mut g = vec![0.0; model.interfaces.len()];
     while t < settings.end_time {
         let target = outputs.peek().copied().unwrap_or(settings.end_time).min(settings.end_time);
@@ -532,8 +590,20 @@ fn explicit(
         let is_output = outputs.peek().is_some_and(|&o| t >= o);
         if is_output {
             outputs.next();
+            outputs_done += 1;
         }
-        if on_snapshot(&Snapshot { step: stats.steps, t, y: &y, open: &open, output: is_output }) == Control::Stop {
+        // Explicit Euler continues from (t, y, open) alone: every output time is a restart point.
+        let restart = (is_output && t < settings.end_time).then(|| Restart {
+            t,
+            y: y.clone(),
+            open: open.clone(),
+            h0: dt,
+            outputs_done,
+            stats: stats.clone(),
+        });
+        if on_snapshot(&Snapshot { step: stats.steps, t, y: &y, open: &open, output: is_output, restart: restart.as_ref() })
+            == Control::Stop
+        {
             stats.stopped = true;
             break;
         }
@@ -546,52 +616,45 @@ fn bdf(
     model: &Model,
     settings: &Settings,
     monitor: &Monitor<'_>,
-    y0: Vec<f64>,
-    open0: Vec<bool>,
+    start: Restart,
     outputs: &mut std::iter::Peekable<impl Iterator<Item = f64>>,
     stats: &mut Stats,
     on_snapshot: &mut dyn FnMut(&Snapshot<'_>) -> Control,
 ) -> Result<(Vec<f64>, Vec<bool>), SolveError> {
     let n = model.n;
     let atol: Vec<f64> = (0..3 * n).map(|j| if j % 3 == 2 { settings.atol_potential } else { settings.atol_concentration }).collect();
-    let eqn = CellEqn::new(model.clone(), y0.clone(), open0);
+    let Restart { t: t_start, y: y_start, open: open_start, h0, mut outputs_done, .. } = start;
+    let eqn = CellEqn::new(model.clone(), y_start.clone(), open_start);
+    // The counters carry on from the restart point (a resumed run reports the whole run's).
+    eqn.rhs_calls.set(stats.rhs_evaluations);
+    eqn.jac_evals.set(stats.jacobian_evaluations);
+    eqn.rhs_s.set(stats.rhs_s);
     let fail = |t: f64, steps: u64, e: diffsol::DiffsolError| SolveError::Integrator { t, steps, why: e.to_string() };
-    let mut problem =
-        OdeBuilder::<M>::new().rtol(settings.rtol).atol(atol).t0(0.0).h0(1e-3).build_from_eqn(eqn).map_err(|e| fail(0.0, 0, e))?;
+    let mut problem = OdeBuilder::<M>::new()
+        .rtol(settings.rtol)
+        .atol(atol)
+        .t0(t_start / T_UNIT)
+        .h0(h0)
+        .build_from_eqn(eqn)
+        .map_err(|e| fail(t_start, stats.steps, e))?;
     problem.ode_options.max_error_test_failures = 60;
     // Newton to well below the local error (default 0.2 of it): the Poisson rows, linear,
     // then hold to ~1e-12 of their terms.
     problem.ode_options.nonlinear_solver_tolerance = 1e-3;
-    let mut y: Vec<f64>;
-    let mut t = 0.0;
-    let mut next_stop = outputs.peek().copied().unwrap_or(settings.end_time).min(settings.end_time);
-    if next_stop <= 0.0 {
-        next_stop = settings.end_time;
-    }
-    'segments: loop {
+    let mut y = y_start;
+    let mut t = t_start;
+    let end = settings.end_time;
+    let at = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(b.abs()).max(1e-300);
+    'segments: while t < end * (1.0 - 1e-12) {
         let remaining = settings.max_steps.saturating_sub(stats.steps);
         if remaining == 0 {
             return Err(SolveError::MaxSteps(settings.max_steps));
         }
         problem.ode_options.max_number_timesteps = remaining as usize;
-        // A restart (at a switch) that landed on the next stop time to within rounding.
-        if t > 0.0 && next_stop - t <= 1e-12 * next_stop.abs() {
-            let y_now = problem.eqn.y_start.borrow().clone();
-            let open = problem.eqn.open.borrow().clone();
-            if outputs.peek().is_some_and(|&o| (o - next_stop).abs() <= 1e-12 * o.max(1e-300)) {
-                outputs.next();
-            }
-            y = y_now;
-            if on_snapshot(&Snapshot { step: stats.steps, t, y: &y, open: &open, output: true }) == Control::Stop {
-                stats.stopped = true;
-                break 'segments;
-            }
-            if t >= settings.end_time * (1.0 - 1e-12) {
-                break 'segments;
-            }
-            next_stop = outputs.peek().copied().unwrap_or(settings.end_time).min(settings.end_time);
-        }
-        let restart: (f64, Vec<f64>, usize, f64);
+        let next_stop = outputs.peek().copied().unwrap_or(end).min(end);
+        // How the segment ended: at a switch (its root: time, state, interface) or at the stop
+        // time; with the step size to restart from.
+        let (t_end, y_end, switched, h): (f64, Vec<f64>, Option<usize>, f64);
         {
             // The start is consistent by construction (phi from the exact Poisson solve), so
             // diffsol's own initial-condition Newton is not needed: dy = f(y) on the
@@ -611,72 +674,87 @@ fn bdf(
                 stats.newton_iterations = base.newton_iterations + st.number_of_nonlinear_solver_iterations as u64;
                 stats.newton_failures = base.newton_failures + st.number_of_nonlinear_solver_fails as u64;
                 stats.lu_setups = base.lu_setups + st.number_of_linear_solver_setups as u64;
-                match reason {
-                    OdeSolverStopReason::RootFound(tau_root, _) => {
-                        let t_root = tau_root * T_UNIT;
-                        solver.state_mut_back(tau_root).map_err(|e| fail(t_root, stats.steps, e))?;
-                        let state = solver.state();
-                        let h = state.h;
-                        // Which switch: the root function closest to zero.
-                        let yr = state.y.clone_as_vec();
-                        let open = problem.eqn.open.borrow().clone();
-                        let mut g = vec![0.0; model.interfaces.len()];
-                        model.switch_functions(&yr, &open, &mut g);
-                        let k = (0..g.len()).min_by(|&a, &b| g[a].abs().total_cmp(&g[b].abs())).unwrap_or(0);
-                        restart = (t_root, yr, k, h);
-                        break;
-                    }
-                    OdeSolverStopReason::InternalTimestep | OdeSolverStopReason::TstopReached => {
-                        let state = solver.state();
-                        let tn = state.t * T_UNIT;
-                        let h = tn - before;
-                        stats.min_step = stats.min_step.min(h.abs());
-                        stats.max_step = stats.max_step.max(h.abs());
-                        stats.t = tn;
-                        t = tn;
-                        y = state.y.clone_as_vec();
-                        let open = problem.eqn.open.borrow().clone();
-                        if !monitor.check(&y, &open, stats) {
-                            return Err(SolveError::NotFinite { t, steps: stats.steps });
-                        }
-                        let is_output = reason == OdeSolverStopReason::TstopReached;
-                        if is_output && outputs.peek().is_some_and(|&o| (o - tn).abs() <= 1e-12 * o.max(1e-300)) {
-                            outputs.next();
-                        }
-                        let control = on_snapshot(&Snapshot { step: stats.steps, t: tn, y: &y, open: &open, output: is_output });
-                        if control == Control::Stop {
-                            stats.stopped = true;
-                            break 'segments;
-                        }
-                        if is_output {
-                            if tn >= settings.end_time * (1.0 - 1e-12) {
-                                break 'segments;
-                            }
-                            next_stop = outputs.peek().copied().unwrap_or(settings.end_time).min(settings.end_time);
-                            solver.set_stop_time(next_stop / T_UNIT).map_err(|e| fail(t, stats.steps, e))?;
-                        }
-                    }
+                if let OdeSolverStopReason::RootFound(tau_root, _) = reason {
+                    let t_root = tau_root * T_UNIT;
+                    solver.state_mut_back(tau_root).map_err(|e| fail(t_root, stats.steps, e))?;
+                    let state = solver.state();
+                    // Which switch: the root function closest to zero.
+                    let yr = state.y.clone_as_vec();
+                    let mut g = vec![0.0; model.interfaces.len()];
+                    model.switch_functions(&yr, &problem.eqn.open.borrow(), &mut g);
+                    let k = (0..g.len()).min_by(|&a, &b| g[a].abs().total_cmp(&g[b].abs())).unwrap_or(0);
+                    (t_end, y_end, switched, h) = (t_root, yr, Some(k), state.h);
+                    break;
+                }
+                let state = solver.state();
+                let tn = state.t * T_UNIT;
+                let step = tn - before;
+                stats.min_step = stats.min_step.min(step.abs());
+                stats.max_step = stats.max_step.max(step.abs());
+                stats.t = tn;
+                t = tn;
+                y = state.y.clone_as_vec();
+                if !monitor.check(&y, &problem.eqn.open.borrow(), stats) {
+                    return Err(SolveError::NotFinite { t, steps: stats.steps });
+                }
+                if reason == OdeSolverStopReason::TstopReached {
+                    (t_end, y_end, switched, h) = (tn, std::mem::take(&mut y), None, state.h);
+                    break;
+                }
+                let open = problem.eqn.open.borrow();
+                let snap = Snapshot { step: stats.steps, t: tn, y: &y, open: &open, output: false, restart: None };
+                if on_snapshot(&snap) == Control::Stop {
+                    stats.stopped = true;
+                    break 'segments;
                 }
             }
             stats.jacobian_evaluations = problem.eqn.jac_evals.get();
             stats.rhs_evaluations = problem.eqn.rhs_calls.get();
             stats.rhs_s = problem.eqn.rhs_s.get();
         }
-        let (t_root, yr, k, h) = restart;
-        {
+        if let Some(k) = switched {
             let mut open = problem.eqn.open.borrow_mut();
             open[k] = !open[k];
             stats.switch_events += 1;
-            stats.switch_log.push((t_root, k, open[k]));
+            stats.switch_log.push((t_end, k, open[k]));
         }
-        // Project the interpolated state onto the constraint (the Poisson rows are linear,
-        // so this moves phi by no more than the solver's tolerance).
-        let mut yr = yr;
+        t = t_end;
+        // A segment that reached its stop time, or a switch that landed on it to within
+        // rounding, passes the output time there.
+        let output = at(t, next_stop) && outputs.peek().is_some_and(|&o| at(o, next_stop));
+        if output {
+            outputs.next();
+            outputs_done += 1;
+        }
+        if switched.is_none() && t >= end * (1.0 - 1e-12) {
+            // The end: no restart, the state as the integrator left it.
+            y = y_end;
+            let open = problem.eqn.open.borrow();
+            let snap = Snapshot { step: stats.steps, t, y: &y, open: &open, output, restart: None };
+            if on_snapshot(&snap) == Control::Stop {
+                stats.stopped = true;
+            }
+            break;
+        }
+        // Restart (order 1) from the state projected onto the constraint (the Poisson rows are
+        // linear, so this moves phi by no more than the solver's tolerance). Everything the
+        // next segment depends on is in the restart point, so a run continued from it is bit
+        // for bit the run that never stopped.
+        let mut yr = y_end;
         model.solve_poisson(&mut yr);
-        *problem.eqn.y_start.borrow_mut() = yr;
-        t = t_root;
-        problem.t0 = t_root / T_UNIT;
-        problem.h0 = h.abs().max(1e-6);
+        let h0 = h.abs().max(1e-6);
+        *problem.eqn.y_start.borrow_mut() = yr.clone();
+        problem.t0 = t / T_UNIT;
+        problem.h0 = h0;
+        let open = problem.eqn.open.borrow().clone();
+        let restart = Restart { t, y: yr, open, h0, outputs_done, stats: stats.clone() };
+        let snap = Snapshot { step: stats.steps, t, y: &restart.y, open: &restart.open, output, restart: Some(&restart) };
+        let control = on_snapshot(&snap);
+        y = restart.y;
+        if control == Control::Stop {
+            stats.stopped = true;
+            break;
+        }
     }
     stats.jacobian_evaluations = problem.eqn.jac_evals.get();
     stats.rhs_evaluations = problem.eqn.rhs_calls.get();
@@ -785,6 +863,7 @@ mod tests {
             output_times: vec![],
             max_steps: 100_000,
             explicit_dt: None,
+            start: None,
         };
         let (_y, _open, stats) = integrate(&model, &settings, &mut |_| Control::Continue).unwrap_or_else(|e| panic!("{e}"));
         assert!(stats.steps > 0);

@@ -41,6 +41,7 @@ fn settings(s: &CellScene) -> Settings {
         output_times: s.output.times_s.clone(),
         max_steps: s.scheme.max_steps,
         explicit_dt: None,
+        start: None,
     }
 }
 
@@ -262,5 +263,59 @@ fn timings_to_two_seconds() {
             st.max_cation_drift
         );
         assert!(st.t >= s.scheme.end_time_s * (1.0 - 1e-12));
+    }
+}
+
+/// Runs a scene, stopping at the first restart point at or after `stop_at` (s); returns that
+/// restart point.
+fn run_until(s: &CellScene, stop_at: f64) -> solver::Restart {
+    let model = Model::new(s);
+    let mut saved = None;
+    let mut stop = |snap: &solver::Snapshot<'_>| match snap.restart {
+        Some(r) if snap.t >= stop_at => {
+            saved = Some(r.clone());
+            Control::Stop
+        }
+        _ => Control::Continue,
+    };
+    let (_y, _open, stats) = solver::integrate(&model, &settings(s), &mut stop).unwrap_or_else(|e| panic!("{e}"));
+    assert!(stats.stopped, "the run stopped at its restart point");
+    saved.expect("a restart point after stop_at")
+}
+
+/// Whatever a run reports, without the wall-clock times.
+fn counts(s: &Stats) -> Stats {
+    Stats { wall_s: 0.0, rhs_s: 0.0, jacobian_s: 0.0, lu_factor_s: 0.0, lu_solve_s: 0.0, ..s.clone() }
+}
+
+#[test]
+fn a_run_continued_from_a_restart_point_is_bitwise_the_uninterrupted_run() {
+    // The full cell with its switches (integrator restarts at roots) and output times, and the
+    // Debye problem (no interfaces), each stopped at a restart point between its outputs and
+    // continued from it.
+    for (name, sets, stop_at) in [
+        ("pnp-full-cell.toml", vec![("grid.cells", "120"), ("scheme.end_time_s", "0.4"), ("output.times_s", "[0.0, 0.1, 0.2, 0.4]")], 0.15),
+        ("pnp-debye.toml", vec![("grid.cells", "200")], 1e-13),
+    ] {
+        let s = load(name, &sets);
+        let model = Model::new(&s);
+        let (y_full, _, stats_full) = run(&s);
+        let restart = run_until(&s, stop_at);
+        assert!(restart.t >= stop_at && restart.t < s.scheme.end_time_s, "{name}: restart at {}", restart.t);
+        // Through JSON, as a checkpoint stores it.
+        let restart: solver::Restart = serde_json::from_str(&serde_json::to_string(&restart).unwrap()).unwrap();
+        let mut resumed = settings(&s);
+        resumed.start = Some(restart);
+        let (y, _, stats) = solver::integrate(&model, &resumed, &mut |_| Control::Continue).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            mscale_cell::state_digest(stats.steps, stats.t, &y),
+            mscale_cell::state_digest(stats_full.steps, stats_full.t, &y_full),
+            "{name}"
+        );
+        assert_eq!(counts(&stats), counts(&stats_full), "{name}: the resumed run reports the whole run's statistics");
+        assert!(stats.steps > 0);
+        if name == "pnp-full-cell.toml" {
+            assert!(stats_full.switch_events > 0, "the full cell switches before 0.4 s: {stats_full:?}");
+        }
     }
 }

@@ -8,14 +8,25 @@
 //! step statistics, time breakdown, provenance), `log.txt`-free progress on stderr (a bar on a
 //! terminal), and `profiles/profile_<step>.csv` (+ PNG) at the scene's output times and
 //! `profiles/profile_final.csv`.
+//!
+//! Checkpoints: the integrator restarts at every output time and every switch
+//! ([`solver::Restart`]), so a checkpoint is the newest restart point (state, switch states,
+//! first step, statistics) with the profile index written so far, in the checkpoint file format
+//! of [`crate::checkpoint`]. `--checkpoint-every N` writes one at the first restart point after
+//! each N accepted steps; a stop on request (SIGINT/SIGTERM, the job service) writes the newest
+//! restart point and returns [`Outcome::Cancelled`]; `--resume` continues from the newest good
+//! checkpoint to the state of the run that never stopped, bit for bit (the work since the
+//! restart point is done again).
 
+use crate::checkpoint;
 use crate::output::{self, Series};
 use crate::report::{self, Sweep};
-use crate::run::{Outcome, RunOptions};
+use crate::run::{Outcome, Progress, RunOptions};
 use crate::scene::{self, SceneError};
 use anyhow::{Context, Result};
-use mscale_cell::solver::{self, Control, Settings, Snapshot, Stats};
+use mscale_cell::solver::{self, Control, Restart, Settings, Snapshot, Stats};
 use mscale_cell::{CellScene, Model};
+use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -28,6 +39,25 @@ pub struct LoadedCell {
     pub scene: CellScene,
     pub path: PathBuf,
     pub text: String,
+}
+
+/// A cell run's checkpoint: a restart point of the integrator and what the run driver has
+/// written up to it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CellCheckpoint {
+    /// Always "cell" (an MPM checkpoint does not decode as this).
+    pub kind: String,
+    /// SHA-256 of the resolved scene the run was started with.
+    pub scene_sha256: String,
+    pub restart: Restart,
+    /// Lines of profiles/index.csv written up to the restart point.
+    pub profile_index: Vec<String>,
+}
+
+impl checkpoint::Saved for CellCheckpoint {
+    fn step(&self) -> u64 {
+        self.restart.stats.steps
+    }
 }
 
 /// Whether the file is a cell scene (`kind = "cell"`); false when it cannot be read or parsed
@@ -130,17 +160,22 @@ pub fn default_out_dir(scene: &CellScene) -> PathBuf {
 /// Runs a cell scene into `opts.out`.
 pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
     let start = Instant::now();
-    if opts.resume || opts.checkpoint_every > 0 {
-        return Err(anyhow::Error::new(SceneError {
-            file: loaded.path.display().to_string(),
-            location: String::new(),
-            key: String::new(),
-            value: String::new(),
-            problem: "a cell run has no checkpoints yet (--checkpoint-every / --resume); it restarts from its scene".into(),
-        }));
-    }
     let scene = &loaded.scene;
     let out = &opts.out;
+    let scene_sha = checkpoint::scene_sha256(&scene.to_toml());
+    // A resumed run reads its checkpoint before anything in the directory is rewritten.
+    let saved = if opts.resume {
+        let (ck, path) = checkpoint::load_latest::<CellCheckpoint>(out)?;
+        anyhow::ensure!(
+            ck.kind == "cell" && ck.scene_sha256 == scene_sha,
+            "the checkpoint {} was written for another scene (or other --set overrides) than the one given",
+            path.display()
+        );
+        tracing::info!("resuming {} at step {} (t = {:e} s) from {}", scene.name, ck.restart.stats.steps, ck.restart.t, path.display());
+        Some(ck)
+    } else {
+        None
+    };
     let profiles = out.join("profiles");
     std::fs::create_dir_all(&profiles).with_context(|| format!("cannot create {}", profiles.display()))?;
     output::write_atomic(&out.join("scene.resolved.toml"), scene.to_toml().as_bytes())?;
@@ -153,15 +188,33 @@ pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
         output_times: scene.output.times_s.clone(),
         max_steps: scene.scheme.max_steps,
         explicit_dt: if scene.scheme.integrator == mscale_cell::scene::Integrator::ExplicitEuler { scene.scheme.timestep_s } else { None },
+        start: saved.as_ref().map(|c| c.restart.clone()),
     };
     let y_init = model.initial_state();
     let end = settings.end_time;
     let bar = crate::run::progress_bar(opts.progress_bar, 1000, end);
     let mut last_log = Instant::now();
     let mut write_error: Option<anyhow::Error> = None;
-    let mut profile_index = Vec::new();
+    // The newest restart point (written when the run is stopped) and the step of the last
+    // checkpoint written.
+    let mut newest: Option<CellCheckpoint> = saved.clone();
+    let mut profile_index = saved.map(|c| c.profile_index).unwrap_or_default();
     let mut output_s = 0.0;
+    let mut checkpointed_at = settings.start.as_ref().map_or(0, |r| r.stats.steps);
+    let mut cancelled: Option<(PathBuf, u64)> = None;
     let setup_s = start.elapsed().as_secs_f64();
+    let first_step = checkpointed_at;
+    // Progress for the job service (steps to go are unknown: adaptive steps).
+    let progress = |step: u64, t: f64, done: bool| Progress {
+        step,
+        steps: 0,
+        time: t,
+        end_time: end,
+        elapsed_s: start.elapsed().as_secs_f64(),
+        session_steps: step - first_step,
+        energy_drift: 0.0,
+        done,
+    };
     let result = {
         let mut on_snapshot = |s: &Snapshot<'_>| -> Control {
             if s.output {
@@ -174,6 +227,25 @@ pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
                 profile_index.push(format!("{},{:e},profiles/{stem}.csv", s.step, s.t));
                 output_s += t0.elapsed().as_secs_f64();
             }
+            if let Some(r) = s.restart {
+                let ck = CellCheckpoint {
+                    kind: "cell".into(),
+                    scene_sha256: scene_sha.clone(),
+                    restart: r.clone(),
+                    profile_index: profile_index.clone(),
+                };
+                if opts.checkpoint_every > 0 && s.step >= checkpointed_at + opts.checkpoint_every {
+                    if let Err(e) = checkpoint::write(out, &ck) {
+                        write_error = Some(e);
+                        return Control::Stop;
+                    }
+                    checkpointed_at = s.step;
+                }
+                newest = Some(ck);
+            }
+            if let Some(p) = &opts.progress {
+                p(&progress(s.step, s.t, false));
+            }
             let permille = ((s.t / end) * 1000.0).clamp(0.0, 1000.0) as u64;
             if let Some(b) = &bar {
                 b.set_position(permille);
@@ -183,6 +255,12 @@ pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
                 tracing::info!("step {} t = {:.4e} / {end:e} s", s.step, s.t);
             }
             if opts.cancel.as_ref().is_some_and(|c| c.load(Ordering::SeqCst)) {
+                if let Some(ck) = &newest {
+                    match checkpoint::write(out, ck) {
+                        Ok(path) => cancelled = Some((path, ck.restart.stats.steps)),
+                        Err(e) => write_error = Some(e),
+                    }
+                }
                 return Control::Stop;
             }
             Control::Continue
@@ -194,6 +272,9 @@ pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
     }
     if let Some(e) = write_error {
         return Err(e);
+    }
+    if let Some((checkpoint, step)) = cancelled {
+        return Ok(Outcome::Cancelled { checkpoint, step });
     }
     let wall = start.elapsed().as_secs_f64();
     let (y, status, failure, stats) = match result {
@@ -214,9 +295,12 @@ pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
     output_s += t_out.elapsed().as_secs_f64();
     let summary = summary_json(loaded, opts, &model, &y_init, &y, &stats, status, failure.as_deref(), wall, setup_s, output_s)?;
     output::write_atomic(&out.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    if let Some(p) = &opts.progress {
+        p(&progress(stats.steps, stats.t, true));
+    }
     Ok(match (failure, stats.stopped) {
         (Some(why), _) => Outcome::Failed(summary, why),
-        (None, true) => Outcome::Failed(summary, "stopped on request (a cell run keeps no checkpoint; rerun it)".into()),
+        (None, true) => Outcome::Failed(summary, "stopped on request before its first restart point".into()),
         (None, false) => Outcome::Completed(summary),
     })
 }

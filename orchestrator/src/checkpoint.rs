@@ -336,8 +336,21 @@ pub fn list(run_dir: &Path) -> Result<Vec<(u64, PathBuf)>> {
     Ok(out)
 }
 
+/// What a checkpoint file holds: an MPM run's [`Checkpoint`] or a cell run's
+/// (`crate::cell_run`), in the same file format, directory and rotation.
+pub trait Saved: Serialize + serde::de::DeserializeOwned {
+    /// The step the state is at the end of (names the file).
+    fn step(&self) -> u64;
+}
+
+impl Saved for Checkpoint {
+    fn step(&self) -> u64 {
+        self.step
+    }
+}
+
 /// Encodes a checkpoint: header line with length and SHA-256 of the body, then the body.
-pub fn encode(ck: &Checkpoint) -> Result<Vec<u8>> {
+pub fn encode<T: Saved>(ck: &T) -> Result<Vec<u8>> {
     let body = serde_json::to_vec(ck).context("cannot encode the checkpoint")?;
     let mut out = format!("{MAGIC} {FORMAT_VERSION} bytes={} sha256={}\n", body.len(), hex::encode(Sha256::digest(&body))).into_bytes();
     out.extend_from_slice(&body);
@@ -345,7 +358,7 @@ pub fn encode(ck: &Checkpoint) -> Result<Vec<u8>> {
 }
 
 /// Decodes and verifies a checkpoint file's bytes.
-pub fn decode(bytes: &[u8]) -> Result<Checkpoint> {
+pub fn decode<T: Saved>(bytes: &[u8]) -> Result<T> {
     let nl = bytes.iter().position(|&b| b == b'\n').context("no header line (the file is empty or cut short)")?;
     let header = std::str::from_utf8(&bytes[..nl]).context("the header is not text")?;
     let body = &bytes[nl + 1..];
@@ -370,16 +383,16 @@ pub fn decode(bytes: &[u8]) -> Result<Checkpoint> {
 
 /// Writes a checkpoint atomically (temporary file, fsync, rename, fsync of the directory) and
 /// removes all but the [`KEEP`] newest. Returns its path.
-pub fn write(run_dir: &Path, ck: &Checkpoint) -> Result<PathBuf> {
+pub fn write<T: Saved>(run_dir: &Path, ck: &T) -> Result<PathBuf> {
     let dir = dir_of(run_dir);
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let path = dir.join(file_name(ck.step));
+    let path = dir.join(file_name(ck.step()));
     let tmp = crate::atomic::temp_path(&path);
     let start = std::time::Instant::now();
     // The rename reaches the disk (the directory is synced) before older checkpoints are removed.
     let bytes = encode(ck)?;
     crate::atomic::write(&path, &bytes)?;
-    let written = Written { step: ck.step, bytes: bytes.len() as u64, seconds: start.elapsed().as_secs_f64() };
+    let written = Written { step: ck.step(), bytes: bytes.len() as u64, seconds: start.elapsed().as_secs_f64() };
     WRITTEN.lock().unwrap_or_else(|p| p.into_inner()).insert(run_dir.to_path_buf(), written);
     // Temporary files of writers that died (a killed orchestrator) are removed too.
     for e in std::fs::read_dir(&dir).with_context(|| format!("cannot list {}", dir.display()))?.flatten() {
@@ -416,8 +429,10 @@ pub fn last_written(run_dir: &Path) -> Option<Written> {
 /// to replay them elsewhere): nothing is kept in memory meanwhile.
 pub fn boxes_of(path: PathBuf) -> md_worker::recovery::CheckpointBoxes {
     std::sync::Arc::new(move |ids: &[u64]| {
-        let ck =
-            std::fs::read(&path).map_err(anyhow::Error::from).and_then(|b| decode(&b)).map_err(|e| format!("{}: {e:#}", path.display()))?;
+        let ck = std::fs::read(&path)
+            .map_err(anyhow::Error::from)
+            .and_then(|b| decode::<Checkpoint>(&b))
+            .map_err(|e| format!("{}: {e:#}", path.display()))?;
         let mut saved: std::collections::HashMap<u64, BoxState> =
             ck.md.map(|m| m.boxes).unwrap_or_default().into_iter().map(|b| (b.meta.id, b)).collect();
         ids.iter().map(|id| saved.remove(id).ok_or_else(|| format!("{} holds no box of point {id}", path.display()))).collect()
@@ -426,7 +441,7 @@ pub fn boxes_of(path: PathBuf) -> md_worker::recovery::CheckpointBoxes {
 
 /// The newest checkpoint of a run directory that verifies; a damaged one is logged and the
 /// previous one used.
-pub fn load_latest(run_dir: &Path) -> Result<(Checkpoint, PathBuf)> {
+pub fn load_latest<T: Saved>(run_dir: &Path) -> Result<(T, PathBuf)> {
     let all = list(run_dir)?;
     if all.is_empty() {
         bail!("{} has no checkpoint to resume from (looked in {})", run_dir.display(), dir_of(run_dir).display());
@@ -479,7 +494,7 @@ mod tests {
     #[test]
     fn every_f64_bit_round_trips() {
         let ck = sample();
-        let back = decode(&encode(&ck).unwrap()).unwrap();
+        let back: Checkpoint = decode(&encode(&ck).unwrap()).unwrap();
         let (a, b) = (ck.points.to_particles::<2>().unwrap(), back.points.to_particles::<2>().unwrap());
         let bits = |p: &Particles<2>| -> Vec<u64> {
             p.v.iter().flatten().chain(p.stress.iter().flatten().flatten()).chain(&p.volume).map(|v| v.to_bits()).collect()
@@ -494,12 +509,12 @@ mod tests {
     fn damage_is_detected() {
         let bytes = encode(&sample()).unwrap();
         let truncated = &bytes[..bytes.len() - 10];
-        assert!(format!("{:#}", decode(truncated).unwrap_err()).contains("truncated"));
+        assert!(format!("{:#}", decode::<Checkpoint>(truncated).unwrap_err()).contains("truncated"));
         let mut flipped = bytes.clone();
         let k = flipped.len() - 20;
         flipped[k] ^= 0x01;
-        assert!(format!("{:#}", decode(&flipped).unwrap_err()).contains("checksum mismatch"));
-        assert!(decode(b"").is_err());
+        assert!(format!("{:#}", decode::<Checkpoint>(&flipped).unwrap_err()).contains("checksum mismatch"));
+        assert!(decode::<Checkpoint>(b"").is_err());
     }
 
     #[test]
@@ -515,7 +530,7 @@ mod tests {
         let newest = dir_of(dir.path()).join(file_name(9));
         let len = std::fs::metadata(&newest).unwrap().len();
         std::fs::OpenOptions::new().write(true).open(&newest).unwrap().set_len(len / 2).unwrap();
-        let (back, path) = load_latest(dir.path()).unwrap();
+        let (back, path): (Checkpoint, _) = load_latest(dir.path()).unwrap();
         assert_eq!(back.step, 5);
         assert!(path.ends_with(file_name(5)));
     }

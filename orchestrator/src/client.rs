@@ -428,12 +428,11 @@ fn line(j: &pb::Job) -> String {
     let digest = if j.state_digest.is_empty() { String::new() } else { format!("  digest {}", j.state_digest) };
     let error = if j.error.is_empty() { String::new() } else { format!("  ({})", j.error) };
     format!(
-        "{}  {:<9} {:<20} step {}/{}  t = {:.4e} s  priority {}{}{digest}{error}",
+        "{}  {:<9} {:<20} step {}  t = {:.4e} s  priority {}{}{digest}{error}",
         j.id,
         state_name(j.state),
         j.scene,
-        j.step,
-        j.steps,
+        step_of(j.step, j.steps),
         j.sim_time_s,
         j.priority,
         if j.resumes > 0 { format!("  resumed {}x", j.resumes) } else { String::new() }
@@ -534,13 +533,19 @@ pub fn watch(server: &str, token_file: Option<&Path>, job: &str, events: bool, r
         );
         match &bar {
             Some(b) => {
-                b.set_length(ev.steps.max(1));
-                b.set_position(ev.step);
+                if ev.steps > 0 {
+                    b.set_length(ev.steps);
+                    b.set_position(ev.step);
+                } else {
+                    // Steps not known in advance: per mille of the simulated time.
+                    b.set_length(1000);
+                    b.set_position((10.0 * ev.percent) as u64);
+                }
                 b.set_message(msg);
             }
             None if last_line.elapsed().as_secs_f64() >= 1.0 || is_final(ev) => {
                 last_line = std::time::Instant::now();
-                eprintln!("job {}: step {}/{}  {msg}", ev.job_id, ev.step, ev.steps);
+                eprintln!("job {}: step {}  {msg}", ev.job_id, step_of(ev.step, ev.steps));
             }
             None => {}
         }
@@ -562,7 +567,13 @@ pub fn event_line(ev: &pb::JobEvent) -> String {
         return format!("event {}..{} {kind}  {}", ev.not_retained_from, ev.sequence, ev.message);
     }
     let msg = if ev.message.is_empty() { String::new() } else { format!("  {}", ev.message) };
-    format!("event {} {kind} {} step {}/{}{msg}", ev.sequence, state_name(ev.state), ev.step, ev.steps)
+    format!("event {} {kind} {} step {}{msg}", ev.sequence, state_name(ev.state), step_of(ev.step, ev.steps))
+}
+
+/// `step/steps`, or `step` alone where the steps are not known in advance (0: a cell run's
+/// adaptive steps).
+fn step_of(step: u64, steps: u64) -> String {
+    if steps > 0 { format!("{step}/{steps}") } else { step.to_string() }
 }
 
 /// `mscale cancel JOB`.

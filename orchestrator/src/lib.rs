@@ -9,6 +9,7 @@ pub mod cell_run;
 pub mod checkpoint;
 pub mod client;
 pub mod exit;
+pub mod loaded;
 pub mod md;
 pub mod output;
 pub mod reference;

@@ -1,7 +1,8 @@
 //! `mscale`: run and check scenes (later: serve, submit, status, watch, cancel, fetch, report).
 
 use clap::{Parser, Subcommand};
-use orchestrator::{exit, run, scene};
+use orchestrator::loaded::Loaded;
+use orchestrator::{exit, run};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -216,7 +217,9 @@ enum ReportCommand {
 
 fn main() -> ExitCode {
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        // diffsol logs its statistics at info at the end of every integration segment (the
+        // cell run restarts at every output time and switch): warnings only.
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,diffsol=warn".into()))
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
@@ -277,20 +280,12 @@ fn dispatch(cli: Cli) -> i32 {
             conn.ca().and_then(|_| orchestrator::client::fetch(&conn.server, conn.token_file.as_deref(), &job, file.as_deref(), &out)),
         ),
         Command::Health { conn } => report(conn.ca().and_then(|_| orchestrator::client::health(&conn.server, conn.token_file.as_deref()))),
-        Command::Check { scene, set, .. } if orchestrator::cell_run::is_cell_scene(&scene) => {
-            match orchestrator::cell_run::load(&scene, &set) {
-                Ok(loaded) => {
-                    print!("{}", orchestrator::cell_run::check_text(&loaded));
-                    exit::OK
-                }
-                Err(e) => {
-                    eprintln!("mscale: {e}");
-                    exit::BAD_INPUT
-                }
+        Command::Check { scene, set, estimate } => match Loaded::load(&scene, &set) {
+            Ok(Loaded::Cell(loaded)) => {
+                print!("{}", orchestrator::cell_run::check_text(&loaded));
+                exit::OK
             }
-        }
-        Command::Check { scene, set, estimate } => match scene::load(&scene, &set) {
-            Ok(loaded) => {
+            Ok(Loaded::Mpm(loaded)) => {
                 print!("{}", loaded.scene.to_toml());
                 println!("\n# work");
                 let (per_body, nodes) = orchestrator::setup::work_size(&loaded.resolved);
@@ -374,17 +369,14 @@ fn dispatch(cli: Cli) -> i32 {
                 (None, Some(dir)) => dir.join("scene.resolved.toml"),
                 (None, None) => unreachable!("clap requires a scene without --resume"),
             };
-            if orchestrator::cell_run::is_cell_scene(&scene) {
-                return run_cell(&scene, &set, out, checkpoint_every, resume);
-            }
-            let loaded = match scene::load(&scene, &set) {
+            let loaded = match Loaded::load(&scene, &set) {
                 Ok(l) => l,
                 Err(e) => {
                     eprintln!("mscale: {e}");
                     return exit::BAD_INPUT;
                 }
             };
-            let out = resume.clone().or(out).unwrap_or_else(|| run::default_out_dir(&loaded.scene));
+            let out = resume.clone().or(out).unwrap_or_else(|| loaded.default_out_dir());
             let mut opts = run::RunOptions::new(out.clone(), std::env::args().collect());
             opts.workers = workers;
             opts.checkpoint_every = checkpoint_every;
@@ -394,7 +386,7 @@ fn dispatch(cli: Cli) -> i32 {
                 Ok(flag) => opts.cancel = Some(flag),
                 Err(e) => eprintln!("mscale: warning: cannot handle SIGINT/SIGTERM, no checkpoint will be written on them: {e}"),
             }
-            match run::run(&loaded, &opts) {
+            match loaded.run(&opts) {
                 Ok(run::Outcome::Completed(summary)) => {
                     println!(
                         "completed {} steps in {:.2} s; outputs in {}",
@@ -429,45 +421,6 @@ fn dispatch(cli: Cli) -> i32 {
                 Err(e) => report(Err(e)),
             }
         }
-    }
-}
-
-/// `mscale run` of a cell scene (`kind = "cell"`).
-fn run_cell(scene: &std::path::Path, set: &[String], out: Option<PathBuf>, checkpoint_every: u64, resume: Option<PathBuf>) -> i32 {
-    let loaded = match orchestrator::cell_run::load(scene, set) {
-        Ok(l) => l,
-        Err(e) => {
-            eprintln!("mscale: {e}");
-            return exit::BAD_INPUT;
-        }
-    };
-    let out = resume.clone().or(out).unwrap_or_else(|| orchestrator::cell_run::default_out_dir(&loaded.scene));
-    let mut opts = run::RunOptions::new(out.clone(), std::env::args().collect());
-    opts.checkpoint_every = checkpoint_every;
-    opts.resume = resume.is_some();
-    match orchestrator::checkpoint::stop_on_signals() {
-        Ok(flag) => opts.cancel = Some(flag),
-        Err(e) => eprintln!("mscale: warning: cannot handle SIGINT/SIGTERM: {e}"),
-    }
-    match orchestrator::cell_run::run(&loaded, &opts) {
-        Ok(run::Outcome::Completed(summary)) => {
-            println!(
-                "completed {} steps in {:.2} s; outputs in {}",
-                summary["steps"],
-                summary["wall_seconds"].as_f64().unwrap_or(0.0),
-                out.display()
-            );
-            exit::OK
-        }
-        Ok(run::Outcome::Failed(_, why)) => {
-            eprintln!("mscale: the run failed: {why}\n(outputs so far are in {})", out.display());
-            exit::RUN_FAILED
-        }
-        Ok(run::Outcome::Cancelled { step, .. }) => {
-            eprintln!("mscale: cancelled after step {step}");
-            exit::RUN_FAILED
-        }
-        Err(e) => report(Err(e)),
     }
 }
 

@@ -243,7 +243,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     let resolved = scene.to_toml();
     let scene_sha = checkpoint::scene_sha256(&resolved);
     // A resumed run reads its checkpoint before anything in the directory is rewritten.
-    let saved = if opts.resume { Some(checkpoint::load_latest(dir)?) } else { None };
+    let saved = if opts.resume { Some(checkpoint::load_latest::<checkpoint::Checkpoint>(dir)?) } else { None };
     if let Some((ck, path)) = &saved {
         anyhow::ensure!(
             ck.scene_sha256 == scene_sha,

@@ -200,3 +200,94 @@ fn md_run_on_a_remote_worker_resumes_on_a_fresh_worker_to_the_same_digest() {
     ok(&["run", "--resume", remote.to_str().unwrap(), "--workers", &w.addr]);
     same_state(&reference, &summary(&remote));
 }
+
+const CELL: &str = "../scenes/pnp-full-cell.toml";
+
+/// The fields of a cell run's summary that must not depend on whether it was stopped.
+fn same_cell_state(a: &Value, b: &Value) {
+    assert_eq!(a["status"], "completed");
+    assert_eq!(b["status"], "completed");
+    for k in ["state_digest", "steps", "simulated_time_s", "totals", "conservation", "checks"] {
+        assert_eq!(a[k], b[k], "{k} differs");
+    }
+    let counts = |s: &Value| {
+        let mut c = s["step_statistics"].clone();
+        c.as_object_mut().unwrap().remove("switches");
+        c
+    };
+    assert_eq!(counts(a), counts(b), "step statistics differ");
+}
+
+#[test]
+fn cell_run_resumes_to_the_same_digest() {
+    // The full cell at 200 cells to 2 s: ~1200 steps, switches (integrator restarts) and five
+    // output times; checkpoints at restart points after every 100 steps.
+    let tmp = tempfile::tempdir().unwrap();
+    let sets = ["--set", "grid.cells=200", "--set", "output.times_s=[0.0, 0.5, 1.0, 1.5, 2.0]"];
+    let run = |dir: &Path, extra: &[&str]| ok(&[&["run", CELL, "--out", dir.to_str().unwrap()][..], &sets, extra].concat());
+    let straight = tmp.path().join("straight");
+    run(&straight, &[]);
+    let reference = summary(&straight);
+    assert!(checkpoints(&straight).is_empty(), "a run without --checkpoint-every wrote checkpoints");
+    let ckpt = tmp.path().join("ckpt");
+    run(&ckpt, &["--checkpoint-every", "100"]);
+    same_cell_state(&reference, &summary(&ckpt));
+    assert_eq!(checkpoints(&ckpt).len(), 2, "the two newest checkpoints are kept");
+
+    let resumed = tmp.path().join("resumed");
+    copy_dir(&ckpt, &resumed);
+    std::fs::remove_file(resumed.join("summary.json")).unwrap();
+    ok(&["run", "--resume", resumed.to_str().unwrap()]);
+    same_cell_state(&reference, &summary(&resumed));
+    let index = |d: &Path| std::fs::read_to_string(d.join("profiles/index.csv")).unwrap();
+    assert_eq!(index(&resumed), index(&straight), "the profile index of the resumed run");
+
+    // The newest checkpoint cut short: the previous one is used.
+    let fallback = tmp.path().join("fallback");
+    copy_dir(&ckpt, &fallback);
+    std::fs::remove_file(fallback.join("summary.json")).unwrap();
+    let newest = checkpoints(&fallback).pop().unwrap();
+    let len = std::fs::metadata(&newest).unwrap().len();
+    std::fs::OpenOptions::new().write(true).open(&newest).unwrap().set_len(len / 2).unwrap();
+    let out = ok(&["run", "--resume", fallback.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("damaged"), "{}", String::from_utf8_lossy(&out.stderr));
+    same_cell_state(&reference, &summary(&fallback));
+
+    // Another scene (other overrides) is refused.
+    let out = mscale(&["run", CELL, "--set", "grid.cells=300", "--resume", ckpt.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("another scene"), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn sigterm_checkpoints_a_cell_run_and_it_resumes_to_the_same_digest() {
+    // 3000 cells to 2 s (several seconds): SIGTERM after the first checkpoint lands mid-run.
+    let tmp = tempfile::tempdir().unwrap();
+    let sets = ["--set", "grid.cells=3000", "--set", "output.times_s=[0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0]"];
+    let straight = tmp.path().join("straight");
+    ok(&[&["run", CELL, "--out", straight.to_str().unwrap()][..], &sets].concat());
+    let reference = summary(&straight);
+
+    let stopped = tmp.path().join("stopped");
+    let child = Command::new(env!("CARGO_BIN_EXE_mscale"))
+        .args([&["run", CELL, "--out", stopped.to_str().unwrap(), "--checkpoint-every", "1"][..], &sets].concat())
+        .env("RUST_LOG", "warn")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let start = std::time::Instant::now();
+    while checkpoints(&stopped).is_empty() {
+        assert!(start.elapsed().as_secs() < 60, "no checkpoint after 60 s");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let pid = child.id().to_string();
+    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    let out = child.wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(!stopped.join("summary.json").exists(), "the run finished before SIGTERM arrived; make it longer");
+    assert_eq!(out.status.code(), Some(1), "{log}");
+    assert!(log.contains("cancelled after step") && log.contains("--resume"), "{log}");
+
+    ok(&["run", "--resume", stopped.to_str().unwrap()]);
+    same_cell_state(&reference, &summary(&stopped));
+}

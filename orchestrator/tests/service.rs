@@ -213,6 +213,26 @@ fn submitted_jobs_end_with_the_digest_of_mscale_run() {
 }
 
 #[test]
+fn a_cell_scene_runs_as_a_job_with_the_digest_of_mscale_run() {
+    // A cell scene (kind = "cell") goes through the same submit, watch and fetch as an MPM
+    // scene; it needs no worker. Stopped orchestrators resume it from its restart points.
+    let (tmp, token) = setup();
+    let server = Server::start(&tmp.path().join("state"), &token, &tmp.path().join("serve.log"));
+    let (scene, sets) = ("../scenes/pnp-full-cell.toml", ["grid.cells=200"]);
+    let job = submit(&server, &token, scene, &sets);
+    let (code, line) = watch(&server, &job);
+    assert_eq!(code, 0, "{line}\n{}", server.log());
+    assert!(line.contains("completed"), "{line}");
+    let expected = run_digest(&tmp.path().join("cell-run"), scene, &sets);
+    assert_eq!(digest_of(&line), expected, "{line}");
+    let out = tmp.path().join("cell.json");
+    let f = server.client(&["fetch", &job, "summary.json", "--out", out.to_str().unwrap()]);
+    assert!(f.status.success(), "{}", text(&f));
+    let s: serde_json::Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
+    assert_eq!((s["kind"].as_str(), s["state_digest"].as_str()), (Some("cell"), Some(expected.as_str())));
+}
+
+#[test]
 fn unauthenticated_and_invalid_submits_are_refused() {
     let (tmp, token) = setup();
     let server = Server::start(&tmp.path().join("state"), &token, &tmp.path().join("serve.log"));

@@ -128,7 +128,14 @@ pub(crate) fn event_of(e: &EventRecord) -> pb::JobEvent {
     ev.step = e.step;
     ev.steps = e.steps;
     ev.sim_time_s = e.sim_time;
-    ev.percent = if e.steps > 0 { 100.0 * e.step as f64 / e.steps as f64 } else { 0.0 };
+    // A run whose steps are not known in advance (a cell run's adaptive steps): by time.
+    ev.percent = if e.steps > 0 {
+        100.0 * e.step as f64 / e.steps as f64
+    } else if ev.end_time_s > 0.0 {
+        (100.0 * e.sim_time / ev.end_time_s).clamp(0.0, 100.0)
+    } else {
+        0.0
+    };
     ev.message = e.message.clone();
     ev.sequence = e.seq;
     ev.kind = pb_event_kind(e.kind) as i32;

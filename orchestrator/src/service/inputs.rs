@@ -5,7 +5,7 @@ use super::auth::constant_time_eq;
 use super::error::JobError;
 use super::shared::{Core, lock};
 use super::store::{JobRecord, JobState, now_unix};
-use crate::scene;
+use crate::loaded::Loaded;
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::path::Path;
@@ -59,7 +59,7 @@ fn stored_name(f: &InputFile) -> String {
 /// Writes a submitted job's inputs into `dir/input` (files checked against their SHA-256, the
 /// scene's references to them rewritten) and validates the scene: the error text is the one
 /// `mscale check` prints.
-fn prepare_inputs(dir: &Path, sub: &Submission) -> Result<scene::LoadedScene, JobError> {
+fn prepare_inputs(dir: &Path, sub: &Submission) -> Result<Loaded, JobError> {
     let input = dir.join("input");
     std::fs::create_dir_all(input.join("files"))
         .map_err(|source| JobError::Io { what: format!("cannot create {}", input.display()), source })?;
@@ -92,7 +92,7 @@ fn prepare_inputs(dir: &Path, sub: &Submission) -> Result<scene::LoadedScene, Jo
     };
     let scene_path = input.join("scene.toml");
     crate::atomic::write(&scene_path, text.as_bytes())?;
-    scene::load(&scene_path, &sub.overrides).map_err(|mut e| {
+    Loaded::load(&scene_path, &sub.overrides).map_err(|mut e| {
         if !sub.scene_file.is_empty() {
             e.file = sub.scene_file.clone();
         }
@@ -110,13 +110,13 @@ impl Core {
         })?;
         let job = JobRecord {
             id: id.clone(),
-            scene: loaded.scene.name.clone(),
+            scene: loaded.name().to_string(),
             state: JobState::Queued,
             priority: sub.priority,
             overrides: sub.overrides.clone(),
             checkpoint_every: sub.checkpoint_every,
             step: 0,
-            steps: loaded.steps,
+            steps: loaded.steps(),
             sim_time: 0.0,
             error: String::new(),
             state_digest: String::new(),

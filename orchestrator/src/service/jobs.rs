@@ -7,8 +7,8 @@ use super::error::JobError;
 use super::shared::{Core, RunningJob, lock};
 use super::store::{EventKind, JobRecord, JobState, WorkerRecord, WorkerState};
 use super::workers;
-use crate::run::{self, Outcome, Progress, RunOptions};
-use crate::scene;
+use crate::loaded::Loaded;
+use crate::run::{Outcome, Progress, RunOptions};
 use anyhow::Result;
 use coupling::MdShared;
 use mscale_proto::orchestrator::v1 as pb;
@@ -118,7 +118,7 @@ fn run_job(core: &Arc<Core>, job: JobRecord) {
 fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, reassign: &Arc<AtomicBool>) -> Attempt {
     let id = &job.id;
     let run_dir = core.job_dir(id).join("run");
-    let loaded = match scene::load(&core.job_dir(id).join("input/scene.toml"), &job.overrides) {
+    let loaded = match Loaded::load(&core.job_dir(id).join("input/scene.toml"), &job.overrides) {
         Ok(l) => l,
         Err(e) => return Attempt::Error(anyhow::anyhow!("{e}")),
     };
@@ -239,7 +239,7 @@ fn job_workers(core: &Core, assigned: &[WorkerRecord], md: Option<&Arc<Mutex<MdS
 fn attempt(
     core: &Arc<Core>,
     job: &JobRecord,
-    loaded: &scene::LoadedScene,
+    loaded: &Loaded,
     run_dir: &Path,
     assigned: &[WorkerRecord],
     stop: &Arc<AtomicBool>,
@@ -277,7 +277,7 @@ fn attempt(
         core4.metrics.recovery("replay");
     }));
     // The run writes a checkpoint after these steps (before it reports their progress).
-    let every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { loaded.scene.output.checkpoint_every_steps };
+    let every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { loaded.checkpoint_every_steps() };
     let (core2, id2, assigned2, last_step) = (core.clone(), id.clone(), assigned.to_vec(), last_step.clone());
     let run_dir2 = run_dir.to_path_buf();
     core.metrics.new_attempt(&id);
@@ -313,7 +313,8 @@ fn attempt(
         }
         let detail = pb::JobEvent {
             end_time_s: p.end_time,
-            eta_s: if p.session_steps > 0 { (p.steps - p.step.min(p.steps)) as f64 / rate } else { -1.0 },
+            // (-1: unknown; a cell run's adaptive steps have no count to go.)
+            eta_s: if p.session_steps > 0 && p.steps > 0 { (p.steps - p.step.min(p.steps)) as f64 / rate } else { -1.0 },
             energy_drift: p.energy_drift,
             workers,
             ..Default::default()
@@ -343,7 +344,7 @@ fn attempt(
             .join(", ");
         tracing::info!("job {id}: on workers {shares}");
     }
-    let outcome = run::run(loaded, &opts);
+    let outcome = loaded.run(&opts);
     lock(&core.aborts).clear();
     outcome
 }
