@@ -3,6 +3,7 @@
 //! integration by diffsol's BDF ([`solver`]). See README.md for the equations as derived
 //! here, the errata and the choices made where the thesis is silent.
 
+pub mod band;
 pub mod debye;
 pub mod model;
 pub mod scene;

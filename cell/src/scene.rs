@@ -37,6 +37,17 @@ pub enum Integrator {
     ExplicitEuler,
 }
 
+/// The linear solver of the BDF's Newton iterations.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LinearSolver {
+    /// LU with partial pivoting of the banded matrix (8 sub- and 8 super-diagonals): cost
+    /// linear in the cells.
+    Banded,
+    /// faer's general sparse LU (fill-reducing ordering, supernodes).
+    SparseLu,
+}
+
 /// The interface switch at the threshold.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -263,6 +274,13 @@ pub struct CellScheme {
     /// Bound on accepted steps (the run fails past it).
     #[serde(default = "default_max_steps")]
     pub max_steps: u64,
+    /// "banded" (the default) or "sparse-lu".
+    #[serde(default = "default_linear_solver")]
+    pub linear_solver: LinearSolver,
+}
+
+fn default_linear_solver() -> LinearSolver {
+    LinearSolver::Banded
 }
 
 fn default_integrator() -> Integrator {

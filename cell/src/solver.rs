@@ -1,5 +1,5 @@
 //! Time integration of the cell's index-1 DAE `M y' = f(y)` (M = diag(1, 1, 0) per cell) by
-//! diffsol's variable-order BDF over faer's sparse LU, with
+//! diffsol's variable-order BDF over a banded LU ([`crate::band`]; faer's sparse LU on request), with
 //! - a Jacobian by finite differences over 15 column colours (the residual of a cell depends
 //!   on cells i-2..=i+2 only), so one Jacobian costs 15 right-hand sides at any N;
 //! - consistent initialisation: phi solved from the initial p, n (and diffsol's own algebraic
@@ -9,10 +9,12 @@
 //!   discontinuity of the right-hand side;
 //! - an explicit-Euler path that the scene validator only admits below its stability bound.
 
+use crate::band::BandLu;
 use crate::model::Model;
+use crate::scene::LinearSolver;
 use diffsol::matrix::sparsity::MatrixSparsity;
 use diffsol::{
-    BdfState, ConstantOp, FaerContext, FaerSparseLU, FaerSparseMat, FaerVec, LaLinearOp, LinearOp, Matrix, NonLinearOp,
+    BdfState, ConstantOp, FaerContext, FaerSparseLU, FaerSparseMat, FaerVec, LaLinearOp, LinearOp, Matrix, MatrixCommon, NonLinearOp,
     NonLinearOpJacobian, OdeBuilder, OdeEquations, OdeEquationsRef, OdeSolverMethod, OdeSolverState, OdeSolverStopReason, Op,
     ParameterisedOp, UnitCallable, Vector,
 };
@@ -35,13 +37,51 @@ thread_local! {
     static JAC_S: Cell<f64> = const { Cell::new(0.0) };
 }
 
-/// faer's sparse LU, timed.
+/// The banded LU of [`crate::band`] as diffsol's linear solver.
 #[derive(Default)]
-pub struct TimedLu {
-    inner: FaerSparseLU<f64>,
+pub struct BandedLu {
+    /// The linearisation (M - c J) as diffsol assembles it, in the pattern of the Jacobian.
+    a: Option<M>,
+    lu: BandLu,
 }
 
-impl LaLinearSolver<M> for TimedLu {
+impl LaLinearSolver<M> for BandedLu {
+    fn set_linearisation<C: LaLinearOp<V = V, T = f64, M = M, C = FaerContext>>(&mut self, op: &C) {
+        let a = self.a.as_mut().expect("set_sparsity before set_linearisation");
+        op.matrix_inplace(a);
+        let m = &a.inner()[0];
+        self.lu.factor_csc(m.symbolic().col_ptr(), m.symbolic().row_idx(), m.val());
+    }
+    fn set_sparsity<C: LaLinearOp<V = V, T = f64, M = M, C = FaerContext>>(&mut self, op: &C) {
+        let a = M::new_from_sparsity(op.nrows(), op.ncols(), op.sparsity(), *op.context());
+        let m = &a.inner()[0];
+        let (kl, ku) = BandLu::bandwidths(m.symbolic().col_ptr(), m.symbolic().row_idx());
+        self.lu = BandLu::new(op.nrows(), kl, ku);
+        self.a = Some(a);
+    }
+    fn solve_in_place(&self, b: &mut V) -> Result<(), diffsol::LaError> {
+        if let Some(col) = self.lu.singular() {
+            return Err(diffsol::LaError::Other(format!("the Newton matrix is singular (zero pivot in column {col})")));
+        }
+        b.for_each_batch_host([], |b, [], _| self.lu.solve(b));
+        Ok(())
+    }
+    fn solve_transpose_in_place(&self, b: &mut V) -> Result<(), diffsol::LaError> {
+        if let Some(col) = self.lu.singular() {
+            return Err(diffsol::LaError::Other(format!("the Newton matrix is singular (zero pivot in column {col})")));
+        }
+        b.for_each_batch_host([], |b, [], _| self.lu.solve_transpose(b));
+        Ok(())
+    }
+}
+
+/// A linear solver, timed (factorisation without the Jacobian inside it; triangular solves).
+#[derive(Default)]
+pub struct TimedLu<L> {
+    inner: L,
+}
+
+impl<L: LaLinearSolver<M>> LaLinearSolver<M> for TimedLu<L> {
     fn set_linearisation<C: LaLinearOp<V = V, T = f64, M = M, C = FaerContext>>(&mut self, op: &C) {
         let jac_before = JAC_S.with(|c| c.get());
         let t = Instant::now();
@@ -359,6 +399,8 @@ pub struct Settings {
     pub explicit_dt: Option<f64>,
     /// Continue from this restart point (a checkpoint) instead of the initial state.
     pub start: Option<Restart>,
+    /// The BDF's linear solver.
+    pub linear_solver: LinearSolver,
 }
 
 /// A point from which the integration continues bit for bit as the run that never stopped:
@@ -611,6 +653,77 @@ fn explicit(
     Ok((y, open))
 }
 
+/// How an integration segment ended: at a switch (its root: time, state, interface) or at its
+/// stop time; with the step size to restart from.
+struct SegmentEnd {
+    t: f64,
+    y: Vec<f64>,
+    switched: Option<usize>,
+    h: f64,
+}
+
+/// One integration segment, from the problem's start to `next_stop` or the first switch, with
+/// the linear solver `L`. `y` follows the accepted steps; `None` when the caller stopped it.
+fn segment<L: LaLinearSolver<M> + Default>(
+    problem: &diffsol::OdeSolverProblem<CellEqn>,
+    model: &Model,
+    monitor: &Monitor<'_>,
+    next_stop: f64,
+    stats: &mut Stats,
+    y: &mut Vec<f64>,
+    on_snapshot: &mut dyn FnMut(&Snapshot<'_>) -> Control,
+) -> Result<Option<SegmentEnd>, SolveError> {
+    let fail = |t: f64, steps: u64, e: diffsol::DiffsolError| SolveError::Integrator { t, steps, why: e.to_string() };
+    let t = problem.t0 * T_UNIT;
+    // The start is consistent by construction (phi from the exact Poisson solve), so
+    // diffsol's own initial-condition Newton is not needed: dy = f(y) on the differential
+    // rows, and phi' from the differentiated constraint (index 1: M phi' = -(e/eps0)(p' - n')),
+    // so that the first predictor is consistent too.
+    let mut state = BdfState::new(problem, 1).map_err(|e| fail(t, stats.steps, e))?;
+    state.as_mut().dy.for_each_batch_host([], |dy, [], _| model.solve_poisson_derivative(dy));
+    let mut solver = problem.bdf_solver::<TimedLu<L>>(state).map_err(|e| fail(t, stats.steps, e))?;
+    solver.set_stop_time(next_stop / T_UNIT).map_err(|e| fail(t, stats.steps, e))?;
+    let base = stats.clone();
+    loop {
+        let before = solver.state().t * T_UNIT;
+        let reason = solver.step().map_err(|e| fail(before, stats.steps, e))?;
+        let st = solver.get_statistics();
+        stats.steps = base.steps + st.number_of_steps as u64;
+        stats.error_test_failures = base.error_test_failures + st.number_of_error_test_failures as u64;
+        stats.newton_iterations = base.newton_iterations + st.number_of_nonlinear_solver_iterations as u64;
+        stats.newton_failures = base.newton_failures + st.number_of_nonlinear_solver_fails as u64;
+        stats.lu_setups = base.lu_setups + st.number_of_linear_solver_setups as u64;
+        if let OdeSolverStopReason::RootFound(tau_root, _) = reason {
+            let t_root = tau_root * T_UNIT;
+            solver.state_mut_back(tau_root).map_err(|e| fail(t_root, stats.steps, e))?;
+            let state = solver.state();
+            // Which switch: the root function closest to zero.
+            let yr = state.y.clone_as_vec();
+            let mut g = vec![0.0; model.interfaces.len()];
+            model.switch_functions(&yr, &problem.eqn.open.borrow(), &mut g);
+            let k = (0..g.len()).min_by(|&a, &b| g[a].abs().total_cmp(&g[b].abs())).unwrap_or(0);
+            return Ok(Some(SegmentEnd { t: t_root, y: yr, switched: Some(k), h: state.h }));
+        }
+        let state = solver.state();
+        let tn = state.t * T_UNIT;
+        let step = tn - before;
+        stats.min_step = stats.min_step.min(step.abs());
+        stats.max_step = stats.max_step.max(step.abs());
+        stats.t = tn;
+        *y = state.y.clone_as_vec();
+        if !monitor.check(y, &problem.eqn.open.borrow(), stats) {
+            return Err(SolveError::NotFinite { t: tn, steps: stats.steps });
+        }
+        if reason == OdeSolverStopReason::TstopReached {
+            return Ok(Some(SegmentEnd { t: tn, y: std::mem::take(y), switched: None, h: state.h }));
+        }
+        let open = problem.eqn.open.borrow();
+        if on_snapshot(&Snapshot { step: stats.steps, t: tn, y, open: &open, output: false, restart: None }) == Control::Stop {
+            return Ok(None);
+        }
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 fn bdf(
     model: &Model,
@@ -645,7 +758,7 @@ fn bdf(
     let mut t = t_start;
     let end = settings.end_time;
     let at = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(b.abs()).max(1e-300);
-    'segments: while t < end * (1.0 - 1e-12) {
+    while t < end * (1.0 - 1e-12) {
         let remaining = settings.max_steps.saturating_sub(stats.steps);
         if remaining == 0 {
             return Err(SolveError::MaxSteps(settings.max_steps));
@@ -654,64 +767,17 @@ fn bdf(
         let next_stop = outputs.peek().copied().unwrap_or(end).min(end);
         // How the segment ended: at a switch (its root: time, state, interface) or at the stop
         // time; with the step size to restart from.
-        let (t_end, y_end, switched, h): (f64, Vec<f64>, Option<usize>, f64);
-        {
-            // The start is consistent by construction (phi from the exact Poisson solve), so
-            // diffsol's own initial-condition Newton is not needed: dy = f(y) on the
-            // differential rows, and phi' from the differentiated constraint (index 1:
-            // M phi' = -(e/eps0)(p' - n')), so that the first predictor is consistent too.
-            let mut state = BdfState::new(&problem, 1).map_err(|e| fail(t, stats.steps, e))?;
-            state.as_mut().dy.for_each_batch_host([], |dy, [], _| model.solve_poisson_derivative(dy));
-            let mut solver = problem.bdf_solver::<TimedLu>(state).map_err(|e| fail(t, stats.steps, e))?;
-            solver.set_stop_time(next_stop / T_UNIT).map_err(|e| fail(t, stats.steps, e))?;
-            let base = stats.clone();
-            loop {
-                let before = solver.state().t * T_UNIT;
-                let reason = solver.step().map_err(|e| fail(before, stats.steps, e))?;
-                let st = solver.get_statistics();
-                stats.steps = base.steps + st.number_of_steps as u64;
-                stats.error_test_failures = base.error_test_failures + st.number_of_error_test_failures as u64;
-                stats.newton_iterations = base.newton_iterations + st.number_of_nonlinear_solver_iterations as u64;
-                stats.newton_failures = base.newton_failures + st.number_of_nonlinear_solver_fails as u64;
-                stats.lu_setups = base.lu_setups + st.number_of_linear_solver_setups as u64;
-                if let OdeSolverStopReason::RootFound(tau_root, _) = reason {
-                    let t_root = tau_root * T_UNIT;
-                    solver.state_mut_back(tau_root).map_err(|e| fail(t_root, stats.steps, e))?;
-                    let state = solver.state();
-                    // Which switch: the root function closest to zero.
-                    let yr = state.y.clone_as_vec();
-                    let mut g = vec![0.0; model.interfaces.len()];
-                    model.switch_functions(&yr, &problem.eqn.open.borrow(), &mut g);
-                    let k = (0..g.len()).min_by(|&a, &b| g[a].abs().total_cmp(&g[b].abs())).unwrap_or(0);
-                    (t_end, y_end, switched, h) = (t_root, yr, Some(k), state.h);
-                    break;
-                }
-                let state = solver.state();
-                let tn = state.t * T_UNIT;
-                let step = tn - before;
-                stats.min_step = stats.min_step.min(step.abs());
-                stats.max_step = stats.max_step.max(step.abs());
-                stats.t = tn;
-                t = tn;
-                y = state.y.clone_as_vec();
-                if !monitor.check(&y, &problem.eqn.open.borrow(), stats) {
-                    return Err(SolveError::NotFinite { t, steps: stats.steps });
-                }
-                if reason == OdeSolverStopReason::TstopReached {
-                    (t_end, y_end, switched, h) = (tn, std::mem::take(&mut y), None, state.h);
-                    break;
-                }
-                let open = problem.eqn.open.borrow();
-                let snap = Snapshot { step: stats.steps, t: tn, y: &y, open: &open, output: false, restart: None };
-                if on_snapshot(&snap) == Control::Stop {
-                    stats.stopped = true;
-                    break 'segments;
-                }
-            }
-            stats.jacobian_evaluations = problem.eqn.jac_evals.get();
-            stats.rhs_evaluations = problem.eqn.rhs_calls.get();
-            stats.rhs_s = problem.eqn.rhs_s.get();
-        }
+        let segment = match settings.linear_solver {
+            LinearSolver::Banded => segment::<BandedLu>(&problem, model, monitor, next_stop, stats, &mut y, on_snapshot)?,
+            LinearSolver::SparseLu => segment::<FaerSparseLU<f64>>(&problem, model, monitor, next_stop, stats, &mut y, on_snapshot)?,
+        };
+        stats.jacobian_evaluations = problem.eqn.jac_evals.get();
+        stats.rhs_evaluations = problem.eqn.rhs_calls.get();
+        stats.rhs_s = problem.eqn.rhs_s.get();
+        let Some(SegmentEnd { t: t_end, y: y_end, switched, h }) = segment else {
+            stats.stopped = true;
+            break;
+        };
         if let Some(k) = switched {
             let mut open = problem.eqn.open.borrow_mut();
             open[k] = !open[k];
@@ -797,6 +863,7 @@ mod tests {
                 atol_potential_v: 1e-9,
                 timestep_s: None,
                 max_steps: 100_000,
+                linear_solver: crate::scene::LinearSolver::Banded,
             },
             output: CellOutput::default(),
         }
@@ -864,6 +931,7 @@ mod tests {
             max_steps: 100_000,
             explicit_dt: None,
             start: None,
+            linear_solver: crate::scene::LinearSolver::Banded,
         };
         let (_y, _open, stats) = integrate(&model, &settings, &mut |_| Control::Continue).unwrap_or_else(|e| panic!("{e}"));
         assert!(stats.steps > 0);

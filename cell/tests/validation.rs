@@ -42,6 +42,7 @@ fn settings(s: &CellScene) -> Settings {
         max_steps: s.scheme.max_steps,
         explicit_dt: None,
         start: None,
+        linear_solver: s.scheme.linear_solver,
     }
 }
 

@@ -189,6 +189,7 @@ pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
         max_steps: scene.scheme.max_steps,
         explicit_dt: if scene.scheme.integrator == mscale_cell::scene::Integrator::ExplicitEuler { scene.scheme.timestep_s } else { None },
         start: saved.as_ref().map(|c| c.restart.clone()),
+        linear_solver: scene.scheme.linear_solver,
     };
     let y_init = model.initial_state();
     let end = settings.end_time;
@@ -340,7 +341,7 @@ fn summary_json(
         "cells": model.n,
         "unknowns": model.len(),
         "dx_nm": model.dx,
-        "integrator": if scene.scheme.integrator == mscale_cell::scene::Integrator::Bdf { "diffsol BDF (variable order 1-5), faer sparse LU" } else { "explicit Euler" },
+        "integrator": if scene.scheme.integrator == mscale_cell::scene::Integrator::Bdf { if scene.scheme.linear_solver == mscale_cell::scene::LinearSolver::Banded { "diffsol BDF (variable order 1-5), banded LU" } else { "diffsol BDF (variable order 1-5), faer sparse LU" } } else { "explicit Euler" },
         "face_state": scene.scheme.face_state,
         "totals": {
             "initial": totals_json(model, y_init),

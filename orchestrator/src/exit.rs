@@ -39,6 +39,10 @@ pub fn code_of(e: &anyhow::Error) -> i32 {
         cause.is::<crate::scene::SceneError>()
             || cause.downcast_ref::<SetupError>().is_some_and(|s| matches!(s, SetupError::EmptyBody(_) | SetupError::MdUnavailable(_)))
             || cause.downcast_ref::<Refused>().is_some_and(|r| r.0.code() == tonic::Code::InvalidArgument)
+            // The MD engine refused a value of the scene (a box, a potential, a data file).
+            || cause.downcast_ref::<md_worker::MdError>().is_some_and(|m| {
+                matches!(m, md_worker::MdError::Invalid { .. } | md_worker::MdError::Parse { .. } | md_worker::MdError::Unsupported(_))
+            })
     });
     if bad_input { BAD_INPUT } else { RUN_FAILED }
 }
@@ -65,5 +69,14 @@ mod tests {
         assert_eq!(code_of(&Err::<(), _>(scene).context("loading").unwrap_err()), BAD_INPUT);
         assert_eq!(code_of(&anyhow::Error::from(crate::setup::SetupError::EmptyBody("b".into()))), BAD_INPUT);
         assert_eq!(code_of(&anyhow::anyhow!("InvalidArgument")), RUN_FAILED, "no string matching");
+        // An MD engine refusal under the closure and setup errors (as a run reports it).
+        let md = |e: md_worker::MdError| {
+            anyhow::Error::from(crate::setup::SetupError::Md {
+                body: "bar".into(),
+                source: continuum::closure::ClosureError::Engine { context: "opening boxes".into(), source: Box::new(e) },
+            })
+        };
+        assert_eq!(code_of(&md(md_worker::MdError::Invalid { what: "box".into(), msg: "m".into() })), BAD_INPUT);
+        assert_eq!(code_of(&md(md_worker::MdError::Diverged { point: 3, msg: "m".into() })), RUN_FAILED);
     }
 }
