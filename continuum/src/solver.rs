@@ -694,6 +694,15 @@ impl<const D: usize> Simulation<D> {
         }
     }
 
+    /// The time the particle velocities belong to (s): the simulated time, or half a step
+    /// before it for the leapfrog (staggered velocities).
+    pub fn velocity_time(&self) -> f64 {
+        match self.integrator {
+            TimeIntegrator::Leapfrog if self.step > 0 => self.time - 0.5 * self.dt,
+            _ => self.time,
+        }
+    }
+
     /// Stencil of the last step (for schemes and tests).
     pub fn stencil(&self) -> &Stencil<D> {
         &self.stencil

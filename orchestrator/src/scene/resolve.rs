@@ -34,6 +34,9 @@ pub struct ResolvedScene {
     pub steps: u64,
     /// In name order (the order of the point ids).
     pub bodies: Vec<ResolvedBody>,
+    /// `[reference] solution = "manufactured"`: the solution whose body force and initial
+    /// velocity setup applies.
+    pub manufactured: Option<continuum::exact::Manufactured>,
 }
 
 /// One body: its region, initial state, closure and number of material points.
