@@ -284,11 +284,20 @@ pub struct Scheme {
     /// Small-mass node threshold as a fraction of the mean initial point mass.
     #[serde(default = "default_small_mass")]
     pub small_mass_fraction: f64,
-    /// Time stepping: `dhakal` (the cycle of Ch. 3.1, eqs. 3.13-3.14; first order in time) or
+    /// Time stepping: `dhakal` (the cycle of Ch. 3.1, eqs. 3.13-3.14; first order in time),
     /// `leapfrog` (staggered velocities, Gong eq. 4.24; second order: use it for convergence
-    /// studies of smooth problems).
+    /// studies of smooth problems), `usl` (symplectic Euler, update stress last) or `usf`
+    /// (update stress first).
     #[serde(default, with = "names::named")]
     pub integrator: continuum::solver::TimeIntegrator,
+    /// PIC/FLIP blend of the particle velocity update, in [0, 1]: 1 (default) is FLIP, 0 PIC
+    /// (battery thesis 5.24-5.26).
+    #[serde(default = "default_flip_fraction")]
+    pub flip_fraction: f64,
+}
+
+fn default_flip_fraction() -> f64 {
+    1.0
 }
 
 fn default_one() -> usize {
@@ -572,6 +581,12 @@ end_time = 1e-12
             err(&["bodies.bar.material={ law = \"linear-elastic\", youngs_modulus = 1e7, poisson_ratio = 0.3 }"]).contains("neo-hookean")
         );
         assert!(err(&["scheme.cfl=0.95"]).contains("manufactured particle speed"), "{}", err(&["scheme.cfl=0.95"]));
+        assert!(err(&["scheme.flip_fraction=1.5"]).contains("`scheme.flip_fraction` = 1.5: the PIC/FLIP blend must lie in [0, 1]"));
+        for (name, want) in [("usl", continuum::solver::TimeIntegrator::Usl), ("usf", continuum::solver::TimeIntegrator::Usf)] {
+            let sets = vec![format!("scheme.integrator={name}"), "scheme.flip_fraction=0.25".to_string()];
+            let l = parse("mms-2d.toml", &text, &sets, &base, "mms-2d").unwrap();
+            assert_eq!((l.resolved.integrator, l.resolved.flip_fraction), (want, 0.25));
+        }
     }
 
     #[test]

@@ -27,6 +27,8 @@ pub struct ResolvedScene {
     pub sub_points: usize,
     pub viscosity: Viscosity,
     pub integrator: TimeIntegrator,
+    /// PIC/FLIP blend in [0, 1] (1: FLIP).
+    pub flip_fraction: f64,
     pub small_mass_fraction: f64,
     /// Time step (s).
     pub dt: f64,

@@ -154,6 +154,7 @@ impl Scene {
                 ViscosityForm::Tensor => Viscosity::Tensor { linear: s.viscosity_c_l, quadratic: s.viscosity_c_q },
             },
             integrator: s.integrator,
+            flip_fraction: s.flip_fraction,
             small_mass_fraction: s.small_mass_fraction,
             dt,
             steps,
@@ -473,6 +474,9 @@ impl Scene {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(loc.err(key, v, "must be finite and >= 0"));
             }
+        }
+        if !(s.flip_fraction.is_finite() && (0.0..=1.0).contains(&s.flip_fraction)) {
+            return Err(loc.err("scheme.flip_fraction", s.flip_fraction, "the PIC/FLIP blend must lie in [0, 1] (1: FLIP, 0: PIC)"));
         }
         if !(s.small_mass_fraction.is_finite() && (0.0..1.0).contains(&s.small_mass_fraction)) {
             return Err(loc.err("scheme.small_mass_fraction", s.small_mass_fraction, "must lie in [0, 1)"));
