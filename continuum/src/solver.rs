@@ -14,6 +14,8 @@ use crate::shape::{self, Block, OutsideGrid, SchemeKind, Stencil, StencilPart};
 use crate::tensor::{self, Mat3};
 use rayon::prelude::*;
 
+mod impm;
+
 /// Artificial viscosity added to the closure's stress in compression.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Viscosity {
@@ -292,15 +294,21 @@ impl<const D: usize> Simulation<D> {
                 "the body moved past a non-periodic face: enlarge the domain or use a wall"
             },
         })?;
-        self.map_to_grid();
         let c = self.wave_speed();
-        if self.integrator == TimeIntegrator::Usf {
+        if self.scheme == SchemeKind::Impm {
+            self.impm_grid(step)?;
+            self.lagrangian_update(step, c)?;
+            self.velocity_gradients();
+            self.deform_and_stress(step, c)?;
+        } else if self.integrator == TimeIntegrator::Usf {
+            self.map_to_grid();
             // Update stress first: strain rate from the mapped v^n, then forces from the new stress.
             self.velocity_gradients();
             self.deform_and_stress(step, c)?;
             self.nodal_forces();
             self.lagrangian_update(step, c)?;
         } else {
+            self.map_to_grid();
             self.nodal_forces();
             self.lagrangian_update(step, c)?;
             self.velocity_gradients();
@@ -339,6 +347,8 @@ impl<const D: usize> Simulation<D> {
                 for p in r {
                     match scheme {
                         SchemeKind::Mpm | SchemeKind::Ugimp | SchemeKind::Cpgimp => shape::gimp_row(scheme, grid, pts, p, part)?,
+                        // IMPM moves its points with the hat functions at x_p^s (Gong 5.3 steps 5-6).
+                        SchemeKind::Impm => shape::gimp_row(SchemeKind::Mpm, grid, pts, p, part)?,
                         SchemeKind::Cpdi | SchemeKind::Cpdi1 | SchemeKind::Cpdi2 => shape::cpdi_row(scheme, grid, pts, p, block, part)?,
                         SchemeKind::Ddmp | SchemeKind::DdmpSubpoints => {
                             ddmp::ddmp_row(grid, pts, p, &subs[p * ns..(p + 1) * ns], field, block, part)?

@@ -581,6 +581,15 @@ end_time = 1e-12
             err(&["bodies.bar.material={ law = \"linear-elastic\", youngs_modulus = 1e7, poisson_ratio = 0.3 }"]).contains("neo-hookean")
         );
         assert!(err(&["scheme.cfl=0.95"]).contains("manufactured particle speed"), "{}", err(&["scheme.cfl=0.95"]));
+        assert!(err(&["scheme.method=impm"]).contains("`scheme.method` = \"impm\": `impm` is 1D only"));
+        let text_1d = std::fs::read_to_string(base.join("mms-1d.toml")).unwrap();
+        let one = |sets: &[&str]| {
+            let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+            parse("mms-1d.toml", &text_1d, &sets, &base, "mms-1d").map(|l| l.resolved.scheme)
+        };
+        assert_eq!(one(&["scheme.method=impm"]), Ok(continuum::SchemeKind::Impm));
+        let e = one(&["scheme.method=impm", "scheme.integrator=usl"]).unwrap_err().to_string();
+        assert!(e.contains("`scheme.integrator` = \"usl\": impm is Gong's staggered scheme"), "{e}");
         assert!(err(&["scheme.flip_fraction=1.5"]).contains("`scheme.flip_fraction` = 1.5: the PIC/FLIP blend must lie in [0, 1]"));
         for (name, want) in [("usl", continuum::solver::TimeIntegrator::Usl), ("usf", continuum::solver::TimeIntegrator::Usf)] {
             let sets = vec![format!("scheme.integrator={name}"), "scheme.flip_fraction=0.25".to_string()];

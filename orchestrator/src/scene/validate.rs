@@ -450,8 +450,28 @@ impl Scene {
             return Err(loc.err(
                 "scheme.method",
                 format!("{:?}", kind.name()),
-                format!("`{}` is the 1D CPDI; a {dim}D scene allows: {}", kind.name(), ok.join(", ")),
+                if kind == SchemeKind::Cpdi {
+                    format!("`{}` is the 1D CPDI; a {dim}D scene allows: {}", kind.name(), ok.join(", "))
+                } else {
+                    format!("`{}` is 1D only in this build; a {dim}D scene allows: {}", kind.name(), ok.join(", "))
+                },
             ));
+        }
+        if kind == SchemeKind::Impm {
+            if s.integrator != continuum::solver::TimeIntegrator::Leapfrog {
+                return Err(loc.err(
+                    "scheme.integrator",
+                    format!("{:?}", s.integrator.scene_name()),
+                    "impm is Gong's staggered scheme (Ch. 5.3): set scheme.integrator = \"leapfrog\"",
+                ));
+            }
+            if let Some((face, _)) = self.boundary.faces().into_iter().find(|(_, f)| matches!(f, FaceSpec::Named(FaceName::Periodic))) {
+                return Err(loc.err(
+                    &format!("boundary.{face}"),
+                    "\"periodic\"",
+                    "impm's MLS reconstruction does not wrap around a periodic axis in this build",
+                ));
+            }
         }
         if !(1..=64).contains(&s.particles_per_cell) {
             return Err(loc.err("scheme.particles_per_cell", s.particles_per_cell, "allowed: 1 to 64 per axis"));
