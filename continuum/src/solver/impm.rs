@@ -4,8 +4,8 @@
 //! functions at x_p^s as the stencil.
 //!
 //! 1. Nodal velocity v_i = sum_p Phi_p(x_i) v_p: MLS with the linear basis and the cubic
-//!    B-spline (G 5.1); this maps velocity, not momentum. Nodes with no point within 2 h get
-//!    none (and no mass).
+//!    B-spline (G 5.1); this maps velocity, not momentum. Only the nodes of cells holding
+//!    points get one (the others move nothing; beyond a free surface they may see one point).
 //! 2. Cell centres x_c: rho_c = sum_p Q_p(x_c) rho_p, sigma_c and b_c likewise, MLS with the
 //!    linear basis and the quadratic B-spline (G 5.2).
 //! 3. One-point quadrature per cell: m_i = sum_c rho_c N_i(x_c) Omega_c (5.14),
@@ -38,9 +38,19 @@ impl<const D: usize> Simulation<D> {
         };
         let (grid, pts) = (&self.grid, &self.points);
         let (h, x0, cells) = (grid.h[0], grid.origin[0], grid.cells[0]);
-        let nodes: Vec<[f64; D]> = (0..grid.node_count()).map(|i| grid.node_position(grid.unlinear(i))).collect();
-        let velocity =
-            Mls::new(Basis::Linear, Weight::CubicBSpline, grid.h).table(&nodes, &pts.x, Empty::Skip, "node", |i| i).map_err(singular)?;
+        // The velocity is needed at the nodes of the cells that hold points (the hat stencil
+        // that moves them); a node farther out may see a single point and has no velocity.
+        let mut needed = vec![false; grid.node_count()];
+        for x in &pts.x {
+            let c = (((x[0] - x0) / h).floor().max(0.0) as usize).min(cells.saturating_sub(1));
+            needed[c] = true;
+            needed[c + 1] = true;
+        }
+        let active: Vec<usize> = (0..grid.node_count()).filter(|&i| needed[i]).collect();
+        let nodes: Vec<[f64; D]> = active.iter().map(|&i| grid.node_position(grid.unlinear(i))).collect();
+        let velocity = Mls::new(Basis::Linear, Weight::CubicBSpline, grid.h)
+            .table(&nodes, &pts.x, Empty::Refuse, "node", |k| active[k])
+            .map_err(singular)?;
         // Omega_c: the covered length of each cell.
         let mut spans: Vec<(f64, f64)> =
             (0..pts.len()).map(|p| (pts.x[p][0] - 0.5 * pts.volume[p], pts.x[p][0] + 0.5 * pts.volume[p])).collect();
@@ -90,8 +100,9 @@ impl<const D: usize> Simulation<D> {
             }
         }
         let vx: Vec<f64> = pts.v.iter().map(|v| v[0]).collect();
-        for (i, v) in self.node_v.iter_mut().enumerate() {
-            *v = std::array::from_fn(|_| if velocity.has(i) { velocity.apply(i, &vx) } else { 0.0 });
+        self.node_v.iter_mut().for_each(|v| *v = [0.0; D]);
+        for (k, &i) in active.iter().enumerate() {
+            self.node_v[i] = std::array::from_fn(|_| velocity.apply(k, &vx));
         }
         let mass = std::mem::take(&mut self.node_mass);
         self.grid.apply_boundaries(&mass, &mut self.node_v);
