@@ -1,4 +1,9 @@
-//! Exact solutions used to measure error: the isothermal ideal-gas Riemann problem.
+//! Exact solutions used to measure error: the isothermal ideal-gas Riemann problem, and the
+//! manufactured solution of Gong (4.5)-(4.7) on the unit interval, square or cube.
+
+use crate::particles::Particles;
+use crate::tensor::{self, Mat3};
+use std::f64::consts::PI;
 
 /// One side of a Riemann problem: density (kg/m^3) and velocity (m/s).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -133,6 +138,107 @@ pub fn spike_measure(x: &[f64], p: &[f64], jump: f64, cell: f64, report: impl Fn
     spike
 }
 
+/// The manufactured solution of Gong (4.5)-(4.6) (1D) and (4.7) (2D; 3D likewise), on the unit
+/// interval, square or cube with rollers on every face: U_a = G sin(pi X_a) sin(c pi t) per axis,
+/// c = sqrt(E / rho0) (not the P-wave speed: the body force makes up the difference), for the
+/// compressible neo-Hookean law sigma = [lambda ln J I + mu (F F^T - I)] / J of
+/// [`crate::closure::NeoHookean`]. Notes A.9 T2/T3; the body force (4.39)/(4.46) is
+/// re-derived from rho0 A = dP/dX + rho0 B:
+/// B_a = (pi^2 U_a / rho0) [lambda (1 - ln J) / F_a^2 + mu (1 + 1 / F_a^2) - E], with
+/// F_a = 1 + pi G cos(pi X_a) sin(c pi t) and J the product of the F_a.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Manufactured {
+    /// G (m): 1e-4 is the small-strain case, 0.1 the large-deformation one (strain pi G).
+    pub amplitude: f64,
+    pub youngs_modulus: f64,
+    pub poisson_ratio: f64,
+    pub density0: f64,
+}
+
+/// L2 errors of a run against the manufactured solution, by one-point quadrature over the
+/// points' reference domains (Gong 4.40, 4.47-4.48): e = sqrt(sum_p V0_p |q_p - q(X_p, t)|^2)
+/// (absolute: m^{1+D/2}, m^{1+D/2}/s and Pa m^{D/2}).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct ManufacturedErrors {
+    pub displacement_l2: f64,
+    pub velocity_l2: f64,
+    /// Over the in-plane components sigma_ab, a, b < D.
+    pub stress_l2: f64,
+}
+
+impl Manufactured {
+    /// c = sqrt(E / rho0) (m/s).
+    pub fn speed(&self) -> f64 {
+        (self.youngs_modulus / self.density0).sqrt()
+    }
+
+    /// U_a at X_a (m).
+    pub fn displacement(&self, x0: f64, t: f64) -> f64 {
+        self.amplitude * (PI * x0).sin() * (self.speed() * PI * t).sin()
+    }
+
+    /// V_a at X_a (m/s).
+    pub fn velocity(&self, x0: f64, t: f64) -> f64 {
+        let c = self.speed();
+        c * PI * self.amplitude * (PI * x0).sin() * (c * PI * t).cos()
+    }
+
+    /// F_aa at X_a.
+    pub fn stretch(&self, x0: f64, t: f64) -> f64 {
+        1.0 + PI * self.amplitude * (PI * x0).cos() * (self.speed() * PI * t).sin()
+    }
+
+    /// The largest particle speed of the solution, c pi G (m/s).
+    pub fn max_speed(&self) -> f64 {
+        self.speed() * PI * self.amplitude.abs()
+    }
+
+    /// Cauchy stress at X (Pa).
+    pub fn stress<const D: usize>(&self, x0: &[f64; D], t: f64) -> Mat3 {
+        let (lambda, mu) = crate::closure::lame(self.youngs_modulus, self.poisson_ratio);
+        let mut f = [1.0; 3];
+        for a in 0..D {
+            f[a] = self.stretch(x0[a], t);
+        }
+        let j = f[0] * f[1] * f[2];
+        let mut s = tensor::ZERO;
+        for a in 0..3 {
+            s[a][a] = (lambda * j.ln() + mu * (f[a] * f[a] - 1.0)) / j;
+        }
+        s
+    }
+
+    /// Body force per unit mass at X (m/s^2).
+    pub fn body_force<const D: usize>(&self, x0: &[f64; D], t: f64) -> [f64; D] {
+        let (lambda, mu) = crate::closure::lame(self.youngs_modulus, self.poisson_ratio);
+        let f: [f64; D] = std::array::from_fn(|a| self.stretch(x0[a], t));
+        let lnj: f64 = f.iter().map(|v| v.ln()).sum();
+        std::array::from_fn(|a| {
+            let u = self.displacement(x0[a], t);
+            let f2 = f[a] * f[a];
+            PI * PI * u / self.density0 * (lambda * (1.0 - lnj) / f2 + mu * (1.0 + 1.0 / f2) - self.youngs_modulus)
+        })
+    }
+
+    /// Errors of the points at time `t` (positions and stresses) with their velocities at
+    /// `t_velocity` (the leapfrog's lag half a step behind).
+    pub fn errors<const D: usize>(&self, pts: &Particles<D>, t: f64, t_velocity: f64) -> ManufacturedErrors {
+        let (mut eu, mut ev, mut es) = (0.0, 0.0, 0.0);
+        for k in 0..pts.len() {
+            let (x0, v0) = (&pts.x0[k], pts.volume0[k]);
+            let exact = self.stress(x0, t);
+            for a in 0..D {
+                eu += v0 * (pts.x[k][a] - x0[a] - self.displacement(x0[a], t)).powi(2);
+                ev += v0 * (pts.v[k][a] - self.velocity(x0[a], t_velocity)).powi(2);
+                for b in 0..D {
+                    es += v0 * (pts.stress[k][a][b] - exact[a][b]).powi(2);
+                }
+            }
+        }
+        ManufacturedErrors { displacement_l2: eu.sqrt(), velocity_l2: ev.sqrt(), stress_l2: es.sqrt() }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -171,6 +277,38 @@ mod tests {
         }
         assert!((spike_measure(&x, &bumpy, 1.0, 1.0, |_| true) - 0.4).abs() < 1e-12);
         assert!((spike_measure(&x, &bumpy, 1.0, 1.0, |k| (x[k] - 10.0).abs() > 2.0) - 0.2).abs() < 1e-12);
+    }
+
+    /// The body force balances the momentum equation: rho0 A = dP/dX + rho0 B, checked with a
+    /// central difference of the first Piola stress P = J sigma F^-T along X in 1D and 2D.
+    #[test]
+    fn the_manufactured_body_force_balances_momentum() {
+        let m = Manufactured { amplitude: 0.1, youngs_modulus: 1e7, poisson_ratio: 0.3, density0: 1e3 };
+        let (t, c) = (0.0031, m.speed());
+        let piola = |x: &[f64; 2], a: usize| {
+            let s = m.stress(x, t);
+            let f: [f64; 2] = std::array::from_fn(|b| m.stretch(x[b], t));
+            s[a][a] * f[0] * f[1] / f[a]
+        };
+        for &(x1, x2) in &[(0.13, 0.77), (0.5, 0.31), (0.91, 0.05)] {
+            let x = [x1, x2];
+            let b = m.body_force(&x, t);
+            for a in 0..2 {
+                let d = 1e-6;
+                let (mut xp, mut xm) = (x, x);
+                xp[a] += d;
+                xm[a] -= d;
+                let dp = (piola(&xp, a) - piola(&xm, a)) / (2.0 * d);
+                let acc = -c * c * PI * PI * m.displacement(x[a], t);
+                let residual = m.density0 * acc - dp - m.density0 * b[a];
+                assert!(residual.abs() < 1e-6 * (m.density0 * acc).abs().max(1.0), "axis {a} at {x:?}: {residual:e}");
+            }
+        }
+        // 1D is the same with F22 = 1.
+        let b1 = m.body_force(&[0.3], t)[0];
+        let s = |x: f64| m.stress(&[x], t)[0][0];
+        let dp = (s(0.3 + 1e-6) - s(0.3 - 1e-6)) / 2e-6;
+        assert!((m.density0 * (-c * c * PI * PI * m.displacement(0.3, t)) - dp - m.density0 * b1).abs() < 1e-3);
     }
 
     #[test]

@@ -16,6 +16,7 @@ pub mod ddmp;
 pub mod diagnostics;
 pub mod exact;
 pub mod grid;
+pub mod mls;
 pub mod par;
 pub mod particles;
 pub mod shape;

@@ -29,6 +29,10 @@ pub enum SchemeKind {
     Ddmp,
     /// DDMP with sub-points placed evenly in each point's current domain (4.5)-(4.6).
     DdmpSubpoints,
+    /// Gong's improved MPM (Ch. 5, 1D): MLS velocity at the nodes, MLS density and stress at
+    /// the cell centres, one-point quadrature per cell; hat functions move the points (see
+    /// `solver/impm.rs`).
+    Impm,
 }
 
 impl SchemeKind {
@@ -42,6 +46,7 @@ impl SchemeKind {
         ("cpdi2", SchemeKind::Cpdi2),
         ("ddmp", SchemeKind::Ddmp),
         ("ddmp-subpoints", SchemeKind::DdmpSubpoints),
+        ("impm", SchemeKind::Impm),
     ];
 
     pub fn from_name(name: &str) -> Option<SchemeKind> {
@@ -56,7 +61,7 @@ impl SchemeKind {
     /// name `cpdi1` or `cpdi2`).
     pub fn supports_dimension(self, dim: usize) -> bool {
         match self {
-            SchemeKind::Cpdi => dim == 1,
+            SchemeKind::Cpdi | SchemeKind::Impm => dim == 1,
             _ => (1..=3).contains(&dim),
         }
     }

@@ -14,6 +14,8 @@ use crate::shape::{self, Block, OutsideGrid, SchemeKind, Stencil, StencilPart};
 use crate::tensor::{self, Mat3};
 use rayon::prelude::*;
 
+mod impm;
+
 /// Artificial viscosity added to the closure's stress in compression.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Viscosity {
@@ -65,11 +67,26 @@ pub enum SolverError {
 /// strain rate use v^{n+1/2} alone, and the first step advances the velocity by dt / 2 (Gong's
 /// v^{1/2} = (v^0 + v^1) / 2). Its amplification matrix has determinant 1 (symplectic, second
 /// order). Particle velocities are then half a step behind positions and stresses.
+///
+/// `Usl` is the symplectic-Euler update-stress-last of the original MPM (battery thesis B 5.3,
+/// Table 5.1 "traditional", FLIP form (3.60)-(3.61); notes A.7): v_i^{n+1} = v_i^n + dt a_i^n,
+/// the strain rate and the positions with v_i^{n+1}. It is the leapfrog's update without the
+/// half first step, so particle velocities are taken to belong to t^n: first order.
+///
+/// `Usf` is update-stress-first (Bardenhagen; notes A.7): the strain rate uses the mapped
+/// velocity v_i^n before the momentum update, the deformation, volume and stress are updated
+/// first and the forces come from the new stress; then v_i^{n+1} = v_i^n + dt a_i moves the
+/// points (FLIP increment, positions with v_i^{n+1}).
+///
+/// Every one of them keeps the explicit bound c dt / h <= 1 (Gong 7.32) as the enforced
+/// sufficient bound (notes F).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum TimeIntegrator {
     #[default]
     Dhakal,
     Leapfrog,
+    Usl,
+    Usf,
 }
 
 /// What one step did, for progress reporting.
@@ -114,6 +131,10 @@ pub struct Simulation<const D: usize> {
     pub body_force: Option<BodyForce<D>>,
     /// Time integration (default: the Ch. 3.1 cycle); see [`TimeIntegrator`].
     pub integrator: TimeIntegrator,
+    /// PIC/FLIP blend beta in [0, 1] of the particle velocity update (B 5.24-5.26, notes A.6):
+    /// v_p^{n+1} = beta (v_p^n + sum S_ip (v_i^L - v_i^n)) + (1 - beta) sum S_ip v_i^L.
+    /// 1 (the default) is the FLIP increment (3.13), 0 is PIC.
+    pub flip_fraction: f64,
     stencil: Stencil<D>,
     node_mass: Vec<f64>,
     node_force: Vec<[f64; D]>,
@@ -176,6 +197,7 @@ impl<const D: usize> Simulation<D> {
             initial: Totals::default(),
             body_force: None,
             integrator: TimeIntegrator::Dhakal,
+            flip_fraction: 1.0,
             grid,
             points,
             scheme,
@@ -272,12 +294,26 @@ impl<const D: usize> Simulation<D> {
                 "the body moved past a non-periodic face: enlarge the domain or use a wall"
             },
         })?;
-        self.map_to_grid();
-        self.nodal_forces();
         let c = self.wave_speed();
-        self.lagrangian_update(step, c)?;
-        self.velocity_gradients();
-        self.deform_and_stress(step, c)?;
+        if self.scheme == SchemeKind::Impm {
+            self.impm_grid(step)?;
+            self.lagrangian_update(step, c)?;
+            self.velocity_gradients();
+            self.deform_and_stress(step, c)?;
+        } else if self.integrator == TimeIntegrator::Usf {
+            self.map_to_grid();
+            // Update stress first: strain rate from the mapped v^n, then forces from the new stress.
+            self.velocity_gradients();
+            self.deform_and_stress(step, c)?;
+            self.nodal_forces();
+            self.lagrangian_update(step, c)?;
+        } else {
+            self.map_to_grid();
+            self.nodal_forces();
+            self.lagrangian_update(step, c)?;
+            self.velocity_gradients();
+            self.deform_and_stress(step, c)?;
+        }
         self.move_points();
         self.time += dt;
         self.step = step;
@@ -311,6 +347,8 @@ impl<const D: usize> Simulation<D> {
                 for p in r {
                     match scheme {
                         SchemeKind::Mpm | SchemeKind::Ugimp | SchemeKind::Cpgimp => shape::gimp_row(scheme, grid, pts, p, part)?,
+                        // IMPM moves its points with the hat functions at x_p^s (Gong 5.3 steps 5-6).
+                        SchemeKind::Impm => shape::gimp_row(SchemeKind::Mpm, grid, pts, p, part)?,
                         SchemeKind::Cpdi | SchemeKind::Cpdi1 | SchemeKind::Cpdi2 => shape::cpdi_row(scheme, grid, pts, p, block, part)?,
                         SchemeKind::Ddmp | SchemeKind::DdmpSubpoints => {
                             ddmp::ddmp_row(grid, pts, p, &subs[p * ns..(p + 1) * ns], field, block, part)?
@@ -492,13 +530,15 @@ impl<const D: usize> Simulation<D> {
     fn velocity_gradients(&mut self) {
         let (st, v, vl) = (&self.stencil, &self.node_v, &self.node_v_lagrangian);
         let old = self.old_velocity_weight();
+        // USF: the start-of-step velocity alone (v^L is not computed yet).
+        let first = self.integrator == TimeIntegrator::Usf;
         par::for_chunks_mut(&mut self.points.vel_grad, 1, |r, out| {
             for (k, p) in r.enumerate() {
                 let (nodes, _, grads) = st.row(p);
                 let mut l: Mat3 = tensor::ZERO;
                 for (&i, g) in nodes.iter().zip(grads) {
                     for a in 0..D {
-                        let v_half = old * v[i][a] + (1.0 - old) * vl[i][a];
+                        let v_half = if first { v[i][a] } else { old * v[i][a] + (1.0 - old) * vl[i][a] };
                         for b in 0..D {
                             l[a][b] += v_half * g[b];
                         }
@@ -597,6 +637,7 @@ impl<const D: usize> Simulation<D> {
     /// tracked corners move with the grid velocity at the corner (6.28).
     fn move_points(&mut self) {
         let old = self.old_velocity_weight();
+        let beta = self.flip_fraction;
         let (st, dt, grid) = (&self.stencil, self.dt, &self.grid);
         let (nv, nvl) = (&self.node_v, &self.node_v_lagrangian);
         let pts = &mut self.points;
@@ -609,15 +650,21 @@ impl<const D: usize> Simulation<D> {
                     let (nodes, weights, _) = st.row(p);
                     let mut dv = [0.0; D];
                     let mut vbar = [0.0; D];
+                    let mut pic = [0.0; D];
                     for (&i, &w) in nodes.iter().zip(weights) {
                         for a in 0..D {
                             dv[a] += w * (nvl[i][a] - nv[i][a]);
                             vbar[a] += w * ((1.0 - old) * nvl[i][a] + old * nv[i][a]);
+                            pic[a] += w * nvl[i][a];
                         }
                     }
                     let before = xs[k];
                     for a in 0..D {
-                        vs[k][a] += dv[a];
+                        if beta == 1.0 {
+                            vs[k][a] += dv[a];
+                        } else {
+                            vs[k][a] = beta * (vs[k][a] + dv[a]) + (1.0 - beta) * pic[a];
+                        }
                         xs[k][a] += dt * vbar[a];
                     }
                     let moved = xs[k];
@@ -690,7 +737,16 @@ impl<const D: usize> Simulation<D> {
     fn old_velocity_weight(&self) -> f64 {
         match self.integrator {
             TimeIntegrator::Dhakal => 0.5,
-            TimeIntegrator::Leapfrog => 0.0,
+            TimeIntegrator::Leapfrog | TimeIntegrator::Usl | TimeIntegrator::Usf => 0.0,
+        }
+    }
+
+    /// The time the particle velocities belong to (s): the simulated time, or half a step
+    /// before it for the leapfrog (staggered velocities).
+    pub fn velocity_time(&self) -> f64 {
+        match self.integrator {
+            TimeIntegrator::Leapfrog if self.step > 0 => self.time - 0.5 * self.dt,
+            _ => self.time,
         }
     }
 

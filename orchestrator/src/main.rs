@@ -404,6 +404,15 @@ fn dispatch(cli: Cli) -> i32 {
                             e["pressure_spike"].as_f64().unwrap_or(f64::NAN)
                         );
                     }
+                    if let Some(e) = summary.get("errors").filter(|e| e["reference"] == "manufactured") {
+                        println!(
+                            "L2 error vs the manufactured solution (G = {}): displacement {:.4e}, velocity {:.4e}, stress {:.4e}",
+                            e["amplitude"],
+                            e["displacement_l2"].as_f64().unwrap_or(f64::NAN),
+                            e["velocity_l2"].as_f64().unwrap_or(f64::NAN),
+                            e["stress_l2"].as_f64().unwrap_or(f64::NAN)
+                        );
+                    }
                     exit::OK
                 }
                 Ok(run::Outcome::Cancelled { checkpoint, step }) => {

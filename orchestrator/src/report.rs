@@ -32,7 +32,22 @@ impl std::str::FromStr for Sweep {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
         let (key, values) = s.split_once('=').ok_or_else(|| format!("expected --sweep key=v1,v2,..., got `{s}`"))?;
-        let values: Vec<String> = values.split(',').map(|v| v.trim().to_string()).filter(|v| !v.is_empty()).collect();
+        // Commas inside brackets belong to one value: `domain.cells=[8,8],[16,16]` is two values.
+        let mut parts = Vec::new();
+        let (mut depth, mut start) = (0i32, 0);
+        for (i, ch) in values.char_indices() {
+            match ch {
+                '[' | '{' => depth += 1,
+                ']' | '}' => depth -= 1,
+                ',' if depth == 0 => {
+                    parts.push(&values[start..i]);
+                    start = i + 1;
+                }
+                _ => {}
+            }
+        }
+        parts.push(&values[start..]);
+        let values: Vec<String> = parts.into_iter().map(|v| v.trim().to_string()).filter(|v| !v.is_empty()).collect();
         if key.split('+').any(|k| k.trim().is_empty()) || values.is_empty() {
             return Err(format!("expected --sweep key=v1,v2,..., got `{s}`"));
         }
@@ -264,6 +279,11 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], comp
     if !times.is_empty() {
         csv.push_str("scored_points,");
     }
+    // Runs against a manufactured solution add its three L2 errors.
+    let manufactured = rows.iter().any(|r| r.summary["errors"]["reference"] == "manufactured");
+    if manufactured {
+        csv.push_str("displacement_l2,velocity_l2,stress_l2,");
+    }
     csv.push_str("run_dir\n");
     for (k, r) in rows.iter().enumerate() {
         for v in &r.values {
@@ -297,6 +317,11 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], comp
         if !times.is_empty() {
             let _ = write!(csv, "{},", r.scores.first().map(|s| s.1.to_string()).unwrap_or_default());
         }
+        if manufactured {
+            for q in ["displacement_l2", "velocity_l2", "stress_l2"] {
+                let _ = write!(csv, "{},", field(s, &["errors", q]));
+            }
+        }
         let _ = writeln!(csv, "runs/{k:03}");
     }
     output::write_atomic(&out.join("report.csv"), csv.as_bytes())?;
@@ -306,10 +331,17 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], comp
 /// Error against wall time on log-log axes, one series per method: pressure L1 over the jump,
 /// or with a reference the eq. 7.12 error at the last reference time.
 fn plot(rows: &[Row], path: &Path, times: &[f64], component: &str) -> Result<()> {
+    let manufactured = rows.iter().any(|r| r.summary["errors"]["reference"] == "manufactured");
     let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     for r in rows {
         let s = &r.summary;
-        let e = if times.is_empty() { s["errors"]["pressure_l1"].as_f64() } else { r.scores.last().map(|s| s.0) };
+        let e = if manufactured {
+            s["errors"]["displacement_l2"].as_f64()
+        } else if times.is_empty() {
+            s["errors"]["pressure_l1"].as_f64()
+        } else {
+            r.scores.last().map(|s| s.0)
+        };
         let (Some(t), Some(e)) = (s["wall_seconds"].as_f64(), e) else { continue };
         if s["status"] != "completed" || !(t > 0.0 && e > 0.0) {
             continue;
@@ -324,6 +356,15 @@ fn plot(rows: &[Row], path: &Path, times: &[f64], component: &str) -> Result<()>
         pts.sort_by(|a, b| a.0.total_cmp(&b.0));
     }
     let refs: Vec<output::Series<'_>> = series.iter().map(|(m, p)| output::Series { label: m, points: p.clone(), line: true }).collect();
+    if manufactured {
+        return output::plot_loglog(
+            path,
+            "displacement error against wall time (manufactured solution)",
+            "wall time (s)",
+            "displacement L2 error",
+            &refs,
+        );
+    }
     match times.last() {
         Some(t) => {
             let sigma = format!("sigma_{}", component.trim_start_matches('s'));
@@ -458,6 +499,8 @@ mod tests {
         assert_eq!(combinations(&sweeps), [vec!["a=1", "b=1", "c=x"], vec!["a=2", "b=2", "c=x"]]);
         assert_eq!(value_combinations(&sweeps), [vec!["1", "x"], vec!["2", "x"]]);
         assert!("a+=1".parse::<Sweep>().is_err());
+        let cells: Sweep = "domain.cells=[8,8], [16,16],[32,32]".parse().expect("sweep");
+        assert_eq!(cells.values, ["[8,8]", "[16,16]", "[32,32]"]);
     }
 
     #[test]

@@ -284,11 +284,20 @@ pub struct Scheme {
     /// Small-mass node threshold as a fraction of the mean initial point mass.
     #[serde(default = "default_small_mass")]
     pub small_mass_fraction: f64,
-    /// Time stepping: `dhakal` (the cycle of Ch. 3.1, eqs. 3.13-3.14; first order in time) or
+    /// Time stepping: `dhakal` (the cycle of Ch. 3.1, eqs. 3.13-3.14; first order in time),
     /// `leapfrog` (staggered velocities, Gong eq. 4.24; second order: use it for convergence
-    /// studies of smooth problems).
+    /// studies of smooth problems), `usl` (symplectic Euler, update stress last) or `usf`
+    /// (update stress first).
     #[serde(default, with = "names::named")]
     pub integrator: continuum::solver::TimeIntegrator,
+    /// PIC/FLIP blend of the particle velocity update, in [0, 1]: 1 (default) is FLIP, 0 PIC
+    /// (battery thesis 5.24-5.26).
+    #[serde(default = "default_flip_fraction")]
+    pub flip_fraction: f64,
+}
+
+fn default_flip_fraction() -> f64 {
+    1.0
 }
 
 fn default_one() -> usize {
@@ -391,6 +400,21 @@ pub enum Reference {
     IsothermalRiemann(RiemannReference),
     /// A direct-MD solution of the same problem, scored by the seed's eq. (7.12).
     DirectMd(DirectMdReference),
+    /// Gong's manufactured solution (4.5)-(4.7) on the unit interval/square/cube: sets the body
+    /// force and the initial velocity, and every run writes its L2 errors.
+    Manufactured(ManufacturedReference),
+}
+
+/// `solution = "manufactured"`: U = G sin(pi X) sin(c pi t) per axis, c = sqrt(E / rho0), for the
+/// scene's one neo-Hookean body filling the unit domain (see [`continuum::exact::Manufactured`]).
+/// The reference sets the body force (`manufactured`) and the initial velocity
+/// V = c pi G sin(pi X); summary.json `errors` gets the displacement, velocity and stress L2
+/// errors at the end time.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ManufacturedReference {
+    /// G (m): 1e-4 (small strain) or 0.1 (large deformation, strain pi G = 0.314).
+    pub amplitude: f64,
 }
 
 /// `solution = "isothermal-riemann"`.
@@ -532,6 +556,46 @@ end_time = 1e-12
         assert!(e.contains("--set scheme.integrator=euler: `scheme.integrator` = \"euler\": allowed: \"dhakal\""), "{e}");
         let e = err(MD, &["boundary.y_max={ piston = [1.0, 0.0], speed = 2 }"]);
         assert!(e.contains("unknown field `speed`"), "{e}");
+    }
+
+    #[test]
+    fn the_manufactured_reference_sets_its_solution_and_refuses_what_it_cannot_hold() {
+        let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+        let text = std::fs::read_to_string(base.join("mms-2d.toml")).unwrap();
+        let sets: Vec<String> = vec!["domain.cells=[8,8]".into(), "reference.amplitude=1e-4".into()];
+        let l = parse("mms-2d.toml", &text, &sets, &base, "mms-2d").unwrap();
+        let m = l.resolved.manufactured.expect("manufactured");
+        assert_eq!((m.amplitude, m.youngs_modulus, m.density0), (1e-4, 1e7, 1e3));
+        // Gong's dt = 0.4 h / c with c = sqrt(E / rho0) = 100 m/s.
+        assert!((l.dt - 0.4 / 8.0 / 100.0).abs() < 1e-12 * l.dt, "{}", l.dt);
+        assert_eq!(l.steps, 40);
+        let err = |sets: &[&str]| {
+            let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+            parse("mms-2d.toml", &text, &sets, &base, "mms-2d").map(|_| ()).unwrap_err().to_string()
+        };
+        assert!(err(&["reference.amplitude=0.5"]).contains("`reference.amplitude` = 0.5: the amplitude G (m) must be"));
+        assert!(err(&["boundary.y_max=\"fixed\""]).contains("`boundary.y_max`"));
+        assert!(err(&["bodies.bar.velocity=[1.0, 0.0]"]).contains("sets the initial velocity"));
+        assert!(err(&["domain.max=[2.0, 1.0]", "bodies.bar.max=[2.0, 1.0]"]).contains("unit domain"));
+        assert!(
+            err(&["bodies.bar.material={ law = \"linear-elastic\", youngs_modulus = 1e7, poisson_ratio = 0.3 }"]).contains("neo-hookean")
+        );
+        assert!(err(&["scheme.cfl=0.95"]).contains("manufactured particle speed"), "{}", err(&["scheme.cfl=0.95"]));
+        assert!(err(&["scheme.method=impm"]).contains("`scheme.method` = \"impm\": `impm` is 1D only"));
+        let text_1d = std::fs::read_to_string(base.join("mms-1d.toml")).unwrap();
+        let one = |sets: &[&str]| {
+            let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+            parse("mms-1d.toml", &text_1d, &sets, &base, "mms-1d").map(|l| l.resolved.scheme)
+        };
+        assert_eq!(one(&["scheme.method=impm"]), Ok(continuum::SchemeKind::Impm));
+        let e = one(&["scheme.method=impm", "scheme.integrator=usl"]).unwrap_err().to_string();
+        assert!(e.contains("`scheme.integrator` = \"usl\": impm is Gong's staggered scheme"), "{e}");
+        assert!(err(&["scheme.flip_fraction=1.5"]).contains("`scheme.flip_fraction` = 1.5: the PIC/FLIP blend must lie in [0, 1]"));
+        for (name, want) in [("usl", continuum::solver::TimeIntegrator::Usl), ("usf", continuum::solver::TimeIntegrator::Usf)] {
+            let sets = vec![format!("scheme.integrator={name}"), "scheme.flip_fraction=0.25".to_string()];
+            let l = parse("mms-2d.toml", &text, &sets, &base, "mms-2d").unwrap();
+            assert_eq!((l.resolved.integrator, l.resolved.flip_fraction), (want, 0.25));
+        }
     }
 
     #[test]

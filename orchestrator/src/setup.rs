@@ -94,13 +94,23 @@ pub fn points<const D: usize>(scene: &ResolvedScene, grid: &Grid<D>) -> Result<P
 /// Builds the simulation of a resolved scene.
 pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<MdShared>>>) -> Result<Simulation<D>, SetupError> {
     let grid = grid::<D>(scene);
-    let points = points(scene, &grid)?;
+    let mut points = points(scene, &grid)?;
+    if let Some(m) = scene.manufactured {
+        // The manufactured solution's initial velocity V = c pi G sin(pi X).
+        for (v, x0) in points.v.iter_mut().zip(&points.x0) {
+            *v = std::array::from_fn(|a| m.velocity(x0[a], 0.0));
+        }
+    }
     let ranges = points.body_ranges();
     let closures = scene.bodies.iter().zip(ranges).map(|(b, r)| closure(b, r, md)).collect::<Result<Vec<_>, _>>()?;
     let mut sim = Simulation::new(grid, points, scene.scheme, closures, scene.viscosity, scene.dt)?
         .with_sub_points(scene.sub_points)
         .with_small_mass_fraction(scene.small_mass_fraction);
     sim.integrator = scene.integrator;
+    sim.flip_fraction = scene.flip_fraction;
+    if let Some(m) = scene.manufactured {
+        sim.body_force = Some(Arc::new(move |x0: &[f64; D], t: f64| m.body_force(x0, t)));
+    }
     Ok(sim)
 }
 

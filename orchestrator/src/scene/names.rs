@@ -86,10 +86,14 @@ impl SceneName for continuum::SchemeKind {
 
 impl SceneName for continuum::solver::TimeIntegrator {
     const FIELD: &'static str = "integrator";
-    const NAMES: &'static [(&'static str, Self)] =
-        &[("dhakal", continuum::solver::TimeIntegrator::Dhakal), ("leapfrog", continuum::solver::TimeIntegrator::Leapfrog)];
+    const NAMES: &'static [(&'static str, Self)] = &[
+        ("dhakal", continuum::solver::TimeIntegrator::Dhakal),
+        ("leapfrog", continuum::solver::TimeIntegrator::Leapfrog),
+        ("usl", continuum::solver::TimeIntegrator::Usl),
+        ("usf", continuum::solver::TimeIntegrator::Usf),
+    ];
     fn allowed() -> String {
-        "allowed: \"dhakal\" (Ch. 3.1 cycle), \"leapfrog\"".into()
+        "allowed: \"dhakal\" (Ch. 3.1 cycle), \"leapfrog\", \"usl\" (symplectic Euler), \"usf\" (update stress first)".into()
     }
 }
 

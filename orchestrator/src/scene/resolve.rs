@@ -27,6 +27,8 @@ pub struct ResolvedScene {
     pub sub_points: usize,
     pub viscosity: Viscosity,
     pub integrator: TimeIntegrator,
+    /// PIC/FLIP blend in [0, 1] (1: FLIP).
+    pub flip_fraction: f64,
     pub small_mass_fraction: f64,
     /// Time step (s).
     pub dt: f64,
@@ -34,6 +36,9 @@ pub struct ResolvedScene {
     pub steps: u64,
     /// In name order (the order of the point ids).
     pub bodies: Vec<ResolvedBody>,
+    /// `[reference] solution = "manufactured"`: the solution whose body force and initial
+    /// velocity setup applies.
+    pub manufactured: Option<continuum::exact::Manufactured>,
 }
 
 /// One body: its region, initial state, closure and number of material points.

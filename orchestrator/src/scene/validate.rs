@@ -154,10 +154,12 @@ impl Scene {
                 ViscosityForm::Tensor => Viscosity::Tensor { linear: s.viscosity_c_l, quadratic: s.viscosity_c_q },
             },
             integrator: s.integrator,
+            flip_fraction: s.flip_fraction,
             small_mass_fraction: s.small_mass_fraction,
             dt,
             steps,
             bodies,
+            manufactured: self.manufactured(),
         }
     }
 
@@ -448,8 +450,28 @@ impl Scene {
             return Err(loc.err(
                 "scheme.method",
                 format!("{:?}", kind.name()),
-                format!("`{}` is the 1D CPDI; a {dim}D scene allows: {}", kind.name(), ok.join(", ")),
+                if kind == SchemeKind::Cpdi {
+                    format!("`{}` is the 1D CPDI; a {dim}D scene allows: {}", kind.name(), ok.join(", "))
+                } else {
+                    format!("`{}` is 1D only in this build; a {dim}D scene allows: {}", kind.name(), ok.join(", "))
+                },
             ));
+        }
+        if kind == SchemeKind::Impm {
+            if s.integrator != continuum::solver::TimeIntegrator::Leapfrog {
+                return Err(loc.err(
+                    "scheme.integrator",
+                    format!("{:?}", s.integrator.scene_name()),
+                    "impm is Gong's staggered scheme (Ch. 5.3): set scheme.integrator = \"leapfrog\"",
+                ));
+            }
+            if let Some((face, _)) = self.boundary.faces().into_iter().find(|(_, f)| matches!(f, FaceSpec::Named(FaceName::Periodic))) {
+                return Err(loc.err(
+                    &format!("boundary.{face}"),
+                    "\"periodic\"",
+                    "impm's MLS reconstruction does not wrap around a periodic axis in this build",
+                ));
+            }
         }
         if !(1..=64).contains(&s.particles_per_cell) {
             return Err(loc.err("scheme.particles_per_cell", s.particles_per_cell, "allowed: 1 to 64 per axis"));
@@ -472,6 +494,9 @@ impl Scene {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(loc.err(key, v, "must be finite and >= 0"));
             }
+        }
+        if !(s.flip_fraction.is_finite() && (0.0..=1.0).contains(&s.flip_fraction)) {
+            return Err(loc.err("scheme.flip_fraction", s.flip_fraction, "the PIC/FLIP blend must lie in [0, 1] (1: FLIP, 0: PIC)"));
         }
         if !(s.small_mass_fraction.is_finite() && (0.0..1.0).contains(&s.small_mass_fraction)) {
             return Err(loc.err("scheme.small_mass_fraction", s.small_mass_fraction, "must lie in [0, 1)"));
@@ -524,6 +549,7 @@ impl Scene {
         match self.reference.clone() {
             None => Ok(None),
             Some(Reference::IsothermalRiemann(r)) => self.validate_riemann(loc, &r).map(|_| None),
+            Some(Reference::Manufactured(r)) => self.validate_manufactured(loc, &r).map(|_| None),
             Some(Reference::DirectMd(r)) => {
                 let file = self.validate_direct_md(loc, &r, base)?;
                 self.reference = Some(Reference::DirectMd(DirectMdReference { profile: file.clone(), ..r }));
@@ -590,6 +616,109 @@ impl Scene {
             return Err(loc.err("reference.solution", "\"direct-md\"", format!("{e:#}")));
         }
         Ok(file.canonicalize().unwrap_or(file))
+    }
+
+    /// The manufactured solution of a validated scene's `[reference]`, if it names one.
+    fn manufactured(&self) -> Option<continuum::exact::Manufactured> {
+        let Some(Reference::Manufactured(r)) = &self.reference else { return None };
+        let body = self.bodies.values().next()?;
+        let Material::NeoHookean(e) = &body.material else { return None };
+        Some(continuum::exact::Manufactured {
+            amplitude: r.amplitude,
+            youngs_modulus: e.youngs_modulus,
+            poisson_ratio: e.poisson_ratio,
+            density0: body.density,
+        })
+    }
+
+    /// Gong's manufactured solution holds for one neo-Hookean body filling the unit domain,
+    /// at rest and unstrained as given (the reference sets the velocity), with rollers on every
+    /// face (the tangential velocity at a wall is not zero in 2D and 3D); its amplitude keeps
+    /// F = 1 + pi G cos(pi X) sin(c pi t) positive; the time step stays within the explicit
+    /// bound with the solution's particle speed c pi G added to the wave speed (the scene's
+    /// `cfl` counts the wave speed only, so dt = 0.4 h / c of Gong is a fixed `cfl`).
+    fn validate_manufactured(&self, loc: &Locator<'_>, r: &ManufacturedReference) -> Result<(), SceneError> {
+        let g = r.amplitude;
+        if !(g.is_finite() && g != 0.0 && std::f64::consts::PI * g.abs() < 1.0) {
+            return Err(loc.err(
+                "reference.amplitude",
+                g,
+                "the amplitude G (m) must be finite, nonzero and below 1/pi = 0.318 (the stretch 1 + pi G cos(pi X) sin(c pi t) must stay positive)",
+            ));
+        }
+        let dim = self.domain.dimension;
+        let unit = |min: &[f64], max: &[f64]| (0..dim).all(|a| min[a].abs() <= 1e-12 && (max[a] - 1.0).abs() <= 1e-12);
+        if !unit(&self.domain.min, &self.domain.max) {
+            return Err(loc.err(
+                "domain.max",
+                vec_str(&self.domain.max),
+                format!(
+                    "the manufactured solution is defined on the unit domain: domain.min = {:?}, domain.max = {:?}",
+                    vec![0.0; dim],
+                    vec![1.0; dim]
+                ),
+            ));
+        }
+        let mut names = self.bodies.keys();
+        let (Some(name), None) = (names.next(), names.next()) else {
+            return Err(loc.err(
+                "bodies",
+                self.bodies.keys().cloned().collect::<Vec<_>>().join(", "),
+                "the manufactured solution needs exactly one body (neo-hookean, filling the domain)",
+            ));
+        };
+        let b = &self.bodies[name];
+        let k = |f: &str| format!("bodies.{name}.{f}");
+        let Material::NeoHookean(_) = &b.material else {
+            return Err(loc.err(
+                &k("material.law"),
+                format!("{:?}", b.material.law()),
+                "the manufactured solution's body force is that of the neo-hookean law: law = \"neo-hookean\"",
+            ));
+        };
+        if !unit(&b.min, &b.max) {
+            return Err(loc.err(&k("max"), format!("min {:?} max {:?}", b.min, b.max), "the body must fill the unit domain"));
+        }
+        if b.velocity.iter().any(|v| *v != 0.0) {
+            return Err(loc.err(
+                &k("velocity"),
+                vec_str(&b.velocity),
+                "the manufactured reference sets the initial velocity c pi G sin(pi X): leave `velocity` out",
+            ));
+        }
+        if b.initial_strain.iter().any(|e| *e != 0.0) {
+            return Err(loc.err(
+                &k("initial_strain"),
+                vec_str(&b.initial_strain),
+                "the manufactured solution starts unstrained: leave it out",
+            ));
+        }
+        for (i, (face, spec)) in self.boundary.faces().into_iter().enumerate() {
+            if i / 2 < dim && !matches!(spec, FaceSpec::Named(FaceName::Reflective | FaceName::Roller)) {
+                return Err(loc.err(
+                    &format!("boundary.{face}"),
+                    face_debug(spec),
+                    "the manufactured solution has zero normal and free tangential velocity on every face: \"roller\" (or \"reflective\")",
+                ));
+            }
+        }
+        if let (Some(dt), Some(m)) = (self.scheme.timestep, self.manufactured()) {
+            let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
+            let (lambda, mu) = continuum::closure::lame(m.youngs_modulus, m.poisson_ratio);
+            let speed = ((lambda + 2.0 * mu) / m.density0).sqrt() + m.max_speed();
+            if dt * speed / h > CFL_LIMIT {
+                return Err(loc.err(
+                    "scheme.cfl",
+                    self.scheme.cfl.unwrap_or_default(),
+                    format!(
+                        "with the manufactured particle speed c pi G = {:e} m/s, dt = {dt:e} s exceeds the bound h / (c + |v|) = {:e} s",
+                        m.max_speed(),
+                        h / speed
+                    ),
+                ));
+            }
+        }
+        Ok(())
     }
 
     fn validate_riemann(&self, loc: &Locator<'_>, r: &RiemannReference) -> Result<(), SceneError> {
