@@ -16,9 +16,11 @@ pub mod ddmp;
 pub mod diagnostics;
 pub mod exact;
 pub mod grid;
+pub mod kinematics;
 pub mod par;
 pub mod particles;
 pub mod shape;
+pub mod silicon;
 pub mod solver;
 pub mod tensor;
 
