@@ -1,4 +1,5 @@
-//! Exact solutions used to measure error: the isothermal ideal-gas Riemann problem.
+//! Exact solutions used to measure error: the isothermal ideal-gas Riemann problem, and the
+//! in-plane stress path of a lithiated film on a rigid substrate.
 
 /// One side of a Riemann problem: density (kg/m^3) and velocity (m/s).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -131,6 +132,21 @@ pub fn spike_measure(x: &[f64], p: &[f64], jump: f64, cell: f64, report: impl Fn
         }
     }
     spike
+}
+
+/// A film on a rigid substrate lithiated uniformly by `dc` from a stress-free state (in-plane
+/// strain zero, normal stress zero, [`crate::silicon::ChemoPlastic`]): (in-plane stress (Pa),
+/// equivalent plastic strain). Derived (continuum/README.md): elastic sigma = -M eta dc with
+/// the biaxial modulus M = E / (1 - nu), yield at dc_y = sigma_Y / (M eta), then
+/// sigma = -sigma_Y - H M eta (dc - dc_y) / (H + M / 2) and
+/// eps_p = M eta (dc - dc_y) / (H + M / 2). A negative `dc` (delithiation from the stress-free
+/// state) mirrors it in tension.
+pub fn thin_film_stress(law: &crate::silicon::ChemoPlastic, dc: f64) -> (f64, f64) {
+    let (m, eta, h) = (law.biaxial_modulus(), law.chemical_expansion, law.hardening_modulus);
+    let x = eta * dc.abs();
+    let yield_x = law.yield_stress / m;
+    let (sigma, eps) = if x <= yield_x { (m * x, 0.0) } else { (law.yield_stress + h * m * (x - yield_x) / (h + m / 2.0), m * (x - yield_x) / (h + m / 2.0)) };
+    (-sigma * dc.signum(), eps)
 }
 
 #[cfg(test)]

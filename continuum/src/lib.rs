@@ -13,6 +13,7 @@
 
 pub mod closure;
 pub mod ddmp;
+pub mod diffusion;
 pub mod diagnostics;
 pub mod exact;
 pub mod grid;
