@@ -24,6 +24,12 @@ pub struct ClosureBatch<'a> {
     pub volume: &'a [f64],
     /// In: stress at the start of the step. Out: stress at the end (Pa, tension positive).
     pub stress: &'a mut [Mat3],
+    /// Rate of the scalar field the points carry (normalised concentration per second) over
+    /// the step; empty when the scene has none (every rate zero).
+    pub scalar_rate: &'a [f64],
+    /// Equivalent plastic strain, in and out (plastic laws); empty when no law of the scene is
+    /// plastic.
+    pub plastic_strain: &'a mut [f64],
 }
 
 /// One point of a batch, as a pointwise law reads it.

@@ -1,5 +1,6 @@
 //! Exact solutions used to measure error: the isothermal ideal-gas Riemann problem, and the
-//! manufactured solution of Gong (4.5)-(4.7) on the unit interval, square or cube.
+//! manufactured solution of Gong (4.5)-(4.7) on the unit interval, square or cube, and the
+//! in-plane stress path of a lithiated film on a rigid substrate.
 
 use crate::particles::Particles;
 use crate::tensor::{self, Mat3};
@@ -237,6 +238,21 @@ impl Manufactured {
         }
         ManufacturedErrors { displacement_l2: eu.sqrt(), velocity_l2: ev.sqrt(), stress_l2: es.sqrt() }
     }
+}
+
+/// A film on a rigid substrate lithiated uniformly by `dc` from a stress-free state (in-plane
+/// strain zero, normal stress zero, [`crate::silicon::ChemoPlastic`]): (in-plane stress (Pa),
+/// equivalent plastic strain). Derived (continuum/README.md): elastic sigma = -M eta dc with
+/// the biaxial modulus M = E / (1 - nu), yield at dc_y = sigma_Y / (M eta), then
+/// sigma = -sigma_Y - H M eta (dc - dc_y) / (H + M / 2) and
+/// eps_p = M eta (dc - dc_y) / (H + M / 2). A negative `dc` (delithiation from the stress-free
+/// state) mirrors it in tension.
+pub fn thin_film_stress(law: &crate::silicon::ChemoPlastic, dc: f64) -> (f64, f64) {
+    let (m, eta, h) = (law.biaxial_modulus(), law.chemical_expansion, law.hardening_modulus);
+    let x = eta * dc.abs();
+    let yield_x = law.yield_stress / m;
+    let (sigma, eps) = if x <= yield_x { (m * x, 0.0) } else { (law.yield_stress + h * m * (x - yield_x) / (h + m / 2.0), m * (x - yield_x) / (h + m / 2.0)) };
+    (-sigma * dc.signum(), eps)
 }
 
 #[cfg(test)]

@@ -13,13 +13,16 @@
 
 pub mod closure;
 pub mod ddmp;
+pub mod diffusion;
 pub mod diagnostics;
 pub mod exact;
 pub mod grid;
 pub mod mls;
+pub mod kinematics;
 pub mod par;
 pub mod particles;
 pub mod shape;
+pub mod silicon;
 pub mod solver;
 pub mod tensor;
 

@@ -43,6 +43,13 @@ pub struct Particles<const D: usize> {
     pub internal_energy: Vec<f64>,
     /// Index of the body each point belongs to.
     pub body: Vec<u32>,
+    /// Scalar field carried by the points (normalised concentration c = c_Li / c_max, or a
+    /// temperature); empty unless the scene has one ([`Particles::with_fields`]).
+    pub scalar: Vec<f64>,
+    /// Its rate over the last step (1/s); empty with `scalar`.
+    pub scalar_rate: Vec<f64>,
+    /// Equivalent plastic strain; empty unless a law of the scene is plastic.
+    pub plastic_strain: Vec<f64>,
 }
 
 impl<const D: usize> Particles<D> {
@@ -82,6 +89,19 @@ impl<const D: usize> Particles<D> {
         self.visc_stress.push(ZERO);
         self.internal_energy.push(0.0);
         self.body.push(body);
+    }
+
+    /// Allocates the optional per-point fields (zero) once every point is pushed: the scalar
+    /// field and its rate, and the plastic strain. Scenes without them allocate nothing.
+    pub fn with_fields(&mut self, scalar: bool, plastic: bool) {
+        let n = self.len();
+        if scalar {
+            self.scalar.resize(n, 0.0);
+            self.scalar_rate.resize(n, 0.0);
+        }
+        if plastic {
+            self.plastic_strain.resize(n, 0.0);
+        }
     }
 
     /// Corners per point (`2^D`).
@@ -130,6 +150,8 @@ impl<const D: usize> Particles<D> {
             def_grad: &self.def_grad[range.clone()],
             mass: &self.mass[range.clone()],
             volume: &self.volume[range.clone()],
+            scalar_rate: if self.scalar_rate.is_empty() { &[] } else { &self.scalar_rate[range.clone()] },
+            plastic_strain: if self.plastic_strain.is_empty() { &mut [] } else { &mut self.plastic_strain[range.clone()] },
             stress: &mut self.stress[range],
         }
     }

@@ -135,6 +135,11 @@ pub struct Simulation<const D: usize> {
     /// v_p^{n+1} = beta (v_p^n + sum S_ip (v_i^L - v_i^n)) + (1 - beta) sum S_ip v_i^L.
     /// 1 (the default) is the FLIP increment (3.13), 0 is PIC.
     pub flip_fraction: f64,
+    /// Prescribed rate of every point's scalar field (1/s; a uniform lithiation), empty for
+    /// none. Used only when the points carry a scalar field ([`Particles::with_fields`]).
+    pub prescribed_scalar_rate: Vec<f64>,
+    /// Diffusion of the scalar field (see [`crate::diffusion`]); none by default.
+    pub diffusion: Option<crate::diffusion::Diffusion<D>>,
     stencil: Stencil<D>,
     node_mass: Vec<f64>,
     node_force: Vec<[f64; D]>,
@@ -198,6 +203,8 @@ impl<const D: usize> Simulation<D> {
             body_force: None,
             integrator: TimeIntegrator::Dhakal,
             flip_fraction: 1.0,
+            prescribed_scalar_rate: Vec::new(),
+            diffusion: None,
             grid,
             points,
             scheme,
@@ -299,11 +306,13 @@ impl<const D: usize> Simulation<D> {
             self.impm_grid(step)?;
             self.lagrangian_update(step, c)?;
             self.velocity_gradients();
+            self.advance_scalar(step)?;
             self.deform_and_stress(step, c)?;
         } else if self.integrator == TimeIntegrator::Usf {
             self.map_to_grid();
             // Update stress first: strain rate from the mapped v^n, then forces from the new stress.
             self.velocity_gradients();
+            self.advance_scalar(step)?;
             self.deform_and_stress(step, c)?;
             self.nodal_forces();
             self.lagrangian_update(step, c)?;
@@ -312,6 +321,7 @@ impl<const D: usize> Simulation<D> {
             self.nodal_forces();
             self.lagrangian_update(step, c)?;
             self.velocity_gradients();
+            self.advance_scalar(step)?;
             self.deform_and_stress(step, c)?;
         }
         self.move_points();
@@ -547,6 +557,38 @@ impl<const D: usize> Simulation<D> {
                 out[k] = l;
             }
         });
+    }
+
+    /// The scalar field the points carry (when they carry one): its rate over the step (the
+    /// prescribed rate plus the diffusion's) and its value at the end of the step, before the
+    /// closures read the rate.
+    fn advance_scalar(&mut self, step: u64) -> Result<(), SolverError> {
+        let pts = &mut self.points;
+        if pts.scalar.is_empty() {
+            return Ok(());
+        }
+        let (dt, given) = (self.dt, &self.prescribed_scalar_rate);
+        for p in 0..pts.scalar.len() {
+            pts.scalar_rate[p] = given.get(p).copied().unwrap_or(0.0);
+        }
+        if let Some(d) = self.diffusion.as_mut() {
+            d.step(&self.grid, self.scheme, &self.stencil, pts, dt).map_err(|o| SolverError::Diverged {
+                step,
+                what: format!("particle {} lies outside the grid along axis {} at its reference position", o.point, o.axis),
+                cause: "the reference-configuration diffusion needs every point's initial position on the grid",
+            })?;
+        }
+        for p in 0..pts.scalar.len() {
+            pts.scalar[p] += dt * given.get(p).copied().unwrap_or(0.0);
+        }
+        if let Some(p) = pts.scalar.iter().position(|c| !c.is_finite()) {
+            return Err(SolverError::Diverged {
+                step,
+                what: format!("particle {p} has a non-finite concentration"),
+                cause: "the time step exceeds the explicit diffusion bound J_min h0^2 / (2 d K)",
+            });
+        }
+        Ok(())
     }
 
     /// Step 8: deformation gradient, volume, closure stress, artificial viscosity and the

@@ -127,6 +127,8 @@ impl Points {
             mass: &self.mass,
             volume: &self.volume,
             stress: &mut self.stress,
+            scalar_rate: &[],
+            plastic_strain: &mut [],
         }
     }
 

@@ -80,6 +80,13 @@ pub struct SavedPoints {
     pub corners: Vec<f64>,
     pub internal_energy: Vec<f64>,
     pub body: Vec<u32>,
+    /// The optional fields (empty when the scene has none; absent in older checkpoints).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub scalar: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub scalar_rate: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub plastic_strain: Vec<f64>,
 }
 
 /// The MD side: the closure's per-point state and every box.
@@ -145,6 +152,11 @@ fn scalars(name: &str, v: &[f64], n: usize) -> Result<Vec<f64>> {
     Ok(v.to_vec())
 }
 
+/// An optional per-point field: empty, or one value per point.
+fn optional(name: &str, v: &[f64], n: usize) -> Result<Vec<f64>> {
+    if v.is_empty() { Ok(Vec::new()) } else { scalars(name, v, n) }
+}
+
 impl SavedPoints {
     pub fn of<const D: usize>(p: &Particles<D>) -> Self {
         SavedPoints {
@@ -164,6 +176,9 @@ impl SavedPoints {
             corners: flat(&p.corners),
             internal_energy: p.internal_energy.clone(),
             body: p.body.clone(),
+            scalar: p.scalar.clone(),
+            scalar_rate: p.scalar_rate.clone(),
+            plastic_strain: p.plastic_strain.clone(),
         }
     }
 
@@ -187,6 +202,9 @@ impl SavedPoints {
             corners: unflat("corners", &self.corners, n * (1 << D))?,
             internal_energy: scalars("internal_energy", &self.internal_energy, n)?,
             body: self.body.clone(),
+            scalar: optional("scalar", &self.scalar, n)?,
+            scalar_rate: optional("scalar_rate", &self.scalar_rate, n)?,
+            plastic_strain: optional("plastic_strain", &self.plastic_strain, n)?,
         })
     }
 }

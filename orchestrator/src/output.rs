@@ -149,6 +149,19 @@ pub fn particles_vtu<const D: usize>(pts: &Particles<D>) -> String {
     s
 }
 
+/// The optional per-point fields as particle-file columns: `concentration` and
+/// `plastic_strain` when the points carry them.
+pub fn field_columns<const D: usize>(pts: &Particles<D>) -> Vec<(&'static str, Vec<f64>)> {
+    let mut cols = Vec::new();
+    if !pts.scalar.is_empty() {
+        cols.push(("concentration", pts.scalar.clone()));
+    }
+    if !pts.plastic_strain.is_empty() {
+        cols.push(("plastic_strain", pts.plastic_strain.clone()));
+    }
+    cols
+}
+
 /// ParaView collection of the snapshots: `(time, relative file)`.
 pub fn pvd(entries: &[(f64, String)]) -> String {
     let mut s = String::from("<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n<Collection>\n");
@@ -160,7 +173,8 @@ pub fn pvd(entries: &[(f64, String)]) -> String {
 }
 
 /// SHA-256 over the bits of the final state (positions, velocities, volumes, deformation
-/// gradients, stresses, energies), the step and the time.
+/// gradients, stresses, energies, and the concentration and plastic strain of scenes that
+/// carry them), the step and the time.
 pub fn state_digest<const D: usize>(pts: &Particles<D>, step: u64, time: f64) -> String {
     let mut h = Sha256::new();
     h.update(step.to_le_bytes());
@@ -170,6 +184,10 @@ pub fn state_digest<const D: usize>(pts: &Particles<D>, step: u64, time: f64) ->
         for v in scalars.chain(pts.def_grad[p].iter().flatten()).chain(pts.stress[p].iter().flatten()) {
             h.update(v.to_bits().to_le_bytes());
         }
+    }
+    // The optional fields, only when the scene has them (so every other digest is unchanged).
+    for v in pts.scalar.iter().chain(&pts.plastic_strain) {
+        h.update(v.to_bits().to_le_bytes());
     }
     hex::encode(h.finalize())
 }

@@ -332,3 +332,109 @@ fn read_x0_component(path: &Path, component: &str) -> Result<Vec<(f64, f64)>> {
         })
         .collect()
 }
+
+/// The error of a lithiated thin film (`[reference] solution = "thin-film-lithiation"`)
+/// against its derived in-plane stress path ([`continuum::exact::thin_film_stress`]), observed
+/// after every step: at each point of the film, the in-plane stress sigma_yy (= sigma_zz in 1D)
+/// against the exact stress at the point's concentration change, over sigma_Y; the plastic
+/// strain likewise; and the normal stress |sigma_xx| / sigma_Y, which the exact path takes as
+/// zero (the quasi-static check of the dynamic run).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ThinFilmError {
+    law: continuum::silicon::ChemoPlastic,
+    /// Global point ids of the film.
+    points: std::ops::Range<usize>,
+    /// Initial concentration of the film.
+    c0: f64,
+    steps: u64,
+    max_stress_error: f64,
+    max_at_dc: f64,
+    max_plastic_strain_error: f64,
+    max_normal_stress: f64,
+    final_dc: f64,
+    final_stress: f64,
+    final_exact: f64,
+    final_stress_error: f64,
+}
+
+impl ThinFilmError {
+    pub fn new(law: continuum::silicon::ChemoPlastic, points: std::ops::Range<usize>, c0: f64) -> Self {
+        ThinFilmError {
+            law,
+            points,
+            c0,
+            steps: 0,
+            max_stress_error: 0.0,
+            max_at_dc: 0.0,
+            max_plastic_strain_error: 0.0,
+            max_normal_stress: 0.0,
+            final_dc: 0.0,
+            final_stress: 0.0,
+            final_exact: 0.0,
+            final_stress_error: 0.0,
+        }
+    }
+
+    /// Scores the state after a step. Non-finite values count as an infinite error.
+    pub fn observe<const D: usize>(&mut self, sim: &continuum::Simulation<D>) {
+        let pts = &sim.points;
+        let sy = self.law.yield_stress;
+        let (mut worst, mut at, mut sum_s, mut sum_e, mut sum_dc, mut n) = (0.0f64, 0.0, 0.0, 0.0, 0.0, 0usize);
+        for p in self.points.clone() {
+            let dc = pts.scalar.get(p).copied().unwrap_or(self.c0) - self.c0;
+            let (exact, eps) = continuum::exact::thin_film_stress(&self.law, dc);
+            let s = pts.stress[p][1][1];
+            let e = ((s - exact) / sy).abs();
+            let e = if e.is_finite() { e } else { f64::INFINITY };
+            if e > worst || n == 0 {
+                (worst, at) = (e, dc);
+            }
+            let ep = pts.plastic_strain.get(p).copied().unwrap_or(0.0);
+            let ee = (ep - eps).abs();
+            self.max_plastic_strain_error = self.max_plastic_strain_error.max(if ee.is_finite() { ee } else { f64::INFINITY });
+            let normal = (pts.stress[p][0][0] / sy).abs();
+            self.max_normal_stress = self.max_normal_stress.max(if normal.is_finite() { normal } else { f64::INFINITY });
+            (sum_s, sum_e, sum_dc, n) = (sum_s + s, sum_e + exact, sum_dc + dc, n + 1);
+        }
+        if worst > self.max_stress_error || self.steps == 0 {
+            (self.max_stress_error, self.max_at_dc) = (worst, at);
+        }
+        let k = n.max(1) as f64;
+        (self.final_dc, self.final_stress, self.final_exact, self.final_stress_error) = (sum_dc / k, sum_s / k, sum_e / k, worst);
+        self.steps += 1;
+    }
+
+    /// summary.json `errors`.
+    pub fn json(&self) -> Value {
+        let num = |v: f64| if v.is_finite() { serde_json::json!(v) } else { Value::Null };
+        serde_json::json!({
+            "reference": "thin-film-lithiation",
+            "measure": "max over the film's points and the steps of |sigma_yy - sigma_exact(dc)| / sigma_Y, sigma_exact the derived in-plane stress path of a film on a rigid substrate (continuum::exact::thin_film_stress)",
+            "steps_scored": self.steps,
+            "stress_error_max": num(self.max_stress_error),
+            "stress_error_max_at_dc": num(self.max_at_dc),
+            "stress_error_final": num(self.final_stress_error),
+            "plastic_strain_error_max": num(self.max_plastic_strain_error),
+            "normal_stress_max_over_yield": num(self.max_normal_stress),
+            "final_dc": num(self.final_dc),
+            "final_in_plane_stress_pa": num(self.final_stress),
+            "final_exact_stress_pa": num(self.final_exact),
+            "biaxial_modulus_pa": self.law.biaxial_modulus(),
+            "yield_dc": self.law.yield_stress / (self.law.biaxial_modulus() * self.law.chemical_expansion),
+        })
+    }
+
+    /// The run's log line.
+    pub fn log_line(&self) -> String {
+        format!(
+            "thin-film error: in-plane stress {:.3e} sigma_Y at worst (dc = {:.4}), {:.3e} at the end (dc = {:.4}: {:.4e} Pa, exact {:.4e} Pa); |sigma_xx| <= {:.2e} sigma_Y",
+            self.max_stress_error,
+            self.max_at_dc,
+            self.final_stress_error,
+            self.final_dc,
+            self.final_stress,
+            self.final_exact,
+            self.max_normal_stress
+        )
+    }
+}

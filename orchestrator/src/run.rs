@@ -169,6 +169,16 @@ fn reference(scene: &Scene) -> Option<(IsothermalRiemann, f64)> {
     Some((IsothermalRiemann::new(left, right, c, x0), c * c * (left.density - right.density).abs()))
 }
 
+/// The thin-film scorer of a scene with `[reference] solution = "thin-film-lithiation"`.
+fn thin_film<const D: usize>(loaded: &LoadedScene, sim: &Simulation<D>) -> Option<crate::reference::ThinFilmError> {
+    let Some(Reference::ThinFilmLithiation(r)) = &loaded.scene.reference else { return None };
+    let index = loaded.resolved.bodies.iter().position(|b| b.name == r.body)?;
+    let body = &loaded.resolved.bodies[index];
+    let crate::scene::Law::HypoelasticPlastic(law) = &body.law else { return None };
+    let points = sim.points.body_ranges().get(index)?.clone();
+    Some(crate::reference::ThinFilmError::new(*law, points, body.lithiation.map_or(0.0, |l| l.0)))
+}
+
 struct Snapshots {
     index: String,
     pvd: Vec<(f64, String)>,
@@ -186,6 +196,13 @@ fn md_columns(md: Option<&Arc<Mutex<MdShared>>>, n: usize) -> Vec<(&'static str,
         ("md_kinetic_ev", col(&|s| s.last.kinetic_energy_ev)),
         ("md_energy_added_ev", col(&|s| s.added_ev)),
     ]
+}
+
+/// The extra columns of the particle files: the optional fields, then the MD columns.
+fn columns<const D: usize>(pts: &continuum::Particles<D>, md: Option<&Arc<Mutex<MdShared>>>) -> Vec<(&'static str, Vec<f64>)> {
+    let mut cols = output::field_columns(pts);
+    cols.extend(md_columns(md, pts.len()));
+    cols
 }
 
 /// `output.dump_points`: one LAMMPS text dump frame per chosen box (atoms as the pool's
@@ -217,7 +234,7 @@ fn write_snapshot<const D: usize>(
         let file = format!("particles_{step:08}.csv");
         output::write_atomic(
             &dir.join("snapshots").join(&file),
-            output::particles_csv(&sim.points, &md_columns(md, sim.points.len())).as_bytes(),
+            output::particles_csv(&sim.points, &columns(&sim.points, md)).as_bytes(),
         )?;
         snaps.index.push_str(&format!("{step},{:e},{file}\n", sim.time));
         output::write_atomic(&dir.join("snapshots/index.csv"), snaps.index.as_bytes())?;
@@ -335,6 +352,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         tracing::debug!("checkpoint at step {} in {}", sim.step, path.display());
         Ok(path)
     };
+    let mut film = thin_film(loaded, &sim);
     while sim.step < loaded.steps {
         if cancelled() {
             if let Some(b) = &bar {
@@ -351,6 +369,9 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         if let Err(e) = result {
             failure = Some(crate::exit::message(&e));
             break;
+        }
+        if let Some(f) = film.as_mut() {
+            f.observe(&sim);
         }
         let totals = sim.totals();
         max_kinetic = max_kinetic.max(totals.kinetic);
@@ -394,7 +415,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     if scene.output.particles {
         output::write_atomic(
             &dir.join("particles_final.csv"),
-            output::particles_csv(&sim.points, &md_columns(md.as_ref(), sim.points.len())).as_bytes(),
+            output::particles_csv(&sim.points, &columns(&sim.points, md.as_ref())).as_bytes(),
         )?;
     }
     let reference = reference(scene);
@@ -407,7 +428,14 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
 
     let times =
         SummaryTimes { wall: before.wall_s + wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s };
-    let direct_json = direct.as_ref().map(|d| d.json.clone()).or_else(|| manufactured_errors(loaded, &sim));
+    let direct_json = direct
+        .as_ref()
+        .map(|d| d.json.clone())
+        .or_else(|| manufactured_errors(loaded, &sim))
+        .or(film.as_ref().map(|f| f.json()));
+    if let Some(f) = &film {
+        tracing::info!("{}", f.log_line());
+    }
     let summary = summary(loaded, opts, &sim, times, max_kinetic, max_abs_momentum, errors, direct_json, failure.as_deref(), md.as_ref())?;
     output::write_atomic(&dir.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
     report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, true);

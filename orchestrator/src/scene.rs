@@ -127,6 +127,24 @@ pub struct Body {
     #[serde(default = "default_temperature")]
     pub temperature_k: f64,
     pub material: Material,
+    /// A normalised lithium concentration c = c_Li / c_max carried by the body's points
+    /// (laws with a chemical strain read its rate).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lithiation: Option<Lithiation>,
+}
+
+/// `[bodies.<name>.lithiation]`: the body's concentration field.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Lithiation {
+    /// Initial normalised concentration, in [0, 1].
+    #[serde(default)]
+    pub initial: f64,
+    /// Uniform prescribed rate dc/dt (1/s) over the whole run: every point of the body gains
+    /// the same concentration (uniform lithiation); the concentration must stay within [0, 1]
+    /// up to `scheme.end_time`.
+    #[serde(default)]
+    pub uniform_rate: f64,
 }
 
 fn default_temperature() -> f64 {
@@ -147,6 +165,9 @@ pub enum Material {
     NeoHookean(Elastic),
     /// A periodic MD box per material point.
     Md(MdMaterial),
+    /// Hypoelastic-plastic law in the unrotated frame with a chemical strain rate eta c_dot I
+    /// and J2 plasticity with linear hardening (battery thesis Ch. 7.3; lithiated silicon).
+    HypoelasticPlastic(ChemoPlasticMaterial),
 }
 
 impl Material {
@@ -156,6 +177,7 @@ impl Material {
             Material::LinearElastic(_) => "linear-elastic",
             Material::NeoHookean(_) => "neo-hookean",
             Material::Md(_) => "md",
+            Material::HypoelasticPlastic(_) => "hypoelastic-plastic",
         }
     }
 }
@@ -173,6 +195,57 @@ pub struct Elastic {
     /// Young's modulus (Pa).
     pub youngs_modulus: f64,
     pub poisson_ratio: f64,
+}
+
+/// `law = "hypoelastic-plastic"`: every key defaults to lithiated silicon (Ch. 7.3).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ChemoPlasticMaterial {
+    /// Bulk modulus K (Pa).
+    #[serde(default = "si_bulk")]
+    pub bulk_modulus: f64,
+    /// Shear modulus G (Pa).
+    #[serde(default = "si_shear")]
+    pub shear_modulus: f64,
+    /// Initial yield stress sigma_Y (Pa) of sqrt(3/2 s:s) <= sigma_Y + H eps_p.
+    #[serde(default = "si_yield")]
+    pub yield_stress: f64,
+    /// Linear isotropic hardening modulus H (Pa); 0 is perfect plasticity.
+    #[serde(default = "si_hardening")]
+    pub hardening_modulus: f64,
+    /// eta of the chemical strain rate eta c_dot I (per unit normalised concentration).
+    #[serde(default = "si_eta")]
+    pub chemical_expansion: f64,
+}
+
+fn si_bulk() -> f64 {
+    continuum::silicon::ChemoPlastic::SILICON.bulk_modulus
+}
+fn si_shear() -> f64 {
+    continuum::silicon::ChemoPlastic::SILICON.shear_modulus
+}
+fn si_yield() -> f64 {
+    continuum::silicon::ChemoPlastic::SILICON.yield_stress
+}
+fn si_hardening() -> f64 {
+    continuum::silicon::ChemoPlastic::SILICON.hardening_modulus
+}
+fn si_eta() -> f64 {
+    continuum::silicon::ChemoPlastic::SILICON.chemical_expansion
+}
+
+impl ChemoPlasticMaterial {
+    /// The law with the body's density.
+    pub fn law(&self, density0: f64) -> continuum::silicon::ChemoPlastic {
+        continuum::silicon::ChemoPlastic {
+            bulk_modulus: self.bulk_modulus,
+            shear_modulus: self.shear_modulus,
+            yield_stress: self.yield_stress,
+            hardening_modulus: self.hardening_modulus,
+            chemical_expansion: self.chemical_expansion,
+            density0,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -403,6 +476,9 @@ pub enum Reference {
     /// Gong's manufactured solution (4.5)-(4.7) on the unit interval/square/cube: sets the body
     /// force and the initial velocity, and every run writes its L2 errors.
     Manufactured(ManufacturedReference),
+    /// The derived in-plane stress path of a uniformly lithiated film on a rigid substrate
+    /// (see [`continuum::exact::thin_film_stress`]).
+    ThinFilmLithiation(ThinFilmReference),
 }
 
 /// `solution = "manufactured"`: U = G sin(pi X) sin(c pi t) per axis, c = sqrt(E / rho0), for the
@@ -415,6 +491,15 @@ pub enum Reference {
 pub struct ManufacturedReference {
     /// G (m): 1e-4 (small strain) or 0.1 (large deformation, strain pi G = 0.314).
     pub amplitude: f64,
+}
+
+/// `solution = "thin-film-lithiation"`: a 1D scene along the film normal (x; the in-plane
+/// axes y and z are held by the 1D kinematics), the substrate at `x_min`, the top free.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ThinFilmReference {
+    /// The film: a `hypoelastic-plastic` body with a uniform `lithiation`.
+    pub body: String,
 }
 
 /// `solution = "isothermal-riemann"`.

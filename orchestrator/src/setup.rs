@@ -4,6 +4,7 @@
 
 use crate::scene::{Law, ResolvedBody, ResolvedScene};
 use continuum::closure::{IdealGasIsothermal, LinearElastic, NeoHookean};
+use continuum::silicon::ChemoPlasticClosure;
 use continuum::tensor::IDENTITY;
 use continuum::{Closure, Grid, Particles, Simulation};
 use coupling::{MdClosure, MdSettings, MdShared};
@@ -44,6 +45,7 @@ fn closure(body: &ResolvedBody, points: std::ops::Range<usize>, md: Option<&Arc<
         Law::NeoHookean { youngs_modulus, poisson_ratio } => {
             Box::new(NeoHookean { youngs_modulus: *youngs_modulus, poisson_ratio: *poisson_ratio, density0: body.density })
         }
+        Law::HypoelasticPlastic(law) => Box::new(ChemoPlasticClosure { law: *law }),
         Law::Md(m) => {
             let shared = md.ok_or_else(|| SetupError::MdUnavailable(body.name.clone()))?;
             let specs: Vec<_> = points.map(|p| crate::md::box_spec(p as u64, body, m)).collect();
@@ -88,6 +90,16 @@ pub fn points<const D: usize>(scene: &ResolvedScene, grid: &Grid<D>) -> Result<P
             return Err(SetupError::EmptyBody(body.name.clone()));
         }
     }
+    // The optional fields: a concentration when a body is lithiated, a plastic strain when a
+    // law is plastic (scenes with neither allocate nothing).
+    let scalar = scene.bodies.iter().any(|b| b.lithiation.is_some());
+    let plastic = scene.bodies.iter().any(|b| matches!(b.law, Law::HypoelasticPlastic(_)));
+    pts.with_fields(scalar, plastic);
+    if scalar {
+        for (p, &b) in pts.body.clone().iter().enumerate() {
+            pts.scalar[p] = scene.bodies[b as usize].lithiation.map_or(0.0, |l| l.0);
+        }
+    }
     Ok(pts)
 }
 
@@ -110,6 +122,10 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
     sim.flip_fraction = scene.flip_fraction;
     if let Some(m) = scene.manufactured {
         sim.body_force = Some(Arc::new(move |x0: &[f64; D], t: f64| m.body_force(x0, t)));
+    }
+    if !sim.points.scalar.is_empty() {
+        let body = sim.points.body.clone();
+        sim.prescribed_scalar_rate = body.iter().map(|&b| scene.bodies[b as usize].lithiation.map_or(0.0, |l| l.1)).collect();
     }
     Ok(sim)
 }

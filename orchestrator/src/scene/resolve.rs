@@ -61,6 +61,8 @@ pub struct ResolvedBody {
     pub law: Law,
     /// Material points of the body.
     pub points: usize,
+    /// (initial concentration, uniform rate (1/s)) of a lithiated body.
+    pub lithiation: Option<(f64, f64)>,
 }
 
 /// A body's closure with its parameters.
@@ -70,6 +72,7 @@ pub enum Law {
     LinearElastic { youngs_modulus: f64, poisson_ratio: f64 },
     NeoHookean { youngs_modulus: f64, poisson_ratio: f64 },
     Md(Box<ResolvedMd>),
+    HypoelasticPlastic(continuum::silicon::ChemoPlastic),
 }
 
 /// An md body's boxes: everything a box spec and the MD closure need.

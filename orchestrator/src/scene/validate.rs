@@ -100,6 +100,7 @@ impl Scene {
                     Material::IdealGasIsothermal(g) => Law::IdealGasIsothermal { sound_speed: g.sound_speed },
                     Material::LinearElastic(e) => Law::LinearElastic { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio },
                     Material::NeoHookean(e) => Law::NeoHookean { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio },
+                    Material::HypoelasticPlastic(m) => Law::HypoelasticPlastic(m.law(body.density)),
                     Material::Md(m) => {
                         let (lattice_properties, atoms_per_box) = measured.remove(name).expect("every md body is measured by validation");
                         Law::Md(Box::new(ResolvedMd {
@@ -136,6 +137,7 @@ impl Scene {
                     temperature_k: body.temperature_k,
                     law,
                     points: *points,
+                    lithiation: body.lithiation.as_ref().map(|l| (l.initial, l.uniform_rate)),
                 }
             })
             .collect();
@@ -302,6 +304,19 @@ impl Scene {
             return Err(loc.err(&k("temperature_k"), b.temperature_k, "temperature (K) must be finite and >= 0"));
         }
         let rho = b.density;
+        if let Some(l) = &b.lithiation {
+            if !(l.initial.is_finite() && (0.0..=1.0).contains(&l.initial)) {
+                return Err(loc.err(&k("lithiation.initial"), l.initial, "the normalised concentration must lie in [0, 1]"));
+            }
+            let end = l.initial + l.uniform_rate * self.scheme.end_time;
+            if !(l.uniform_rate.is_finite() && (0.0..=1.0).contains(&end)) {
+                return Err(loc.err(
+                    &k("lithiation.uniform_rate"),
+                    l.uniform_rate,
+                    format!("reaches c = {end:e} at the end time {:e} s; the concentration must stay within [0, 1]", self.scheme.end_time),
+                ));
+            }
+        }
         match &mut b.material {
             Material::IdealGasIsothermal(g) => {
                 finite_positive(loc, &k("material.sound_speed"), g.sound_speed, "the sound speed (m/s)")?;
@@ -314,6 +329,18 @@ impl Scene {
                 }
                 let (lambda, mu) = continuum::closure::lame(e.youngs_modulus, e.poisson_ratio);
                 Ok((((lambda + 2.0 * mu) / rho).sqrt(), None, None))
+            }
+            Material::HypoelasticPlastic(m) => {
+                finite_positive(loc, &k("material.bulk_modulus"), m.bulk_modulus, "the bulk modulus (Pa)")?;
+                finite_positive(loc, &k("material.shear_modulus"), m.shear_modulus, "the shear modulus (Pa)")?;
+                finite_positive(loc, &k("material.yield_stress"), m.yield_stress, "the yield stress (Pa)")?;
+                if !(m.hardening_modulus.is_finite() && m.hardening_modulus >= 0.0) {
+                    return Err(loc.err(&k("material.hardening_modulus"), m.hardening_modulus, "the hardening modulus (Pa) must be finite and >= 0 (0: perfect plasticity)"));
+                }
+                if !m.chemical_expansion.is_finite() {
+                    return Err(loc.err(&k("material.chemical_expansion"), m.chemical_expansion, "must be a finite number"));
+                }
+                Ok((((m.bulk_modulus + 4.0 * m.shear_modulus / 3.0) / rho).sqrt(), None, None))
             }
             Material::Md(md) => {
                 let file = base.join(&md.potential);
@@ -550,6 +577,7 @@ impl Scene {
             None => Ok(None),
             Some(Reference::IsothermalRiemann(r)) => self.validate_riemann(loc, &r).map(|_| None),
             Some(Reference::Manufactured(r)) => self.validate_manufactured(loc, &r).map(|_| None),
+            Some(Reference::ThinFilmLithiation(r)) => self.validate_thin_film(loc, &r).map(|_| None),
             Some(Reference::DirectMd(r)) => {
                 let file = self.validate_direct_md(loc, &r, base)?;
                 self.reference = Some(Reference::DirectMd(DirectMdReference { profile: file.clone(), ..r }));
@@ -749,6 +777,36 @@ impl Scene {
         }
         if speeds.len() != 1 {
             return Err(loc.err("reference.right", format!("{:?}", r.right), "both bodies must have the same sound speed"));
+        }
+        Ok(())
+    }
+
+    /// A thin-film reference: a 1D scene, the film a uniformly lithiated `hypoelastic-plastic`
+    /// body, the substrate face `x_min` holding it (fixed or reflective).
+    fn validate_thin_film(&self, loc: &Locator<'_>, r: &ThinFilmReference) -> Result<(), SceneError> {
+        if self.domain.dimension != 1 {
+            return Err(loc.err(
+                "reference.solution",
+                "\"thin-film-lithiation\"",
+                format!("needs a 1D scene along the film normal (the in-plane axes are held by the 1D kinematics); this one has dimension {}", self.domain.dimension),
+            ));
+        }
+        let Some(b) = self.bodies.get(&r.body) else {
+            return Err(loc.err(
+                "reference.body",
+                format!("{:?}", r.body),
+                format!("no such body; bodies: {}", self.bodies.keys().cloned().collect::<Vec<_>>().join(", ")),
+            ));
+        };
+        if !matches!(b.material, Material::HypoelasticPlastic(_)) || b.lithiation.is_none() {
+            return Err(loc.err(
+                "reference.body",
+                format!("{:?}", r.body),
+                format!("the thin-film solution needs a hypoelastic-plastic body with a [lithiation]; this one is {}{}", b.material.law(), if b.lithiation.is_none() { " without lithiation" } else { "" }),
+            ));
+        }
+        if !matches!(self.boundary.x_min, FaceSpec::Named(FaceName::Fixed | FaceName::Reflective | FaceName::Roller)) {
+            return Err(loc.err("boundary.x_min", face_debug(&self.boundary.x_min), "the substrate face of a thin film must be fixed (or reflective)"));
         }
         Ok(())
     }

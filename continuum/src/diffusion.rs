@@ -1,0 +1,307 @@
+//! Scalar diffusion carried by the material points (a temperature, or a normalised lithium
+//! concentration): battery thesis (6.3)-(6.10) and (7.5)-(7.8), with the sign and shape-function
+//! errata fixed (wave2 notes C.2, C.3).
+//!
+//! Every point carries c_p and a capacity V0_p (its reference volume: unit rho0 C, or the host
+//! volume that holds the lithium), so its content is V0_p c_p and the total is conserved.
+//!
+//! **Current configuration** (the default): each step on the solver's stencil at x^n,
+//! - C*_i = sum_p S_ip V0_p and c_i = sum_p S_ip V0_p c_p / C*_i (6.3)-(6.5);
+//! - the flux q_p = -K sum_i G_ip c_i (6.10 with its minus sign) and
+//!   Q_i = sum_p V_p q_p . G_ip (6.6), V_p the current volume;
+//! - c_dot_i = (Q_i + S_i) / C*_i with S_i the boundary source; c_p += dt sum_i S_ip c_dot_i
+//!   (6.9 with its S_ip), blended with PIC by the FLIP fraction beta (6.16 with its S_cp):
+//!   c_p = beta (c_p + dt sum S c_dot) + (1 - beta) sum S (c_i + dt c_dot_i).
+//!
+//! **Reference configuration** (C.3, 6.67-6.75 with the sign fixed): the stencil is built once
+//! at the points' reference positions x0 (their positions at the start), the nodal values are
+//! kept from step to step (c_i += dt c_dot_i), Q_i = sum_p V0_p Q_p . G0_ip with
+//! Q_p = -K0 G0 c, K0 = K J C^-1 (6.71-6.72; K / J in 1D).
+//!
+//! Conservation: sum_i G_ip = 0 (partition of unity), so the total content changes by exactly
+//! the boundary source (Dirichlet nodes' imposed rates and the face fluxes), to round-off
+//! ([`Diffusion::boundary_content`]).
+//!
+//! Stability (C.3 corrected): in the reference form, uniform J and hats with symmetric points,
+//! the checkerboard's amplification is G = 1 - 4 dt K / (J h0^2), so dt <= J h0^2 / (2 K); for
+//! varying J the sufficient bound is dt <= J_min h0^2 / (2 d K) in d dimensions
+//! ([`explicit_bound`]). In the current form on a fixed grid a point at J spans h0 = h / J of
+//! its reference length per cell, so the same bound reads h^2 / (2 d K J_max); the FLIP
+//! re-projection of the current form is more stable than that (it is sufficient there).
+
+use crate::grid::Grid;
+use crate::par::CHUNK;
+use crate::particles::Particles;
+use crate::shape::{self, OutsideGrid, SchemeKind, Stencil, StencilPart};
+use crate::tensor::{self, Mat3};
+
+/// A condition on one grid face (absent: no flux through it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum FaceCondition {
+    /// The nodal value on the face is held at this value.
+    Dirichlet(f64),
+    /// This flux into the body through the face (content per unit face area per second:
+    /// K times a concentration gradient, m/s for a normalised concentration).
+    Flux(f64),
+}
+
+/// How a Dirichlet face reaches the points.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum DirichletMode {
+    /// On the nodal rate: c_dot_i = (c_bc - c_i) / dt at the face's nodes, so the FLIP update
+    /// carries the boundary value to the points near the face (the default).
+    #[default]
+    Rate,
+    /// On the nodal value only: c_i = c_bc for the gradients, c_dot_i = 0; the outer layer of
+    /// points does not receive the boundary value (the "nullspace layer" of B Fig. 6.1).
+    Value,
+}
+
+/// Where the diffusion is computed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Configuration {
+    #[default]
+    Current,
+    Reference,
+}
+
+/// The diffusion of one scalar field over every point of a simulation.
+#[derive(Debug, Clone)]
+pub struct Diffusion<const D: usize> {
+    /// Diffusivity K (m^2/s): k / (rho0 C) for heat, D for a concentration.
+    pub diffusivity: f64,
+    /// (min face, max face) per axis.
+    pub faces: [(Option<FaceCondition>, Option<FaceCondition>); D],
+    pub dirichlet: DirichletMode,
+    /// FLIP fraction beta of the point update (1: FLIP, 0: PIC).
+    pub flip: f64,
+    pub configuration: Configuration,
+    /// Content added through the faces since the start (sum of V0 c units).
+    pub boundary_content: f64,
+    /// Nodal values of the last step (after the Dirichlet values), for output and error measures.
+    pub node_value: Vec<f64>,
+    /// Nodal capacities C*_i of the last step.
+    pub node_capacity: Vec<f64>,
+    node_flux: Vec<f64>,
+    node_rate: Vec<f64>,
+    node_content: Vec<f64>,
+    reference_stencil: Option<Stencil<D>>,
+    /// Reference form: nodal values carried between steps.
+    carried: bool,
+}
+
+impl<const D: usize> Diffusion<D> {
+    pub fn new(diffusivity: f64, faces: [(Option<FaceCondition>, Option<FaceCondition>); D]) -> Self {
+        Diffusion {
+            diffusivity,
+            faces,
+            dirichlet: DirichletMode::Rate,
+            flip: 1.0,
+            configuration: Configuration::Current,
+            boundary_content: 0.0,
+            node_value: Vec::new(),
+            node_capacity: Vec::new(),
+            node_flux: Vec::new(),
+            node_rate: Vec::new(),
+            node_content: Vec::new(),
+            reference_stencil: None,
+            carried: false,
+        }
+    }
+
+    /// Total content sum_p V0_p c_p.
+    pub fn content(pts: &Particles<D>) -> f64 {
+        pts.volume0.iter().zip(&pts.scalar).map(|(v, c)| v * c).sum()
+    }
+
+    /// Sets the nodal values the reference form carries (otherwise projected from the points
+    /// at its first step).
+    pub fn set_node_values(&mut self, values: Vec<f64>) {
+        self.node_value = values;
+        self.carried = true;
+    }
+
+    /// The face condition of node `idx` along the axes where it lies on a face: the first
+    /// Dirichlet face wins; the flux faces' sources are summed into `flux_area`.
+    fn node_conditions(&self, grid: &Grid<D>, idx: [usize; D]) -> (Option<f64>, f64) {
+        let mut dirichlet = None;
+        let mut source = 0.0;
+        for a in 0..D {
+            let last = grid.nodes_along(a) - 1;
+            for (on, cond) in [(idx[a] == 0, self.faces[a].0), (idx[a] == last, self.faces[a].1)] {
+                if !on || grid.periodic(a) {
+                    continue;
+                }
+                match cond {
+                    Some(FaceCondition::Dirichlet(v)) => dirichlet = dirichlet.or(Some(v)),
+                    Some(FaceCondition::Flux(j)) => {
+                        // The face area a node stands for: h along the other axes, half at an edge.
+                        let mut area = 1.0;
+                        for b in (0..D).filter(|&b| b != a) {
+                            let n = grid.nodes_along(b) - 1;
+                            area *= if idx[b] == 0 || idx[b] == n { 0.5 * grid.h[b] } else { grid.h[b] };
+                        }
+                        source += j * area;
+                    }
+                    None => {}
+                }
+            }
+        }
+        (dirichlet, source)
+    }
+
+    /// One explicit step of `dt` at time `time` on `stencil` (the solver's, at x^n; ignored in
+    /// the reference form): writes every point's rate into `scalar_rate` (added to what is there)
+    /// and advances `scalar`.
+    pub fn step(&mut self, grid: &Grid<D>, scheme: SchemeKind, stencil: &Stencil<D>, pts: &mut Particles<D>, dt: f64) -> Result<(), OutsideGrid> {
+        let n_nodes = grid.node_count();
+        let reference = self.configuration == Configuration::Reference;
+        if reference && self.reference_stencil.is_none() {
+            self.reference_stencil = Some(stencil_at_x0(scheme, grid, pts)?);
+        }
+        let st = if reference { self.reference_stencil.as_ref().unwrap_or(stencil) } else { stencil };
+        for v in [&mut self.node_capacity, &mut self.node_flux, &mut self.node_rate, &mut self.node_content] {
+            v.clear();
+            v.resize(n_nodes, 0.0);
+        }
+        let n = pts.len();
+        for p in 0..n {
+            let (nodes, w, _) = st.row(p);
+            for (&i, &s) in nodes.iter().zip(w) {
+                self.node_capacity[i] += s * pts.volume0[p];
+                self.node_content[i] += s * pts.volume0[p] * pts.scalar[p];
+            }
+        }
+        let floor = 1e-12 * pts.volume0.iter().cloned().fold(f64::INFINITY, f64::min);
+        // Projected nodal values c_i^proj (6.5).
+        let projected: Vec<f64> =
+            (0..n_nodes).map(|i| if self.node_capacity[i] > floor { self.node_content[i] / self.node_capacity[i] } else { 0.0 }).collect();
+        if !(reference && self.carried && self.node_value.len() == n_nodes) {
+            self.node_value = projected.clone();
+        }
+        self.carried = reference;
+        let conditions: Vec<(Option<f64>, f64)> = (0..n_nodes).map(|i| self.node_conditions(grid, grid.unlinear(i))).collect();
+        let value_mode = self.dirichlet == DirichletMode::Value || reference;
+        if value_mode {
+            for (i, (d, _)) in conditions.iter().enumerate() {
+                if let Some(v) = d {
+                    self.node_value[i] = *v;
+                }
+            }
+        }
+        // Fluxes Q_i = sum_p V q_p . G_ip with q_p = -K grad c (current) or -K0 grad0 c (reference).
+        for p in 0..n {
+            let (nodes, _, grads) = st.row(p);
+            let mut g = [0.0; D];
+            for (&i, gi) in nodes.iter().zip(grads) {
+                for a in 0..D {
+                    g[a] += gi[a] * self.node_value[i];
+                }
+            }
+            let q: [f64; D] = if reference {
+                let k0 = reference_conductivity(&pts.def_grad[p], self.diffusivity);
+                std::array::from_fn(|a| -(0..D).map(|b| k0[a][b] * g[b]).sum::<f64>())
+            } else {
+                std::array::from_fn(|a| -self.diffusivity * g[a])
+            };
+            let vol = if reference { pts.volume0[p] } else { pts.volume[p] };
+            for (&i, gi) in nodes.iter().zip(grads) {
+                self.node_flux[i] += vol * (0..D).map(|a| q[a] * gi[a]).sum::<f64>();
+            }
+        }
+        let mut source = 0.0;
+        for i in 0..n_nodes {
+            let (dirichlet, flux_in) = conditions[i];
+            let cap = self.node_capacity[i];
+            let rate = match dirichlet {
+                Some(_) if value_mode => 0.0,
+                Some(v) => (v - projected[i]) / dt,
+                None if cap > floor => (self.node_flux[i] + flux_in) / cap,
+                None => 0.0,
+            };
+            self.node_rate[i] = rate;
+            if cap > floor {
+                if dirichlet.is_some() {
+                    // What the Dirichlet node adds beyond the fluxes its points exchange.
+                    source += dt * (cap * rate - self.node_flux[i]);
+                    if !reference {
+                        source += (1.0 - self.flip) * cap * (self.node_value[i] - projected[i]);
+                    }
+                } else {
+                    source += dt * flux_in;
+                }
+            }
+        }
+        self.boundary_content += source;
+        let beta = self.flip;
+        for p in 0..n {
+            let (nodes, w, _) = st.row(p);
+            let (mut inc, mut pic) = (0.0, 0.0);
+            for (&i, &s) in nodes.iter().zip(w) {
+                inc += s * self.node_rate[i];
+                pic += s * (self.node_value[i] + dt * self.node_rate[i]);
+            }
+            let old = pts.scalar[p];
+            let new = if beta == 1.0 { old + dt * inc } else { beta * (old + dt * inc) + (1.0 - beta) * pic };
+            pts.scalar[p] = new;
+            pts.scalar_rate[p] += (new - old) / dt;
+        }
+        if reference {
+            for i in 0..n_nodes {
+                self.node_value[i] += dt * self.node_rate[i];
+            }
+        }
+        Ok(())
+    }
+}
+
+/// K0 = K J C^-1 (6.71-6.72), in the first `D` axes.
+fn reference_conductivity(f: &Mat3, k: f64) -> Mat3 {
+    let j = tensor::det(f);
+    let c = tensor::mul(&tensor::transpose(f), f);
+    let inv = tensor::inverse(&c).unwrap_or(tensor::IDENTITY);
+    tensor::add_scaled(&tensor::ZERO, &inv, k * j)
+}
+
+/// The stencil of the points at their reference positions x0 (hats and GIMP only).
+fn stencil_at_x0<const D: usize>(scheme: SchemeKind, grid: &Grid<D>, pts: &Particles<D>) -> Result<Stencil<D>, OutsideGrid> {
+    let mut at = pts.clone();
+    at.x = pts.x0.clone();
+    at.def_grad = vec![tensor::IDENTITY; pts.len()];
+    let kind = match scheme {
+        SchemeKind::Mpm | SchemeKind::Ugimp | SchemeKind::Cpgimp => scheme,
+        _ => SchemeKind::Ugimp,
+    };
+    let mut stencil = Stencil::default();
+    for r in crate::par::chunk_ranges(pts.len()) {
+        let mut part = StencilPart::default();
+        part.clear(r.start);
+        for p in r {
+            shape::gimp_row(kind, grid, &at, p, &mut part)?;
+            part.end_point();
+        }
+        stencil.parts.push(part);
+    }
+    debug_assert!(stencil.parts.iter().all(|p| p.len() <= CHUNK));
+    Ok(stencil)
+}
+
+/// The corrected explicit bound of the diffusion step (battery thesis (6.90), sign fixed, in
+/// `d` dimensions): dt <= J_min h0^2 / (2 d K), with h0 the smallest reference length of a
+/// cell. Given the grid spacing `h` of the current configuration and the points' J, a point
+/// at J spans h0 = h / J, so this is h^2 / (2 d K J_max).
+pub fn explicit_bound(h: f64, dimension: usize, diffusivity: f64, j_max: f64) -> f64 {
+    h * h / (2.0 * dimension as f64 * diffusivity * j_max.max(f64::MIN_POSITIVE))
+}
+
+/// The exact solution of c_t = K c_xx on [0, l] with c(x, 0) = c0, c(0) = cl, c(l) = cr
+/// (B 6.95, Fourier series), `terms` terms.
+pub fn heat_series(x: f64, t: f64, l: f64, k: f64, (c0, cl, cr): (f64, f64, f64), terms: usize) -> f64 {
+    let mut v = cl + (cr - cl) * x / l;
+    for j in 1..=terms {
+        let lam = j as f64 * std::f64::consts::PI / l;
+        let sign = if j % 2 == 0 { 1.0 } else { -1.0 };
+        v += 2.0 * ((c0 - cl) - (c0 - cr) * sign) / (j as f64 * std::f64::consts::PI) * (-k * lam * lam * t).exp() * (lam * x).sin();
+    }
+    v
+}
