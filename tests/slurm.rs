@@ -307,3 +307,110 @@ fn the_cluster_sbatch_runs_a_job_survives_a_killed_worker_step_and_resumes_after
 fn hostname() -> String {
     ok(Command::new("hostname").arg("-s")).trim().to_string()
 }
+
+/// `mscale serve` on loopback (the launched workers run on this machine too), 5 s heartbeat timeout.
+fn local_orchestrator(site: &Site, token: &Path) -> mscale_tests::Listening {
+    let mut cmd = Command::new(binary("mscale", "orchestrator"));
+    cmd.args(["serve", "--state", site.state.to_str().unwrap(), "--listen", "127.0.0.1:0", "--token-file", token.to_str().unwrap()])
+        .args(["--worker-timeout", "5"])
+        .env("RUST_LOG", "info");
+    mscale_tests::Listening::start(&mut cmd, "mscale serve: listening on ", Some(&site.tmp.path().join("serve.log")))
+}
+
+fn mscale(args: &[&str], server: &str, token: &Path) -> std::process::Output {
+    run(Command::new(binary("mscale", "orchestrator"))
+        .args(args)
+        .args(["--server", server, "--token-file", token.to_str().unwrap()])
+        .current_dir(repo())
+        .env("RUST_LOG", "warn"))
+}
+
+#[test]
+#[cfg_attr(
+    not(require_slurm),
+    ignore = "needs a Slurm cluster: bash deploy/setup.sh slurm; runs with MSCALE_REQUIRE_SLURM=1 (CI) or -- --ignored"
+)]
+fn pools_launched_through_slurm_run_a_job_survive_a_cancelled_pool_and_are_released() {
+    let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
+    cluster_up();
+    let site = Site::new();
+    let straight = run_digest(&site.tmp.path().join("straight"), &LONGER);
+    let token = site.tmp.path().join("token");
+    std::fs::write(&token, "slurm-pool-token-0123456789\n").unwrap();
+    let server = local_orchestrator(&site, &token);
+    let addr = server.addr.clone();
+    let pools_dir = site.tmp.path().join("pools");
+    let pools_dir_s = pools_dir.display().to_string();
+    let worker_bin = site.bin.join("md-worker").display().to_string();
+    let partition = ok(Command::new("sinfo").args(["-h", "-o", "%P"])).lines().next().unwrap().trim().trim_end_matches('*').to_string();
+    let launch = |extra: &[&str]| {
+        let mut args =
+            vec!["workers", "launch", "--slurm", "--workers", "1", "--time", "15", "--dir", &pools_dir_s, "--worker-bin", &worker_bin];
+        args.extend(extra);
+        let o = mscale(&args, &addr, &token);
+        assert!(o.status.success(), "launch {extra:?}: {}\n{}", mscale_tests::text(&o), server.proc.log());
+        let pool = String::from_utf8_lossy(&o.stdout).trim().to_string();
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert!(err.contains(&format!("pool {pool}: RUNNING")) && err.contains("live at "), "{err}");
+        pool
+    };
+
+    // Refused before anything is queued: exit code 2, the value named.
+    let o = mscale(&["workers", "launch", "--slurm", "--workers", "0"], &addr, &token);
+    assert_eq!(o.status.code(), Some(2), "{}", mscale_tests::text(&o));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--workers 0"), "{}", mscale_tests::text(&o));
+    let o = mscale(
+        &["workers", "launch", "--slurm", "--workers", "1", "--partition", "no-such-partition", "--dir", &pools_dir_s],
+        &addr,
+        &token,
+    );
+    assert_eq!(o.status.code(), Some(2), "{}", mscale_tests::text(&o));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("no-such-partition") || String::from_utf8_lossy(&o.stderr).contains("partition"),
+        "{}",
+        mscale_tests::text(&o)
+    );
+
+    // Two pools of one worker each (the second on the named partition).
+    let a = launch(&[]);
+    let b = launch(&["--partition", &partition, "--ranks-per-worker", "1", "--threads-per-rank", "1"]);
+    let listed = String::from_utf8_lossy(&mscale(&["workers", "pools"], &addr, &token).stdout).into_owned();
+    for p in [&a, &b] {
+        assert!(listed.lines().any(|l| l.starts_with(p.as_str()) && l.contains("RUNNING") && l.contains("1/1 workers live")), "{listed}");
+    }
+
+    // A job on both; pool a's Slurm job cancelled mid-job: its worker is lost, b takes its
+    // boxes, and the job ends with the undisturbed digest.
+    let client_job = {
+        let mut args = vec!["submit", MD_SMALL, "--checkpoint-every", "10"];
+        for s in LONGER {
+            args.extend(["--set", s]);
+        }
+        let o = mscale(&args, &addr, &token);
+        assert!(o.status.success(), "{}", mscale_tests::text(&o));
+        String::from_utf8_lossy(&o.stdout).trim().to_string()
+    };
+    site.wait_for_checkpoint_local(&client_job, &server);
+    ok(Command::new("scancel").arg(&a));
+    let o = mscale(&["watch", &client_job], &addr, &token);
+    assert!(o.status.success(), "{}\n{}", mscale_tests::text(&o), server.proc.log());
+    let log = server.proc.log();
+    assert!(log.contains("boxes were restored from the checkpoint of step"), "{log}");
+    let status = String::from_utf8_lossy(&mscale(&["status", &client_job], &addr, &token).stdout).into_owned();
+    assert!(status.contains("completed") && status.contains(&format!("digest {straight}")), "{status}\n{log}");
+    assert!(wait_ended(&a, Duration::from_secs(60)).starts_with("CANCELLED"));
+
+    // Release b: drained, scancelled, gone from the pools.
+    let o = mscale(&["workers", "release", &b], &addr, &token);
+    assert!(o.status.success(), "{}", mscale_tests::text(&o));
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(err.contains("drained") && err.contains(&format!("pool {b}: released (CANCELLED")), "{err}");
+    assert!(wait_ended(&b, Duration::from_secs(60)).starts_with("CANCELLED"));
+    let listed = String::from_utf8_lossy(&mscale(&["workers", "pools"], &addr, &token).stdout).into_owned();
+    assert!(!listed.contains(&b) && !listed.contains(&a), "{listed}");
+    let workers = String::from_utf8_lossy(&mscale(&["workers"], &addr, &token).stdout).into_owned();
+    assert!(
+        !workers.lines().any(|l| l.split_whitespace().nth(1) == Some("live")),
+        "a released or cancelled pool's worker is still live:\n{workers}"
+    );
+}
