@@ -1,5 +1,7 @@
 //! Static checks of the deployment files in deploy/ (Slurm, Kubernetes, systemd, Docker).
-//! Nothing here can run Slurm, Kubernetes or a Docker engine, so the files are parsed and
+//! The Slurm scripts also run for real, under the single-node cluster of `deploy/setup.sh
+//! slurm`, in tests/slurm.rs. Nothing here can run Kubernetes, systemd or a Docker engine, so
+//! the files are parsed and
 //! every binary, subcommand, flag, port and repository path they name is checked against the
 //! real thing: flags come from the `--help` of the binaries built from this tree, paths from
 //! the repository, ports are compared across files. Where a tool is installed
@@ -489,6 +491,7 @@ fn slurm(errors: &mut Vec<String>) -> Vec<Invocation> {
         "error",
         "cpu-bind",
         "gpu-bind",
+        "job-name",
     ];
     let mut all = Vec::new();
     for p in files("slurm", &[".sbatch", ".sh"]) {

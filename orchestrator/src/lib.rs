@@ -18,6 +18,7 @@ pub mod run;
 pub mod scene;
 pub mod service;
 pub mod setup;
+pub mod slurm;
 
 /// Cargo features this binary was built with (reported in provenance): orchestrator has none
 /// of its own; those of the MD engine it runs in-process (`cuda`, `mpi`).

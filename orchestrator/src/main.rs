@@ -80,8 +80,11 @@ enum Command {
         #[arg(long, value_name = "ADDR")]
         http: Option<String>,
     },
-    /// List the workers registered with a running `mscale serve`.
+    /// List the workers registered with a running `mscale serve`; launch and release worker
+    /// pools through Slurm.
     Workers {
+        #[command(subcommand)]
+        pools: Option<WorkersCommand>,
         #[command(flatten)]
         conn: Conn,
     },
@@ -184,6 +187,72 @@ impl Conn {
 }
 
 #[derive(Subcommand)]
+enum WorkersCommand {
+    /// Submit a pool of md-workers as one sbatch job (each worker an MPI job step), follow it
+    /// through squeue until its workers have registered with the orchestrator; prints the
+    /// Slurm job id, the pool's name for `release`.
+    Launch {
+        /// Through Slurm (sbatch, squeue, scancel): the one launcher there is.
+        #[arg(long, required = true)]
+        slurm: bool,
+        /// Workers in the pool.
+        #[arg(long, value_name = "N")]
+        workers: u32,
+        /// GPUs per worker (its device is then cuda; 0: cpu).
+        #[arg(long, value_name = "G", default_value_t = 0)]
+        gpus_per_worker: u32,
+        /// MPI ranks per worker (more than 1 needs an md-worker built with the feature `mpi`).
+        #[arg(long, value_name = "R", default_value_t = 1)]
+        ranks_per_worker: u32,
+        /// CPUs (threads) per rank.
+        #[arg(long, value_name = "T", default_value_t = 1)]
+        threads_per_rank: u32,
+        /// Slurm partition.
+        #[arg(long, value_name = "P")]
+        partition: Option<String>,
+        /// Slurm time limit (sbatch --time: MINUTES, HH:MM:SS, D-HH:MM:SS).
+        #[arg(long, value_name = "T")]
+        time: Option<String>,
+        /// srun --mpi plugin of the worker steps.
+        #[arg(long, value_name = "PLUGIN", default_value = "pmi2")]
+        mpi: String,
+        /// The md-worker program, on a path every node sees (default: the one next to mscale).
+        #[arg(long, value_name = "PATH")]
+        worker_bin: Option<PathBuf>,
+        /// First port of the pool's workers (default: a range of its own from 52000).
+        #[arg(long, value_name = "PORT")]
+        port_base: Option<u16>,
+        /// Directory of the batch script and the job's output (on a shared file system).
+        #[arg(long, value_name = "DIR", default_value = "mscale-pools")]
+        dir: PathBuf,
+        /// Seconds to wait for the workers to register (the job may queue); then it is cancelled.
+        #[arg(long, value_name = "SECONDS", default_value_t = 600.0)]
+        wait: f64,
+        /// One more sbatch option, as it is (repeatable): --sbatch-arg=--account=A
+        #[arg(long = "sbatch-arg", value_name = "OPTION", allow_hyphen_values = true)]
+        sbatch_args: Vec<String>,
+        #[command(flatten)]
+        conn: Conn,
+    },
+    /// Release a pool: drain its workers, wait until none holds a job, scancel its Slurm job.
+    Release {
+        /// The pool (the Slurm job id `launch` printed).
+        pool: String,
+        /// Seconds to wait for its workers to finish their jobs (0: cancel at once; their
+        /// boxes move to other workers).
+        #[arg(long, value_name = "SECONDS", default_value_t = 3600.0)]
+        drain_for: f64,
+        #[command(flatten)]
+        conn: Conn,
+    },
+    /// List the pools Slurm runs or queues, with their live workers.
+    Pools {
+        #[command(flatten)]
+        conn: Conn,
+    },
+}
+
+#[derive(Subcommand)]
 enum ReportCommand {
     /// Run every combination of the sweeps; write report.csv and report.png (error against wall time).
     ErrorVsTime {
@@ -248,7 +317,8 @@ fn dispatch(cli: Cli) -> i32 {
             let pool = orchestrator::service::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline };
             report(orchestrator::service::serve_command(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key), pool, http))
         }
-        Command::Workers { conn } => {
+        Command::Workers { pools: Some(command), .. } => workers_command(command),
+        Command::Workers { pools: None, conn } => {
             report(conn.ca().and_then(|_| orchestrator::client::workers(&conn.server, conn.token_file.as_deref())))
         }
         Command::Drain { worker, conn } => {
@@ -430,6 +500,65 @@ fn dispatch(cli: Cli) -> i32 {
                 Err(e) => report(Err(e)),
             }
         }
+    }
+}
+
+/// `mscale workers launch|release|pools` (orchestrator::slurm).
+fn workers_command(command: WorkersCommand) -> i32 {
+    use orchestrator::slurm;
+    fn orch(c: &Conn) -> orchestrator::slurm::Orchestrator<'_> {
+        orchestrator::slurm::Orchestrator { server: &c.server, token_file: c.token_file.as_deref(), ca_file: c.ca_file.as_deref() }
+    }
+    let seconds = |flag: &str, s: f64| {
+        if s.is_finite() && s >= 0.0 {
+            Ok(std::time::Duration::from_secs_f64(s))
+        } else {
+            eprintln!("mscale: --{flag} {s} must be a number of seconds >= 0");
+            Err(exit::BAD_INPUT)
+        }
+    };
+    match command {
+        WorkersCommand::Launch {
+            slurm: _,
+            workers,
+            gpus_per_worker,
+            ranks_per_worker,
+            threads_per_rank,
+            partition,
+            time,
+            mpi,
+            worker_bin,
+            port_base,
+            dir,
+            wait,
+            sbatch_args,
+            conn,
+        } => {
+            let wait = match seconds("wait", wait) {
+                Ok(w) => w,
+                Err(code) => return code,
+            };
+            let req = slurm::PoolRequest {
+                workers,
+                gpus_per_worker,
+                ranks_per_worker,
+                threads_per_rank,
+                partition,
+                time,
+                worker_bin,
+                mpi,
+                port_base,
+                dir,
+                wait,
+                sbatch_args,
+            };
+            report(conn.ca().and_then(|_| slurm::launch(&orch(&conn), &req)))
+        }
+        WorkersCommand::Release { pool, drain_for, conn } => match seconds("drain-for", drain_for) {
+            Ok(d) => report(conn.ca().and_then(|_| slurm::release(&orch(&conn), &pool, d))),
+            Err(code) => code,
+        },
+        WorkersCommand::Pools { conn } => report(conn.ca().and_then(|_| slurm::pools(&orch(&conn)))),
     }
 }
 

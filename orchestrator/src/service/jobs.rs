@@ -92,6 +92,13 @@ fn run_job(core: &Arc<Core>, job: JobRecord) {
             tracing::info!("job {id} completed, state_digest {digest}");
             core.transition(&id, JobState::Completed, "", &digest);
         }
+        // A scheduler stopping the allocation (scancel, a time limit) signals the orchestrator
+        // and its workers at once: a job that failed for want of workers while the orchestrator
+        // stops is queued again and resumes from its last checkpoint on the next start.
+        Attempt::Done(Outcome::Failed(_, why)) if stopping && !flags.1.load(Ordering::SeqCst) => {
+            tracing::warn!("job {id}: {why}, as the orchestrator stops; queued again, resumes from its last checkpoint");
+            core.transition(&id, JobState::Queued, &format!("the orchestrator stopped ({why}); resumes from its last checkpoint"), "");
+        }
         Attempt::Done(Outcome::Failed(_, why)) => {
             tracing::error!("job {id} failed: {why}");
             core.transition(&id, JobState::Failed, &why, "")
@@ -128,6 +135,12 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
     loop {
         let assigned = workers::choose(&lock(&core.workers).usable(), kind.as_deref());
         if let (Some(k), true) = (&kind, assigned.is_empty()) {
+            // Every worker lost at once is also what SIGTERM to a whole allocation looks like:
+            // the orchestrator's own SIGTERM gets a moment to arrive (see run_job).
+            let waited = std::time::Instant::now();
+            while !core.stopping.load(Ordering::SeqCst) && waited.elapsed() < Duration::from_secs(3) {
+                std::thread::sleep(Duration::from_millis(20));
+            }
             return Attempt::Done(Outcome::Failed(
                 serde_json::Value::Null,
                 format!("no live worker of back end {k} is left to take the job's boxes"),
