@@ -14,6 +14,9 @@ use crate::shape::{self, Block, OutsideGrid, SchemeKind, Stencil, StencilPart};
 use crate::tensor::{self, Mat3};
 use rayon::prelude::*;
 
+#[path = "implicit.rs"]
+pub mod implicit;
+
 /// Artificial viscosity added to the closure's stress in compression.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Viscosity {
@@ -70,6 +73,9 @@ pub enum TimeIntegrator {
     #[default]
     Dhakal,
     Leapfrog,
+    /// Guilkey-Weiss trapezoidal rule (Newmark beta = 1/4, gamma = 1/2) solved by Newton on
+    /// the nodal displacements with the stencil frozen over the step; see [`implicit`].
+    ImplicitTrapezoidal,
 }
 
 /// What one step did, for progress reporting.
@@ -114,6 +120,8 @@ pub struct Simulation<const D: usize> {
     pub body_force: Option<BodyForce<D>>,
     /// Time integration (default: the Ch. 3.1 cycle); see [`TimeIntegrator`].
     pub integrator: TimeIntegrator,
+    /// Options and per-step record of the implicit integrator (unused by the explicit ones).
+    pub implicit: implicit::Implicit,
     stencil: Stencil<D>,
     node_mass: Vec<f64>,
     node_force: Vec<[f64; D]>,
@@ -176,6 +184,7 @@ impl<const D: usize> Simulation<D> {
             initial: Totals::default(),
             body_force: None,
             integrator: TimeIntegrator::Dhakal,
+            implicit: implicit::Implicit::default(),
             grid,
             points,
             scheme,
@@ -257,6 +266,9 @@ impl<const D: usize> Simulation<D> {
 
     /// One explicit step.
     pub fn step(&mut self) -> Result<StepReport, SolverError> {
+        if self.integrator == TimeIntegrator::ImplicitTrapezoidal {
+            return self.implicit_step();
+        }
         let step = self.step + 1;
         let dt = self.dt;
         self.build_stencil().map_err(|o| SolverError::Diverged {
@@ -691,6 +703,7 @@ impl<const D: usize> Simulation<D> {
         match self.integrator {
             TimeIntegrator::Dhakal => 0.5,
             TimeIntegrator::Leapfrog => 0.0,
+            TimeIntegrator::ImplicitTrapezoidal => 0.5,
         }
     }
 
