@@ -101,6 +101,7 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
         .with_sub_points(scene.sub_points)
         .with_small_mass_fraction(scene.small_mass_fraction);
     sim.integrator = scene.integrator;
+    sim.implicit.options.jacobian = scene.jacobian;
     Ok(sim)
 }
 

@@ -86,11 +86,22 @@ impl SceneName for continuum::SchemeKind {
 
 impl SceneName for continuum::solver::TimeIntegrator {
     const FIELD: &'static str = "integrator";
-    const NAMES: &'static [(&'static str, Self)] =
-        &[("dhakal", continuum::solver::TimeIntegrator::Dhakal), ("leapfrog", continuum::solver::TimeIntegrator::Leapfrog)];
+    const NAMES: &'static [(&'static str, Self)] = &[
+        ("dhakal", continuum::solver::TimeIntegrator::Dhakal),
+        ("leapfrog", continuum::solver::TimeIntegrator::Leapfrog),
+        ("implicit-trapezoidal", continuum::solver::TimeIntegrator::ImplicitTrapezoidal),
+    ];
     fn allowed() -> String {
-        "allowed: \"dhakal\" (Ch. 3.1 cycle), \"leapfrog\"".into()
+        "allowed: \"dhakal\" (Ch. 3.1 cycle), \"leapfrog\", \"implicit-trapezoidal\"".into()
     }
+}
+
+impl SceneName for continuum::solver::implicit::JacobianKind {
+    const FIELD: &'static str = "jacobian";
+    const NAMES: &'static [(&'static str, Self)] = &[
+        ("analytic", continuum::solver::implicit::JacobianKind::Analytic),
+        ("finite-difference", continuum::solver::implicit::JacobianKind::FiniteDifference),
+    ];
 }
 
 /// `scheme.artificial_viscosity`: which form (its coefficients are keys of their own).

@@ -27,6 +27,7 @@ pub struct ResolvedScene {
     pub sub_points: usize,
     pub viscosity: Viscosity,
     pub integrator: TimeIntegrator,
+    pub jacobian: continuum::solver::implicit::JacobianKind,
     pub small_mass_fraction: f64,
     /// Time step (s).
     pub dt: f64,
