@@ -111,6 +111,50 @@ pub trait Closure: Send {
     }
     /// Advances every point of the batch over `dt` (s) and writes its stress.
     fn advance(&mut self, batch: ClosureBatch<'_>, dt: f64) -> Result<(), ClosureError>;
+    /// Whether `advance` is a pure function of the batch (start stress in `stress`, velocity
+    /// gradient, deformation gradient, mass, volume) and `dt`, keeping no state between calls,
+    /// so the implicit integrator may call it once per Newton residual and keep only the last
+    /// call ([`crate::solver::TimeIntegrator::ImplicitTrapezoidal`]). The default (false) is
+    /// right for closures with history (MD boxes), which the implicit integrator refuses.
+    fn repeatable(&self) -> bool {
+        false
+    }
+    /// Whether [`Closure::tangent`] gives the material tangent (the analytic Jacobian of the
+    /// implicit integrator needs it; without it only the finite-difference Jacobian works).
+    fn has_tangent(&self) -> bool {
+        false
+    }
+    /// Material tangent of one point: the derivative of the end-of-step Cauchy stress that
+    /// `advance` returns with respect to the step's displacement gradient H = F F_n^-1 - I
+    /// (so F = (I + H) F_n and the velocity gradient passed to `advance` is H / dt). `None`
+    /// when the closure has no tangent.
+    fn tangent(&self, _point: &TangentIn<'_>) -> Option<Tangent> {
+        None
+    }
+}
+
+/// d sigma_ij / d H_kl, indexed `[i][j][k][l]` (Pa).
+pub type Tangent = [[[[f64; 3]; 3]; 3]; 3];
+
+/// What a tangent may depend on, for one point.
+pub struct TangentIn<'a> {
+    /// Stress at the start of the step.
+    pub start_stress: &'a Mat3,
+    /// Deformation gradient at the start of the step, F_n.
+    pub start_def_grad: &'a Mat3,
+    /// The step's displacement gradient H (F = (I + H) F_n).
+    pub increment: &'a Mat3,
+    /// Deformation gradient at the end of the step.
+    pub def_grad: &'a Mat3,
+    /// Stress `advance` returned for this H.
+    pub stress: &'a Mat3,
+    pub mass: f64,
+    /// Volume at the end of the step.
+    pub volume: f64,
+}
+
+fn rel_inverse(p: &TangentIn<'_>) -> Mat3 {
+    tensor::inverse(&tensor::add_scaled(&IDENTITY, p.increment, 1.0)).unwrap_or(IDENTITY)
 }
 
 /// Isothermal ideal gas: p = c^2 rho.
@@ -137,6 +181,26 @@ impl Closure for IdealGasIsothermal {
             *s = tensor::add_scaled(&tensor::ZERO, &IDENTITY, -c2 * rho);
             Ok(())
         })
+    }
+    fn repeatable(&self) -> bool {
+        true
+    }
+    fn has_tangent(&self) -> bool {
+        true
+    }
+    /// sigma = -c^2 m / V I with V = det(I + H) V_n: d sigma_ij / d H_kl = c^2 rho delta_ij (I + H)^-1_lk.
+    fn tangent(&self, p: &TangentIn<'_>) -> Option<Tangent> {
+        let fi = rel_inverse(p);
+        let k = self.sound_speed * self.sound_speed * p.mass / p.volume;
+        let mut t = [[[[0.0; 3]; 3]; 3]; 3];
+        for (i, ti) in t.iter_mut().enumerate() {
+            for (k_, tk) in ti[i].iter_mut().enumerate() {
+                for (l, v) in tk.iter_mut().enumerate() {
+                    *v = k * fi[l][k_];
+                }
+            }
+        }
+        Some(t)
     }
 }
 
@@ -201,6 +265,33 @@ impl Closure for LinearElastic {
             Ok(())
         })
     }
+    fn repeatable(&self) -> bool {
+        true
+    }
+    fn has_tangent(&self) -> bool {
+        true
+    }
+    /// `advance` with L = H / dt is sigma = sigma_n + C : sym(H) + W sigma_n - sigma_n W,
+    /// W = skew(H): linear in H, so the tangent is C plus the Jaumann terms
+    /// (delta_ik sigma_lj - delta_il sigma_kj - sigma_ik delta_jl + sigma_il delta_jk) / 2.
+    fn tangent(&self, p: &TangentIn<'_>) -> Option<Tangent> {
+        let (lambda, mu) = lame(self.youngs_modulus, self.poisson_ratio);
+        let s = p.start_stress;
+        let d = |a: usize, b: usize| if a == b { 1.0 } else { 0.0 };
+        let mut t = [[[[0.0; 3]; 3]; 3]; 3];
+        for (i, ti) in t.iter_mut().enumerate() {
+            for (j, tj) in ti.iter_mut().enumerate() {
+                for (k, tk) in tj.iter_mut().enumerate() {
+                    for (l, v) in tk.iter_mut().enumerate() {
+                        *v = lambda * d(i, j) * d(k, l)
+                            + mu * (d(i, k) * d(j, l) + d(i, l) * d(j, k))
+                            + 0.5 * (d(i, k) * s[l][j] - d(i, l) * s[k][j] - s[i][k] * d(j, l) + s[i][l] * d(j, k));
+                    }
+                }
+            }
+        }
+        Some(t)
+    }
 }
 
 /// Compressible neo-Hookean: sigma = mu/J (F F^T - I) + lambda ln(J)/J I.
@@ -242,5 +333,38 @@ impl Closure for NeoHookean {
             *out = s;
             Ok(())
         })
+    }
+    fn repeatable(&self) -> bool {
+        true
+    }
+    fn has_tangent(&self) -> bool {
+        true
+    }
+    /// With F = (I + H) F_n, B = F F^T: d sigma_ij / d H_kl =
+    /// [-mu/J (B - I)_ij + lambda (1 - ln J)/J delta_ij] (I + H)^-1_lk
+    /// + mu/J (delta_ik (F F_n^T)_jl + (F F_n^T)_il delta_jk).
+    fn tangent(&self, p: &TangentIn<'_>) -> Option<Tangent> {
+        let (lambda, mu) = lame(self.youngs_modulus, self.poisson_ratio);
+        let f = p.def_grad;
+        let j = tensor::det(f);
+        if !(j > 0.0) {
+            return None;
+        }
+        let fi = rel_inverse(p);
+        let b = tensor::mul(f, &tensor::transpose(f));
+        let ffn = tensor::mul(f, &tensor::transpose(p.start_def_grad));
+        let d = |a: usize, c: usize| if a == c { 1.0 } else { 0.0 };
+        let mut t = [[[[0.0; 3]; 3]; 3]; 3];
+        for (i, ti) in t.iter_mut().enumerate() {
+            for (jj, tj) in ti.iter_mut().enumerate() {
+                let vol = -mu / j * (b[i][jj] - d(i, jj)) + lambda * (1.0 - j.ln()) / j * d(i, jj);
+                for (k, tk) in tj.iter_mut().enumerate() {
+                    for (l, v) in tk.iter_mut().enumerate() {
+                        *v = vol * fi[l][k] + mu / j * (d(i, k) * ffn[jj][l] + ffn[i][l] * d(jj, k));
+                    }
+                }
+            }
+        }
+        Some(t)
     }
 }

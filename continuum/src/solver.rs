@@ -15,6 +15,8 @@ use crate::tensor::{self, Mat3};
 use rayon::prelude::*;
 
 mod impm;
+#[path = "implicit.rs"]
+pub mod implicit;
 
 /// Artificial viscosity added to the closure's stress in compression.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -87,6 +89,9 @@ pub enum TimeIntegrator {
     Leapfrog,
     Usl,
     Usf,
+    /// Guilkey-Weiss trapezoidal rule (Newmark beta = 1/4, gamma = 1/2) solved by Newton on
+    /// the nodal displacements with the stencil frozen over the step; see [`implicit`].
+    ImplicitTrapezoidal,
 }
 
 /// What one step did, for progress reporting.
@@ -140,6 +145,8 @@ pub struct Simulation<const D: usize> {
     pub prescribed_scalar_rate: Vec<f64>,
     /// Diffusion of the scalar field (see [`crate::diffusion`]); none by default.
     pub diffusion: Option<crate::diffusion::Diffusion<D>>,
+    /// Options and per-step record of the implicit integrator (unused by the explicit ones).
+    pub implicit: implicit::Implicit,
     stencil: Stencil<D>,
     node_mass: Vec<f64>,
     node_force: Vec<[f64; D]>,
@@ -205,6 +212,7 @@ impl<const D: usize> Simulation<D> {
             flip_fraction: 1.0,
             prescribed_scalar_rate: Vec::new(),
             diffusion: None,
+            implicit: implicit::Implicit::default(),
             grid,
             points,
             scheme,
@@ -286,6 +294,9 @@ impl<const D: usize> Simulation<D> {
 
     /// One explicit step.
     pub fn step(&mut self) -> Result<StepReport, SolverError> {
+        if self.integrator == TimeIntegrator::ImplicitTrapezoidal {
+            return self.implicit_step();
+        }
         let step = self.step + 1;
         let dt = self.dt;
         self.build_stencil().map_err(|o| SolverError::Diverged {
@@ -780,6 +791,7 @@ impl<const D: usize> Simulation<D> {
         match self.integrator {
             TimeIntegrator::Dhakal => 0.5,
             TimeIntegrator::Leapfrog | TimeIntegrator::Usl | TimeIntegrator::Usf => 0.0,
+            TimeIntegrator::ImplicitTrapezoidal => 0.5,
         }
     }
 

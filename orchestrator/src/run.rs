@@ -390,7 +390,13 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         match &bar {
             Some(b) => {
                 b.set_position(sim.step);
-                b.set_message(format!("t = {:.4e} s", sim.time));
+                b.set_message(match sim.integrator {
+                    continuum::solver::TimeIntegrator::ImplicitTrapezoidal => {
+                        let st = &sim.implicit.stats;
+                        format!("t = {:.4e} s  Newton {} it/step", sim.time, st.last_residual_history.len().saturating_sub(1))
+                    }
+                    _ => format!("t = {:.4e} s", sim.time),
+                });
             }
             None if last_log.elapsed() > Duration::from_secs(5) || sim.step == loaded.steps => {
                 last_log = Instant::now();
@@ -680,7 +686,7 @@ fn summary<const D: usize>(
     for f in &loaded.files {
         inputs.insert(f.display().to_string(), json!(output::sha256_file(f)?));
     }
-    Ok(json!({
+    let mut out = json!({
         "status": if failure.is_some() { "failed" } else { "completed" },
         "error": failure,
         "scene": scene.name,
@@ -743,5 +749,17 @@ fn summary<const D: usize>(
                 "events": r,
             })
         }),
-    }))
+    });
+    // Implicit runs only (other summaries keep their keys): Newton iterations per step,
+    // accepted and rejected steps, timings.
+    if sim.integrator == continuum::solver::TimeIntegrator::ImplicitTrapezoidal {
+        let st = &sim.implicit.stats;
+        let mut v = serde_json::to_value(st)?;
+        v["jacobian"] = json!(format!("{:?}", sim.implicit.options.jacobian));
+        v["newton_iterations_per_step"] = json!(st.newton_iterations as f64 / st.accepted_steps.max(1) as f64);
+        v["seconds_per_newton_iteration"] = json!(st.seconds_total / st.newton_iterations.max(1) as f64);
+        v["seconds_per_step"] = json!(st.seconds_total / st.accepted_steps.max(1) as f64);
+        out["implicit"] = v;
+    }
+    Ok(out)
 }

@@ -367,10 +367,18 @@ pub struct Scheme {
     /// (battery thesis 5.24-5.26).
     #[serde(default = "default_flip_fraction")]
     pub flip_fraction: f64,
+    /// Newton Jacobian of `implicit-trapezoidal`: `analytic` (the closures' material tangents)
+    /// or `finite-difference` (coloured forward differences). Written only when not analytic.
+    #[serde(default, with = "names::named", skip_serializing_if = "is_analytic")]
+    pub jacobian: continuum::solver::implicit::JacobianKind,
 }
 
 fn default_flip_fraction() -> f64 {
     1.0
+}
+
+fn is_analytic(j: &continuum::solver::implicit::JacobianKind) -> bool {
+    *j == continuum::solver::implicit::JacobianKind::Analytic
 }
 
 fn default_one() -> usize {
@@ -697,5 +705,63 @@ end_time = 1e-12
         assert!((m.lattice_properties.density - 8939.0).abs() < 0.01 * 8939.0);
         // 2 x 2 cells, 2 x 2 points each.
         assert_eq!(r.point_counts(), [("bar".to_string(), 16)]);
+    }
+
+    const BAR: &str = r#"schema = 1
+[domain]
+dimension = 1
+min = [0.0]
+max = [1.0]
+cells = [50]
+
+[bodies.bar]
+shape = "bar"
+min = [0.0]
+max = [1.0]
+density = 1.0
+velocity = [0.01]
+material = { law = "linear-elastic", youngs_modulus = 1e4, poisson_ratio = 0.0 }
+
+[scheme]
+method = "mpm"
+particles_per_cell = 2
+cfl = 0.5
+end_time = 0.1
+
+[boundary]
+x_min = "fixed"
+x_max = "fixed"
+"#;
+
+    /// Issue 18: no CFL bound for the implicit integrator, a bound on motion per step instead,
+    /// and the set-ups it cannot run refused at `scheme.integrator`.
+    #[test]
+    fn the_implicit_integrator_has_a_motion_bound_not_a_cfl_bound() {
+        let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+        let ok = |sets: &[&str]| {
+            let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+            parse("t.toml", BAR, &sets, &base, "t").map_err(|e| e.to_string())
+        };
+        let e = err(BAR, &["scheme.cfl=50"]);
+        assert!(e.contains("`scheme.cfl` = 50: allowed: 0 < cfl <= 1 (explicit stability bound)"), "{e}");
+        let l = ok(&["scheme.cfl=50", "scheme.integrator=\"implicit-trapezoidal\""]).expect("cfl 50 is fine implicitly");
+        assert_eq!(l.resolved.integrator, continuum::solver::TimeIntegrator::ImplicitTrapezoidal);
+        assert!((l.dt - 50.0 * 0.02 / 100.01).abs() < 1e-9 * l.dt, "{}", l.dt);
+        let l = ok(&["scheme.cfl=5", "scheme.integrator=\"implicit-trapezoidal\"", "scheme.jacobian=\"finite-difference\""]).expect("fd");
+        assert_eq!(l.resolved.jacobian, continuum::solver::implicit::JacobianKind::FiniteDifference);
+        // 1 m/s at dt = 0.5 s moves points 25 cells.
+        let e = err(BAR, &["scheme.integrator=\"implicit-trapezoidal\"", "bodies.bar.velocity=[1.0]", "scheme.cfl=5000"]);
+        assert!(
+            e.contains("`scheme.timestep`") && e.contains("cells per step at the initial body speed 1e0 m/s") && e.contains("at most 0.5"),
+            "{e}"
+        );
+        let e = err(BAR, &["scheme.integrator=\"implicit-trapezoidal\"", "scheme.method=\"ddmp\""]);
+        assert!(e.contains("`scheme.integrator` = \"implicit-trapezoidal\": needs a method whose force stays on nodes with mass"), "{e}");
+        let e = err(BAR, &["scheme.integrator=\"implicit-trapezoidal\"", "scheme.artificial_viscosity=\"linear\""]);
+        assert!(e.contains("needs scheme.artificial_viscosity = \"none\""), "{e}");
+        let e = err(MD, &["scheme.integrator=\"implicit-trapezoidal\""]);
+        assert!(e.contains("body `bar` is an md body"), "{e}");
+        let e = err(BAR, &["scheme.jacobian=\"exact\""]);
+        assert!(e.contains("`scheme.jacobian` = \"exact\": allowed: \"analytic\", \"finite-difference\""), "{e}");
     }
 }

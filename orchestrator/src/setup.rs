@@ -127,6 +127,7 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
         let body = sim.points.body.clone();
         sim.prescribed_scalar_rate = body.iter().map(|&b| scene.bodies[b as usize].lithiation.map_or(0.0, |l| l.1)).collect();
     }
+    sim.implicit.options.jacobian = scene.jacobian;
     Ok(sim)
 }
 

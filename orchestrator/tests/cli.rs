@@ -318,3 +318,40 @@ fn a_run_with_a_direct_md_reference_scores_itself() {
     assert_eq!(o.status.code(), Some(0), "{}", text(&o.stderr));
     assert!(text(&o.stdout).contains("solution = \"direct-md\""), "{}", text(&o.stdout));
 }
+
+/// Issue 18: an implicit run past the explicit CFL bound reports Newton iterations per step and
+/// accepted/rejected steps in summary.json; a set-up it cannot run exits 2 naming the key.
+#[test]
+fn an_implicit_run_reports_its_newton_iterations() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("run");
+    let implicit = "scheme.integrator=\"implicit-trapezoidal\"";
+    let o = mscale(&[
+        "run",
+        &small(),
+        "--out",
+        out.to_str().expect("utf8"),
+        "--set",
+        implicit,
+        "--set",
+        "scheme.artificial_viscosity=\"none\"",
+        "--set",
+        "scheme.cfl=2.0",
+    ]);
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", text(&o.stderr));
+    let s = summary(&out);
+    let st = &s["implicit"];
+    assert_eq!(st["accepted_steps"], s["steps"], "{st}");
+    assert_eq!(st["rejected_steps"], 0);
+    let per_step = st["newton_iterations_per_step"].as_f64().expect("iterations per step");
+    assert!((1.0..=5.0).contains(&per_step), "{st}");
+    assert!(st["seconds_per_newton_iteration"].as_f64().expect("timing") > 0.0);
+    assert!(s["conservation"]["mass_drift"].as_f64().expect("mass") < 1e-12);
+    // Explicit runs keep their summary keys.
+    let o = mscale(&["run", &small(), "--out", tmp.path().join("explicit").to_str().expect("utf8")]);
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", text(&o.stderr));
+    assert!(summary(&tmp.path().join("explicit")).get("implicit").is_none());
+    let o = mscale(&["check", &small(), "--set", implicit]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(text(&o.stderr).contains("needs scheme.artificial_viscosity = \"none\""), "{}", text(&o.stderr));
+}

@@ -91,10 +91,19 @@ impl SceneName for continuum::solver::TimeIntegrator {
         ("leapfrog", continuum::solver::TimeIntegrator::Leapfrog),
         ("usl", continuum::solver::TimeIntegrator::Usl),
         ("usf", continuum::solver::TimeIntegrator::Usf),
+        ("implicit-trapezoidal", continuum::solver::TimeIntegrator::ImplicitTrapezoidal),
     ];
     fn allowed() -> String {
-        "allowed: \"dhakal\" (Ch. 3.1 cycle), \"leapfrog\", \"usl\" (symplectic Euler), \"usf\" (update stress first)".into()
+        "allowed: \"dhakal\" (Ch. 3.1 cycle), \"leapfrog\", \"usl\" (symplectic Euler), \"usf\" (update stress first), \"implicit-trapezoidal\"".into()
     }
+}
+
+impl SceneName for continuum::solver::implicit::JacobianKind {
+    const FIELD: &'static str = "jacobian";
+    const NAMES: &'static [(&'static str, Self)] = &[
+        ("analytic", continuum::solver::implicit::JacobianKind::Analytic),
+        ("finite-difference", continuum::solver::implicit::JacobianKind::FiniteDifference),
+    ];
 }
 
 /// `scheme.artificial_viscosity`: which form (its coefficients are keys of their own).

@@ -29,6 +29,7 @@ pub struct ResolvedScene {
     pub integrator: TimeIntegrator,
     /// PIC/FLIP blend in [0, 1] (1: FLIP).
     pub flip_fraction: f64,
+    pub jacobian: continuum::solver::implicit::JacobianKind,
     pub small_mass_fraction: f64,
     /// Time step (s).
     pub dt: f64,

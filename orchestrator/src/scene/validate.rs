@@ -157,6 +157,7 @@ impl Scene {
             },
             integrator: s.integrator,
             flip_fraction: s.flip_fraction,
+            jacobian: s.jacobian,
             small_mass_fraction: s.small_mass_fraction,
             dt,
             steps,
@@ -531,7 +532,13 @@ impl Scene {
         finite_positive(loc, "scheme.end_time", s.end_time, "the end time (s)")?;
         let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
         let speed = max_speed + self.bodies.values().flat_map(|b| b.velocity.iter()).fold(0.0_f64, |m, v| m.max(v.abs()));
-        let bound = CFL_LIMIT * h / speed;
+        let implicit = s.integrator == continuum::solver::TimeIntegrator::ImplicitTrapezoidal;
+        if implicit {
+            implicit_supported(loc, kind, s.artificial_viscosity, &self.bodies)?;
+        }
+        // The implicit integrator has no CFL bound (its bound is on motion per step, below).
+        let bound = if implicit { f64::INFINITY } else { CFL_LIMIT * h / speed };
+        let cfl_limit = if implicit { f64::INFINITY } else { CFL_LIMIT };
         let dt = match (s.cfl, s.timestep) {
             (Some(c), Some(dt)) => {
                 // Both given (as in a resolved scene): they must agree.
@@ -542,15 +549,15 @@ impl Scene {
                         format!("disagrees with cfl = {c} (which gives {:e} s); give `cfl` or `timestep`, not both", c * h / speed),
                     ));
                 }
-                if !(c > 0.0 && c <= CFL_LIMIT) {
-                    return Err(loc.err("scheme.cfl", c, format!("allowed: 0 < cfl <= {CFL_LIMIT} (explicit stability bound)")));
+                if !(c > 0.0 && c <= cfl_limit) {
+                    return Err(loc.err("scheme.cfl", c, cfl_message(implicit)));
                 }
                 dt
             }
             (None, None) => return Err(loc.err("scheme", "", "missing `cfl` (c dt / h, at most 1) or `timestep` (s)")),
             (Some(c), None) => {
-                if !(c > 0.0 && c <= CFL_LIMIT) {
-                    return Err(loc.err("scheme.cfl", c, format!("allowed: 0 < cfl <= {CFL_LIMIT} (explicit stability bound)")));
+                if !(c.is_finite() && c > 0.0 && c <= cfl_limit) {
+                    return Err(loc.err("scheme.cfl", c, cfl_message(implicit)));
                 }
                 c * h / speed
             }
@@ -562,6 +569,19 @@ impl Scene {
                 dt
             }
         };
+        let moving = self.bodies.values().flat_map(|b| b.velocity.iter()).fold(0.0_f64, |m, v| m.max(v.abs()));
+        if implicit && moving * dt > continuum::solver::implicit::ImplicitOptions::default().max_motion_cells * h {
+            return Err(loc.err(
+                "scheme.timestep",
+                dt,
+                format!(
+                    "moves points {:.3} cells per step at the initial body speed {moving:e} m/s; the implicit step freezes the stencil, so at most {} (use dt <= {:.6e} s)",
+                    moving * dt / h,
+                    continuum::solver::implicit::ImplicitOptions::default().max_motion_cells,
+                    0.5 * h / moving
+                ),
+            ));
+        }
         let steps = (s.end_time / dt - 1e-9).ceil().max(1.0);
         if steps > 1e9 {
             return Err(loc.err("scheme.end_time", s.end_time, format!("needs {steps:e} steps of {dt:e} s; more than 1e9 steps")));
@@ -918,5 +938,40 @@ fn face_debug(f: &FaceSpec) -> String {
     match f {
         FaceSpec::Named(n) => format!("Named({:?})", n.scene_name()),
         FaceSpec::Piston { piston } => format!("Piston {{ piston: {piston:?} }}"),
+    }
+}
+
+fn cfl_message(implicit: bool) -> String {
+    if implicit {
+        "must be a finite positive number (the implicit integrator has no CFL bound, only one on motion per step)".into()
+    } else {
+        format!("allowed: 0 < cfl <= {CFL_LIMIT} (explicit stability bound)")
+    }
+}
+
+/// What `scheme.integrator = "implicit-trapezoidal"` cannot run with: DDMP (its force on empty
+/// nodes is handed on by the explicit cycle only), artificial viscosity (no tangent) and md
+/// bodies (their boxes keep state, so Newton cannot evaluate them more than once a step).
+fn implicit_supported(
+    loc: &Locator<'_>,
+    kind: SchemeKind,
+    viscosity: ViscosityForm,
+    bodies: &BTreeMap<String, Body>,
+) -> Result<(), SceneError> {
+    let why = if kind.is_ddmp() {
+        Some(format!(
+            "needs a method whose force stays on nodes with mass: mpm, ugimp, cpgimp, cpdi, cpdi1 or cpdi2 (`{}` hands force on from empty nodes, which the implicit residual does not)",
+            kind.name()
+        ))
+    } else if viscosity != ViscosityForm::None {
+        Some("needs scheme.artificial_viscosity = \"none\" (the viscosity has no tangent for Newton)".to_string())
+    } else {
+        bodies.iter().find(|(_, b)| matches!(b.material, Material::Md(_))).map(|(name, _)| {
+            format!("body `{name}` is an md body: its boxes keep state between calls, so Newton cannot evaluate them repeatedly (use dhakal or leapfrog)")
+        })
+    };
+    match why {
+        Some(w) => Err(loc.err("scheme.integrator", "\"implicit-trapezoidal\"", w)),
+        None => Ok(()),
     }
 }
