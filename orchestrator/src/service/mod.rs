@@ -77,8 +77,10 @@ pub const DEFAULT_CHECKPOINT_EVERY: u64 = 100;
 pub struct ServeOptions {
     pub state_dir: PathBuf,
     pub listen: String,
-    /// The bearer token mutating calls must carry.
+    /// The single-token mode's token (the admin user); unused with `access.users_file`.
     pub token: String,
+    /// Users and their limits.
+    pub access: AccessOptions,
     pub checkpoint_every: u64,
     /// PEM certificate chain and private key: serve over TLS (rustls).
     pub tls: Option<(Vec<u8>, Vec<u8>)>,
@@ -95,6 +97,19 @@ pub struct ServeOptions {
     /// Where to serve the dashboard and `/metrics` (`--http`), over TLS when `tls` is set.
     pub http: Option<String>,
 }
+
+/// Who may call `mscale serve`, and the per-user limits.
+#[derive(Debug, Clone, Default)]
+pub struct AccessOptions {
+    /// The users file (`--users`): users, roles, token hashes; read again on SIGHUP. None: the
+    /// single-token mode.
+    pub users_file: Option<PathBuf>,
+    /// Limits of every user (`--max-jobs-per-user`, `--max-upload-bytes`, `--max-snapshots`)
+    /// where the users file sets none.
+    pub limits: auth::Limits,
+}
+
+pub use auth::{Limits, Role, parse_users};
 
 /// The worker pool options of `mscale serve`.
 #[derive(Debug, Clone, Copy)]
@@ -117,17 +132,22 @@ pub fn serve_command(
     tls: Option<(PathBuf, PathBuf)>,
     pool: PoolOptions,
     http: Option<String>,
+    access: AccessOptions,
 ) -> Result<i32> {
     anyhow::ensure!(
         pool.worker_timeout_s.is_finite() && pool.worker_timeout_s > 0.0,
         "--worker-timeout {} must be a positive number of seconds",
         pool.worker_timeout_s
     );
-    let token = match &token_file {
-        Some(f) => read_token(f)?,
-        None => auth::generated_token(&state)?,
+    if let (Some(_), Some(t)) = (&access.users_file, &token_file) {
+        bail!("--users and --token-file {} exclude each other: give the admin token a [[user]] with role = \"admin\" in the users file", t.display());
+    }
+    // With users, local workers get a token of their own (a worker user), made at every start.
+    let (token, token_file) = match (&access.users_file, token_file) {
+        (Some(_), _) => (String::new(), state.join("local-worker-token")),
+        (None, Some(f)) => (read_token(&f)?, f),
+        (None, None) => (auth::generated_token(&state)?, state.join("token")),
     };
-    let token_file = token_file.unwrap_or_else(|| state.join("token"));
     let local_ca = tls.as_ref().map(|t| t.0.clone());
     let tls = match tls {
         Some((cert, key)) => {
@@ -140,6 +160,7 @@ pub fn serve_command(
         state_dir: state,
         listen,
         token,
+        access,
         checkpoint_every,
         tls,
         local_workers: pool.local_workers,
@@ -176,8 +197,18 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         tracing::info!("job {id} was running when the orchestrator stopped: queued again, resumes from its last checkpoint");
     }
     let registry = Registry::load(&store, opts.worker_timeout)?;
-    let core =
-        Core::new(store, registry, opts.state_dir.clone(), opts.token, opts.checkpoint_every, opts.local_workers, opts.step_deadline);
+    let users = match &opts.access.users_file {
+        Some(file) => {
+            let token = auth::random_token()?;
+            auth::write_private(&opts.token_file, &token)?;
+            let local = auth::User::with_token("local-workers", Role::Worker, &token);
+            let users = auth::Users::from_file(file, vec![local], opts.access.limits)?;
+            tracing::info!("users from {} (read again on SIGHUP)", file.display());
+            users
+        }
+        None => auth::Users::single(&opts.token, opts.access.limits),
+    };
+    let core = Core::new(store, registry, opts.state_dir.clone(), users, opts.checkpoint_every, opts.local_workers, opts.step_deadline);
     let listener = std::net::TcpListener::bind(addr).with_context(|| format!("cannot listen on {addr}"))?;
     listener.set_nonblocking(true)?;
     let http_listener = match http_addr {
@@ -244,6 +275,14 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
             }));
         }
         tracing::info!("state in {}", opts.state_dir.display());
+        let mut hangup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).context("cannot catch SIGHUP")?;
+        let reload_core = core.clone();
+        tokio::spawn(async move {
+            while hangup.recv().await.is_some() {
+                let core = reload_core.clone();
+                let _ = tokio::task::spawn_blocking(move || core.reload_users()).await;
+            }
+        });
         let shutdown = async {
             let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).ok();
             tokio::select! {

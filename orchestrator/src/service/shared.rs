@@ -1,6 +1,7 @@
 //! What the service's calls, the job runner and the worker monitor share: [`Core`].
 
 use super::error::JobError;
+use super::auth::Users;
 use super::events::LiveJob;
 use super::store::{JobRecord, Store};
 use super::workers::Registry;
@@ -8,7 +9,7 @@ use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{Arc, Condvar, Mutex, RwLock};
 use std::time::{Duration, Instant};
 use tokio::sync::watch;
 
@@ -19,11 +20,20 @@ pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
+pub(crate) fn read<T>(m: &RwLock<T>) -> std::sync::RwLockReadGuard<'_, T> {
+    m.read().unwrap_or_else(|p| p.into_inner())
+}
+
+pub(crate) fn write<T>(m: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
+    m.write().unwrap_or_else(|p| p.into_inner())
+}
+
 /// What the service and the job runner share.
 pub(crate) struct Core {
     pub(crate) store: Mutex<Store>,
     pub(crate) state_dir: PathBuf,
-    pub(crate) token: String,
+    /// Who may call (read again on SIGHUP).
+    pub(crate) users: RwLock<Users>,
     pub(crate) checkpoint_every: u64,
     /// The event channels of jobs somebody watches (lock after `store`).
     pub(crate) live: Mutex<HashMap<String, LiveJob>>,
@@ -72,7 +82,7 @@ impl Core {
         store: Store,
         registry: Registry,
         state_dir: PathBuf,
-        token: String,
+        users: Users,
         checkpoint_every: u64,
         expect_workers: usize,
         step_deadline: md_worker::recovery::StepDeadline,
@@ -80,7 +90,7 @@ impl Core {
         Arc::new(Core {
             store: Mutex::new(store),
             state_dir,
-            token,
+            users: RwLock::new(users),
             checkpoint_every,
             live: Mutex::new(HashMap::new()),
             details: Mutex::new(HashMap::new()),
@@ -104,6 +114,24 @@ impl Core {
 
     pub(crate) fn get(&self, id: &str) -> Result<JobRecord, JobError> {
         lock(&self.store).get(id)?.ok_or_else(|| JobError::NotFound(id.to_string()))
+    }
+
+    /// The job, when `caller` may see it: its owner or an admin. Another user's job answers
+    /// as a job that does not exist, so ids cannot be probed.
+    pub(crate) fn owned(&self, caller: &super::auth::Caller, id: &str) -> Result<JobRecord, JobError> {
+        let job = self.get(id)?;
+        if caller.is_admin() || job.owner == caller.user {
+            Ok(job)
+        } else {
+            tracing::info!("user {} asked for job {id} of another user: answered as unknown", caller.user);
+            Err(JobError::NotFound(id.to_string()))
+        }
+    }
+
+    /// The jobs `caller` sees, oldest first: its own, or every job for an admin.
+    pub(crate) fn jobs_of(&self, caller: &super::auth::Caller) -> Result<Vec<JobRecord>, JobError> {
+        let store = lock(&self.store);
+        Ok(if caller.is_admin() { store.list()? } else { store.list_of(&caller.user)? })
     }
 
     /// Whether jobs should still wait for `--local-workers` to register.
