@@ -2,8 +2,9 @@
 //!
 //! Jobs are scenes submitted with the files they name; they are validated at submit with the
 //! messages of `mscale check`, kept in the SQLite [`store::Store`] under the state directory, and run
-//! one at a time, by priority, on a dedicated thread with the same run driver as `mscale run`
-//! (so a job ends with the digest `mscale run` gives). Jobs checkpoint at an interval; a job
+//! side by side on disjoint sets of workers (`schedule`: by priority, then fair share between
+//! users), each on its own thread with the same run driver as `mscale run` (so a job ends with
+//! the digest `mscale run` gives). Jobs checkpoint at an interval; a job
 //! that was running when the orchestrator died is resumed from its last checkpoint on restart.
 //!
 //! Layout of the state directory: `jobs.sqlite`, `token` (generated when no token file is
@@ -11,16 +12,22 @@
 //! directory: outputs, checkpoints, summary.json).
 //!
 //! Workers (`md-worker serve --orchestrator URL`, or `--local-workers N` started here) register
-//! and heartbeat ([`workers`]). A job's MD boxes are spread over the live workers of one
-//! back end and precision in proportion to their throughput, or run in this process when there
-//! are none. A worker that stops answering mid-job (killed, or past `--step-deadline`) is
+//! and heartbeat ([`workers`]). A job's MD boxes are spread over the workers it was given (its
+//! `--workers N`, or every free one, of one back end and precision) in proportion to their
+//! throughput, or run in this process when the pool has none (one such job at a time). A worker that stops answering mid-job (killed, or past `--step-deadline`) is
 //! declared lost and only its boxes are rebuilt on the job's surviving workers of the same back
 //! end and precision: restored from the last checkpoint and sent again every input logged since
 //! (`md_worker::recovery`), so the job ends with the digest of an uninterrupted run; with no
-//! survivor the job fails naming the worker and the step. A worker silent for longer than the
+//! survivor it waits for a worker of its kind that another job releases and rolls back onto
+//! it, and where the pool has no live worker of its kind left it fails naming the worker and
+//! the step. A worker silent for longer than the
 //! worker timeout is declared lost and a call in flight on it is aborted, with the same
 //! recovery. Where replay is impossible (the input log outgrew its bound) the whole job rolls
 //! back to its last checkpoint onto the survivors instead.
+//!
+//! `schedule`: the queue goes by priority, then fair share (a user with fewer jobs running
+//! first), then submission; a job that cannot start holds back later jobs from what it waits
+//! for, so a released worker goes to the first waiting job. No preemption.
 //!
 //! Watch events: every event of a job has a sequence number (1, 2, 3, ... with no gaps), given
 //! in the store transaction that records it (the store keeps state changes, checkpoints and
@@ -28,9 +35,12 @@
 //! store and then follow a broadcast channel; one that lags is caught up from the store again,
 //! so an event is never skipped. Progress is published at most every 100 ms.
 //!
-//! Security: mutating calls (SubmitJob, CancelJob, RegisterWorker, Heartbeat, DrainWorker)
-//! need `authorization: Bearer <token>`,
-//! compared in constant time; requests are bounded in size; FetchResult cannot leave the job's
+//! Security: calls carry `authorization: Bearer <token>`; the token names a user with a role
+//! (`auth`: one admin token, or a users file read again on SIGHUP). A job belongs to its
+//! submitter: only it or an admin may see, watch, fetch or cancel it (another user's job
+//! answers as an unknown one); a worker token may only register and heartbeat. Tokens are
+//! compared in constant time; per-user limits (jobs, upload bytes, snapshots) refuse a
+//! submission naming the limit; requests are bounded in size; FetchResult cannot leave the job's
 //! run directory; nothing runs through a shell. TLS (rustls) is served with `--tls-cert` and
 //! `--tls-key`, and required to listen on anything but a loopback address.
 
@@ -51,6 +61,7 @@ mod http;
 mod inputs;
 mod jobs;
 mod metrics;
+mod schedule;
 mod shared;
 pub mod store;
 pub mod workers;

@@ -40,8 +40,8 @@ pub(crate) struct Core {
     /// The progress details (end time, ETA, drift, workers) of running jobs' latest progress
     /// event, encoded: state events carry them too.
     pub(crate) details: Mutex<HashMap<String, Vec<u8>>>,
-    /// The running job and its flags.
-    pub(crate) running: Mutex<Option<RunningJob>>,
+    /// The running jobs and their flags, by id (lock after `workers`, before `store`).
+    pub(crate) running: Mutex<HashMap<String, RunningJob>>,
     /// Registered workers (lock before `store` when both are needed).
     pub(crate) workers: Mutex<Registry>,
     /// Jobs wait (up to [`LOCAL_WORKERS_WAIT`]) until this many workers have registered: the
@@ -62,9 +62,10 @@ pub(crate) struct Core {
     pub(crate) metrics: super::metrics::Metrics,
 }
 
-/// The job on the runner thread.
+/// A running job (each on its own thread).
 pub(crate) struct RunningJob {
     pub(crate) id: String,
+    pub(crate) owner: String,
     /// Stops the run after its current step, with a checkpoint.
     pub(crate) stop: Arc<AtomicBool>,
     /// Set with `stop` by CancelJob.
@@ -73,6 +74,11 @@ pub(crate) struct RunningJob {
     pub(crate) reassign: Arc<AtomicBool>,
     /// Epochs of the workers holding its boxes.
     pub(crate) workers: Vec<u64>,
+    /// It runs in this process (the one in-process slot).
+    pub(crate) in_process: bool,
+    /// The worker kind it waits for, having lost all of its workers (free ones of the kind go
+    /// to it before queued jobs).
+    pub(crate) waits_for: Arc<Mutex<Option<String>>>,
 }
 
 impl Core {
@@ -94,7 +100,7 @@ impl Core {
             checkpoint_every,
             live: Mutex::new(HashMap::new()),
             details: Mutex::new(HashMap::new()),
-            running: Mutex::new(None),
+            running: Mutex::new(HashMap::new()),
             workers: Mutex::new(registry),
             expect_workers,
             started: Instant::now(),
@@ -154,7 +160,7 @@ impl Core {
     /// Stops the runner (the running job checkpoints and stays queued) and ends watch streams.
     pub(crate) fn stop(&self) {
         self.stopping.store(true, Ordering::SeqCst);
-        if let Some(run) = lock(&self.running).as_ref() {
+        for run in lock(&self.running).values() {
             run.stop.store(true, Ordering::SeqCst);
         }
         self.stop_watchers.send_replace(true);
