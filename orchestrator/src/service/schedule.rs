@@ -30,8 +30,9 @@ pub(crate) enum Placement {
     Workers(Vec<WorkerRecord>),
 }
 
-/// The queue in the order jobs are considered: priority (higher first), then fewer running
-/// jobs of the owner, then submission order (`queued` comes in priority and submission order).
+/// The queue in the order jobs are considered: priority (higher first), then the owner with
+/// fewer jobs running or ahead of it in this order, then submission order (`queued` comes in
+/// priority and submission order).
 pub(crate) fn order(mut queued: Vec<JobRecord>, running_per_owner: &HashMap<String, usize>) -> Vec<JobRecord> {
     // Jobs of one owner keep their order; between owners of one priority, the one with fewer
     // running (counting the jobs placed before it in this order) goes first.
@@ -100,7 +101,10 @@ mod tests {
     fn the_queue_goes_by_priority_then_fair_share_then_submission() {
         // As the store returns them: priority, then submission.
         let q = vec![job("h", "bob", 5), job("a1", "alice", 0), job("a2", "alice", 0), job("a3", "alice", 0), job("b1", "bob", 0)];
-        assert_eq!(ids(&order(q.clone(), &HashMap::new())), vec!["h", "a1", "b1", "a2", "a3"]);
+        // Bob's urgent job counts as his: among priority 0, Alice's first job goes first, then
+        // they alternate (ties in submission order).
+        assert_eq!(ids(&order(q.clone(), &HashMap::new())), vec!["h", "a1", "a2", "b1", "a3"]);
+        assert_eq!(ids(&order(q[1..].to_vec(), &HashMap::new())), vec!["a1", "b1", "a2", "a3"]);
         // Alice has two running: Bob's job comes first among priority 0.
         let running = HashMap::from([("alice".to_string(), 2), ("bob".to_string(), 0)]);
         assert_eq!(ids(&order(q[1..].to_vec(), &running)), vec!["b1", "a1", "a2", "a3"]);
