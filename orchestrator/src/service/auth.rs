@@ -366,7 +366,8 @@ mod tests {
 
     #[test]
     fn a_broken_users_file_is_refused_naming_the_user_and_the_key() {
-        let one = |name: &str, role: &str, hash: &str| format!("[[user]]\nname = \"{name}\"\nrole = \"{role}\"\ntoken_sha256 = \"{hash}\"\n");
+        let one =
+            |name: &str, role: &str, hash: &str| format!("[[user]]\nname = \"{name}\"\nrole = \"{role}\"\ntoken_sha256 = \"{hash}\"\n");
         let good = sha("a");
         for (text, expect) in [
             (String::new(), "names no user"),

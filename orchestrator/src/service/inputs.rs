@@ -169,13 +169,7 @@ impl Core {
             store.insert(&job)?;
         }
         let wants = if job.workers == 0 { "every free worker".to_string() } else { format!("{} workers", job.workers) };
-        tracing::info!(
-            "job {id} queued for {}: scene {} ({} steps), priority {}, {wants}",
-            job.owner,
-            job.scene,
-            job.steps,
-            job.priority
-        );
+        tracing::info!("job {id} queued for {}: scene {} ({} steps), priority {}, {wants}", job.owner, job.scene, job.steps, job.priority);
         self.wake_runner();
         Ok(id)
     }

@@ -94,8 +94,7 @@ fn next_placement(core: &Arc<Core>, needs_md: &mut HashMap<String, bool>) -> Res
     let usable = reg.usable();
     // Free workers, less those a running job waits for (it lost its own).
     let waiting: Vec<String> = running.values().filter_map(|r| lock(&r.waits_for).clone()).collect();
-    let free: Vec<WorkerRecord> =
-        usable.iter().filter(|w| !reg.is_busy(w.epoch) && !waiting.contains(&w.kind())).cloned().collect();
+    let free: Vec<WorkerRecord> = usable.iter().filter(|w| !reg.is_busy(w.epoch) && !waiting.contains(&w.kind())).cloned().collect();
     let (mut workers_blocked, mut slot_blocked) = (false, false);
     // A job placed a moment ago is still `queued` in the store until its thread says otherwise.
     let queued: Vec<JobRecord> = queued.into_iter().filter(|j| !running.contains_key(&j.id)).collect();
@@ -217,7 +216,14 @@ fn run_job(core: &Arc<Core>, job: JobRecord, placement: Placement) {
 /// Workers of `kind` to replace the job's lost ones when none of its own survived: free ones
 /// at once, else it waits until a running job releases one. None when no live worker of
 /// `kind` is left in the pool (nothing to wait for), or the job is stopped while it waits.
-fn replacements(core: &Core, id: &str, kind: &str, n: usize, stop: &AtomicBool, waits_for: &Mutex<Option<String>>) -> Option<Vec<WorkerRecord>> {
+fn replacements(
+    core: &Core,
+    id: &str,
+    kind: &str,
+    n: usize,
+    stop: &AtomicBool,
+    waits_for: &Mutex<Option<String>>,
+) -> Option<Vec<WorkerRecord>> {
     let mut told = false;
     loop {
         {
@@ -308,11 +314,8 @@ fn run_on_workers(
             _ => return result,
         };
         // Did it fail because workers are gone? (Not: an error of a worker that still answers.)
-        let lost: Vec<WorkerRecord> = assigned
-            .iter()
-            .filter(|w| !live(w) || !workers::answers(&w.ad.address, Duration::from_secs(3)))
-            .cloned()
-            .collect();
+        let lost: Vec<WorkerRecord> =
+            assigned.iter().filter(|w| !live(w) || !workers::answers(&w.ad.address, Duration::from_secs(3))).cloned().collect();
         if lost.is_empty() {
             return result;
         }

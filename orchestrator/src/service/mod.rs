@@ -135,6 +135,7 @@ pub struct PoolOptions {
 
 /// `mscale serve`: reads the token (generating one into the state directory when no file is
 /// given) and the TLS files, then serves until SIGINT/SIGTERM.
+#[allow(clippy::too_many_arguments)] // one per group of `mscale serve` flags
 pub fn serve_command(
     state: PathBuf,
     listen: String,
@@ -151,7 +152,10 @@ pub fn serve_command(
         pool.worker_timeout_s
     );
     if let (Some(_), Some(t)) = (&access.users_file, &token_file) {
-        bail!("--users and --token-file {} exclude each other: give the admin token a [[user]] with role = \"admin\" in the users file", t.display());
+        bail!(
+            "--users and --token-file {} exclude each other: give the admin token a [[user]] with role = \"admin\" in the users file",
+            t.display()
+        );
     }
     // With users, local workers get a token of their own (a worker user), made at every start.
     let (token, token_file) = match (&access.users_file, token_file) {

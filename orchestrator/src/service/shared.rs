@@ -1,7 +1,7 @@
 //! What the service's calls, the job runner and the worker monitor share: [`Core`].
 
-use super::error::JobError;
 use super::auth::Users;
+use super::error::JobError;
 use super::events::LiveJob;
 use super::store::{JobRecord, Store};
 use super::workers::Registry;

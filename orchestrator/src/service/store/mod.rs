@@ -287,11 +287,9 @@ impl Store {
 
     /// How many jobs of `owner` are queued or running.
     pub fn active_jobs(&self, owner: &str) -> Result<u64> {
-        let n: i64 = self.db.query_row(
-            "SELECT COUNT(*) FROM jobs WHERE owner = ?1 AND state IN ('queued', 'running')",
-            params![owner],
-            |r| r.get(0),
-        )?;
+        let n: i64 =
+            self.db
+                .query_row("SELECT COUNT(*) FROM jobs WHERE owner = ?1 AND state IN ('queued', 'running')", params![owner], |r| r.get(0))?;
         Ok(n as u64)
     }
 
