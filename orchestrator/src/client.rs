@@ -68,6 +68,11 @@ impl Client {
     /// Submits a scene with the files it names (every string value naming an existing file
     /// relative to the scene); returns the job id.
     pub fn submit(&mut self, scene_path: &Path, sets: &[String], priority: i32, checkpoint_every: u64) -> Result<String> {
+        self.submit_for(scene_path, sets, priority, checkpoint_every, 0)
+    }
+
+    /// [`Client::submit`] of a job that runs on `workers` workers (0: every free one).
+    pub fn submit_for(&mut self, scene_path: &Path, sets: &[String], priority: i32, checkpoint_every: u64, workers: u32) -> Result<String> {
         let text = std::fs::read_to_string(scene_path).with_context(|| format!("cannot read {}", scene_path.display()))?;
         let base = scene_path.parent().unwrap_or(Path::new("."));
         let mut files = Vec::new();
@@ -95,6 +100,7 @@ impl Client {
             priority,
             checkpoint_every_steps: checkpoint_every,
             scene_file: scene_path.display().to_string(),
+            workers,
         };
         let req = self.authorized(req)?;
         let r = self.rt.block_on(self.inner.submit_job(req)).map_err(Refused)?;
@@ -102,12 +108,14 @@ impl Client {
     }
 
     pub fn get(&mut self, id: &str) -> Result<pb::Job> {
-        let r = self.rt.block_on(self.inner.get_job(pb::GetJobRequest { job_id: id.into() })).map_err(Refused)?;
+        let req = self.authorized(pb::GetJobRequest { job_id: id.into() })?;
+        let r = self.rt.block_on(self.inner.get_job(req)).map_err(Refused)?;
         Ok(r.into_inner())
     }
 
     pub fn list(&mut self) -> Result<Vec<pb::Job>> {
-        let r = self.rt.block_on(self.inner.list_jobs(pb::ListJobsRequest {})).map_err(Refused)?;
+        let req = self.authorized(pb::ListJobsRequest {})?;
+        let r = self.rt.block_on(self.inner.list_jobs(req)).map_err(Refused)?;
         Ok(r.into_inner().jobs)
     }
 
@@ -133,13 +141,19 @@ impl Client {
     pub fn watch_from(&mut self, id: &str, opts: WatchOptions, mut on: impl FnMut(&pb::JobEvent)) -> Result<pb::JobEvent> {
         let mut inner = self.inner.clone();
         let server = self.server.clone();
+        self.authorized(())?; // the token can travel in a header
+        let token = self.token.clone();
         self.rt.block_on(async move {
             let mut after = opts.after_sequence;
             // Since when no event came, and why.
             let mut broken: Option<Instant> = None;
             let mut pause = Duration::from_millis(100);
             loop {
-                let why = match inner.watch_job(pb::WatchJobRequest { job_id: id.into(), after_sequence: after }).await {
+                let mut req = tonic::Request::new(pb::WatchJobRequest { job_id: id.into(), after_sequence: after });
+                if let Some(v) = token.as_ref().and_then(|t| format!("Bearer {t}").parse().ok()) {
+                    req.metadata_mut().insert("authorization", v);
+                }
+                let why = match inner.watch_job(req).await {
                     Err(s) if !retryable(&s) => return Err(Refused(s).into()),
                     Err(s) => Refused(s).to_string(),
                     Ok(r) => {
@@ -198,9 +212,9 @@ impl Client {
     pub fn fetch_run(&mut self, id: &str, out: &Path) -> Result<(usize, u64)> {
         let mut writer = RunWriter::new(out)?;
         let mut inner = self.inner.clone();
+        let req = self.authorized(pb::FetchRunRequest { job_id: id.into(), chunk_bytes: 0 })?;
         self.rt.block_on(async move {
-            let mut stream =
-                inner.fetch_run(pb::FetchRunRequest { job_id: id.into(), chunk_bytes: 0 }).await.map_err(Refused)?.into_inner();
+            let mut stream = inner.fetch_run(req).await.map_err(Refused)?.into_inner();
             while let Some(c) = stream.message().await.map_err(Refused).with_context(|| format!("fetch of job {id}"))? {
                 writer.chunk(&c)?;
             }
@@ -209,11 +223,8 @@ impl Client {
     }
 
     pub fn fetch(&mut self, id: &str, file: &str) -> Result<Vec<u8>> {
-        let r = self
-            .rt
-            .block_on(self.inner.fetch_result(pb::FetchResultRequest { job_id: id.into(), path: file.into() }))
-            .map_err(Refused)?
-            .into_inner();
+        let req = self.authorized(pb::FetchResultRequest { job_id: id.into(), path: file.into() })?;
+        let r = self.rt.block_on(self.inner.fetch_result(req)).map_err(Refused)?.into_inner();
         let actual = hex::encode(Sha256::digest(&r.content));
         anyhow::ensure!(actual == r.sha256, "{file} arrived damaged: SHA-256 {actual}, sent as {}", r.sha256);
         Ok(r.content)
@@ -221,7 +232,8 @@ impl Client {
 
     /// Registered workers, oldest registration first.
     pub fn workers(&mut self) -> Result<Vec<pb::Worker>> {
-        let r = self.rt.block_on(self.inner.list_workers(pb::ListWorkersRequest {})).map_err(Refused)?;
+        let req = self.authorized(pb::ListWorkersRequest {})?;
+        let r = self.rt.block_on(self.inner.list_workers(req)).map_err(Refused)?;
         Ok(r.into_inner().workers)
     }
 
@@ -419,8 +431,21 @@ fn ca_file() -> Option<PathBuf> {
 
 /// `mscale submit`.
 pub fn submit(server: &str, token_file: Option<&Path>, scene: &Path, sets: &[String], priority: i32, checkpoint_every: u64) -> Result<i32> {
+    submit_for(server, token_file, scene, sets, priority, checkpoint_every, 0)
+}
+
+/// `mscale submit --workers N` (0: every free worker).
+pub fn submit_for(
+    server: &str,
+    token_file: Option<&Path>,
+    scene: &Path,
+    sets: &[String],
+    priority: i32,
+    checkpoint_every: u64,
+    workers: u32,
+) -> Result<i32> {
     let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
-    println!("{}", c.submit(scene, sets, priority, checkpoint_every)?);
+    println!("{}", c.submit_for(scene, sets, priority, checkpoint_every, workers)?);
     Ok(crate::exit::OK)
 }
 
@@ -428,14 +453,15 @@ fn line(j: &pb::Job) -> String {
     let digest = if j.state_digest.is_empty() { String::new() } else { format!("  digest {}", j.state_digest) };
     let error = if j.error.is_empty() { String::new() } else { format!("  ({})", j.error) };
     format!(
-        "{}  {:<9} {:<20} step {}  t = {:.4e} s  priority {}{}{digest}{error}",
+        "{}  {:<9} {:<20} step {}  t = {:.4e} s  priority {}{}{}{digest}{error}",
         j.id,
         state_name(j.state),
         j.scene,
         step_of(j.step, j.steps),
         j.sim_time_s,
         j.priority,
-        if j.resumes > 0 { format!("  resumed {}x", j.resumes) } else { String::new() }
+        if j.resumes > 0 { format!("  resumed {}x", j.resumes) } else { String::new() },
+        if j.owner.is_empty() { String::new() } else { format!("  owner {}", j.owner) }
     )
 }
 

@@ -49,6 +49,23 @@ impl Loaded {
         }
     }
 
+    /// Whether a run needs MD workers (a cell run never does).
+    pub fn needs_md(&self) -> bool {
+        match self {
+            Loaded::Mpm(l) => l.scene.needs_md(),
+            Loaded::Cell(_) => false,
+        }
+    }
+
+    /// Snapshots the run writes (`output.snapshots`; a cell run's profiles at its output times)
+    /// and the key that sets them.
+    pub fn snapshots(&self) -> (u64, &'static str) {
+        match self {
+            Loaded::Mpm(l) => (l.scene.output.snapshots as u64, "output.snapshots"),
+            Loaded::Cell(c) => (c.scene.output.times_s.len() as u64, "output.times_s"),
+        }
+    }
+
     /// `runs/<scene>-<UTC timestamp>`.
     pub fn default_out_dir(&self) -> PathBuf {
         run::default_out_dir_named(self.name())

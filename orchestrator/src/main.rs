@@ -79,6 +79,8 @@ enum Command {
         /// after the `listening on` line.
         #[arg(long, value_name = "ADDR")]
         http: Option<String>,
+        #[command(flatten)]
+        access: Access,
     },
     /// List the workers registered with a running `mscale serve`; launch and release worker
     /// pools through Slurm.
@@ -105,6 +107,10 @@ enum Command {
         /// Checkpoint interval in steps (0: the server's default).
         #[arg(long, value_name = "N", default_value_t = 0)]
         checkpoint_every: u64,
+        /// Workers to run on: a number, or `all` (every worker free when the job starts). Jobs
+        /// run side by side on disjoint sets of workers.
+        #[arg(long, value_name = "N|all", default_value = "all", value_parser = parse_workers)]
+        workers: u32,
         #[command(flatten)]
         conn: Conn,
     },
@@ -160,6 +166,50 @@ enum Command {
         #[arg(long)]
         estimate: bool,
     },
+}
+
+/// Users and limits of `mscale serve`.
+#[derive(clap::Args)]
+struct Access {
+    /// Users file (TOML, `[[user]]` tables of name, role admin|user|worker, token_sha256 and
+    /// optional max_jobs, max_upload_bytes, max_snapshots); read again on SIGHUP. Instead of
+    /// --token-file: every call then needs a user's token.
+    #[arg(long, value_name = "FILE", conflicts_with = "token_file")]
+    users: Option<PathBuf>,
+    /// Jobs a user may have queued or running at once (default: no limit).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    max_jobs_per_user: Option<u64>,
+    /// Bytes a job may upload: its scene and the files it names (default: no limit below the
+    /// 64 MiB message bound).
+    #[arg(long, value_name = "BYTES")]
+    max_upload_bytes: Option<u64>,
+    /// Snapshots a job may write (`output.snapshots`; default: no limit).
+    #[arg(long, value_name = "N")]
+    max_snapshots: Option<u64>,
+}
+
+impl Access {
+    fn options(self) -> orchestrator::service::AccessOptions {
+        orchestrator::service::AccessOptions {
+            users_file: self.users,
+            limits: orchestrator::service::Limits {
+                max_jobs: self.max_jobs_per_user,
+                max_upload_bytes: self.max_upload_bytes,
+                max_snapshots: self.max_snapshots,
+            },
+        }
+    }
+}
+
+/// `--workers N|all` (all: 0).
+fn parse_workers(s: &str) -> Result<u32, String> {
+    if s == "all" {
+        return Ok(0);
+    }
+    match s.parse::<u32>() {
+        Ok(n) if n > 0 => Ok(n),
+        _ => Err(format!("{s:?} is neither a number of workers (1 or more) nor `all`")),
+    }
 }
 
 /// How a client verb reaches the orchestrator.
@@ -313,9 +363,19 @@ fn dispatch(cli: Cli) -> i32 {
             worker_timeout,
             step_deadline,
             http,
+            access,
         } => {
             let pool = orchestrator::service::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline };
-            report(orchestrator::service::serve_command(state, listen, token_file, checkpoint_every, tls_cert.zip(tls_key), pool, http))
+            report(orchestrator::service::serve_command(
+                state,
+                listen,
+                token_file,
+                checkpoint_every,
+                tls_cert.zip(tls_key),
+                pool,
+                http,
+                access.options(),
+            ))
         }
         Command::Workers { pools: Some(command), .. } => workers_command(command),
         Command::Workers { pools: None, conn } => {
@@ -324,8 +384,8 @@ fn dispatch(cli: Cli) -> i32 {
         Command::Drain { worker, conn } => {
             report(conn.ca().and_then(|_| orchestrator::client::drain(&conn.server, conn.token_file.as_deref(), &worker)))
         }
-        Command::Submit { scene, set, priority, checkpoint_every, conn } => report(conn.ca().and_then(|_| {
-            orchestrator::client::submit(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every)
+        Command::Submit { scene, set, priority, checkpoint_every, workers, conn } => report(conn.ca().and_then(|_| {
+            orchestrator::client::submit_for(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every, workers)
         })),
         Command::Status { job, conn } => {
             report(conn.ca().and_then(|_| orchestrator::client::status(&conn.server, conn.token_file.as_deref(), job.as_deref())))

@@ -74,11 +74,14 @@ class Job:
     started_unix: int
     finished_unix: int
     resumes: int
+    # The user who submitted it, and the workers it asked for (0: every free one).
+    owner: str = ""
+    workers: int = 0
 
     @classmethod
     def from_pb(cls, j) -> "Job":
         return cls(j.id, j.scene, _state(j.state), j.priority, j.step, j.steps, j.sim_time_s, j.error, j.state_digest,
-                   j.submitted_unix, j.started_unix, j.finished_unix, j.resumes)
+                   j.submitted_unix, j.started_unix, j.finished_unix, j.resumes, j.owner, j.workers)
 
     @property
     def done(self) -> bool:
@@ -196,16 +199,24 @@ class Client:
             raise MscaleError(f"{call} needs the orchestrator's token: pass token= or token_file=, or set MSCALE_TOKEN")
         return [("authorization", f"Bearer {self.token}")]
 
+    def _read_auth(self):
+        # Reads carry the token when there is one: with `mscale serve --users` every call needs
+        # it (and a user sees only its own jobs); with one token reads work without it.
+        return [("authorization", f"Bearer {self.token}")] if self.token else None
+
     def _call(self, method, request, metadata=None, timeout=None):
+        if metadata is None:
+            metadata = self._read_auth()
         try:
             return method(request, metadata=metadata, timeout=timeout or self.timeout)
         except grpc.RpcError as e:
             raise _refused(e) from None
 
     def submit(self, scene_path, overrides: Optional[Sequence[str] | dict] = None, priority: int = 0,
-               checkpoint_every: int = 0) -> str:
+               checkpoint_every: int = 0, workers: int = 0) -> str:
         """Submits a scene with the files it names; `overrides` are `key=value` strings or a dict
-        {dotted.key: value} (values written as TOML: 8, 1e-12, "text", [16]). Returns the job id."""
+        {dotted.key: value} (values written as TOML: 8, 1e-12, "text", [16]); `workers` is the
+        number of workers the job runs on (0: every free one). Returns the job id."""
         scene_path = pathlib.Path(scene_path)
         try:
             text = scene_path.read_text()
@@ -216,7 +227,8 @@ class Client:
             content = (scene_path.parent / name).read_bytes()
             files.append(pb.InputFile(name=name, sha256=hashlib.sha256(content).hexdigest(), content=content))
         req = pb.SubmitJobRequest(scene_text=text, files=files, overrides=_overrides(overrides), priority=priority,
-                                  checkpoint_every_steps=checkpoint_every, scene_file=str(scene_path))
+                                  checkpoint_every_steps=checkpoint_every, scene_file=str(scene_path),
+                                  workers=workers)
         return self._call(self._stub.SubmitJob, req, self._auth("SubmitJob")).job_id
 
     def status(self, job: str) -> Job:
@@ -240,7 +252,7 @@ class Client:
         while True:
             why = None
             try:
-                stream = self._stub.WatchJob(pb.WatchJobRequest(job_id=job, after_sequence=after))
+                stream = self._stub.WatchJob(pb.WatchJobRequest(job_id=job, after_sequence=after), metadata=self._read_auth())
                 for e in stream:
                     if e.sequence == 0:  # an orchestrator that numbers no events
                         ev = Event.from_pb(e)
@@ -295,7 +307,7 @@ class Client:
         dest.mkdir(parents=True, exist_ok=True)
         current, h, out, written = None, None, None, 0
         try:
-            for c in self._stub.FetchRun(pb.FetchRunRequest(job_id=job)):
+            for c in self._stub.FetchRun(pb.FetchRunRequest(job_id=job), metadata=self._read_auth()):
                 if current != c.path:
                     if current is not None:
                         raise MscaleError(f"the orchestrator sent {c.path} before the end of {current}")

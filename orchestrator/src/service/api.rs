@@ -1,6 +1,7 @@
 //! The gRPC edge of the service: decodes a call, runs it on the domain core ([`Core`]), encodes
 //! the answer, and turns a [`JobError`] into a `tonic::Status` (here only).
 
+use super::auth::{Caller, Need};
 use super::convert::{job_to_pb, worker_to_pb};
 use super::error::JobError;
 use super::fetch::{FETCH_CHUNK, send_run};
@@ -23,6 +24,8 @@ impl From<JobError> for Status {
             JobError::BeyondEvents { .. } => Code::OutOfRange,
             JobError::TooLarge { .. } => Code::ResourceExhausted,
             JobError::NoToken { .. } | JobError::WrongToken { .. } => Code::Unauthenticated,
+            JobError::Forbidden { .. } => Code::PermissionDenied,
+            JobError::Limit { .. } => Code::ResourceExhausted,
             JobError::Stopping => Code::Unavailable,
             JobError::Worker(WorkerError::Version { .. }) => Code::FailedPrecondition,
             JobError::Worker(WorkerError::Invalid(_)) => Code::InvalidArgument,
@@ -43,10 +46,10 @@ impl JobService {
         JobService { core }
     }
 
-    /// Checks the bearer token of a mutating call.
-    fn authorize<T>(&self, req: &Request<T>, call: &str) -> Result<(), JobError> {
+    /// Who makes a call (its bearer token), if they may.
+    fn authorize<T>(&self, req: &Request<T>, call: &str, need: Need) -> Result<Caller, JobError> {
         let given = req.metadata().get("authorization").and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer ")).unwrap_or("");
-        self.core.authorize(given, call)
+        self.core.authorize(given.trim(), call, need)
     }
 }
 
@@ -67,37 +70,45 @@ type ChunkStream = Pin<Box<dyn Stream<Item = Result<pb::FetchRunChunk, Status>> 
 #[tonic::async_trait]
 impl Orchestrator for JobService {
     async fn submit_job(&self, req: Request<pb::SubmitJobRequest>) -> Result<Response<pb::SubmitJobResponse>, Status> {
-        self.authorize(&req, "SubmitJob")?;
+        let caller = self.authorize(&req, "SubmitJob", Need::Jobs)?;
         let sub = req.into_inner().into();
         let core = self.core.clone();
-        let job_id = blocking(move || core.submit(&sub)).await?;
+        let job_id = blocking(move || core.submit(&caller, &sub)).await?;
         Ok(Response::new(pb::SubmitJobResponse { job_id }))
     }
 
-    async fn list_jobs(&self, _: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
-        let jobs = lock(&self.core.store).list().map_err(JobError::from)?;
+    async fn list_jobs(&self, req: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let caller = self.authorize(&req, "ListJobs", Need::Read)?;
+        let jobs = self.core.jobs_of(&caller)?;
         Ok(Response::new(pb::ListJobsResponse { jobs: jobs.iter().map(job_to_pb).collect() }))
     }
 
     async fn get_job(&self, req: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
-        Ok(Response::new(job_to_pb(&self.core.get(&req.get_ref().job_id)?)))
+        let caller = self.authorize(&req, "GetJob", Need::Read)?;
+        Ok(Response::new(job_to_pb(&self.core.owned(&caller, &req.get_ref().job_id)?)))
     }
 
     type WatchJobStream = EventStream;
 
     async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
+        let caller = self.authorize(&req, "WatchJob", Need::Read)?;
         let pb::WatchJobRequest { job_id, after_sequence } = req.into_inner();
+        self.core.owned(&caller, &job_id)?;
         let events = self.core.watch(&job_id, after_sequence)?;
         Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(events).map(event_or_status))))
     }
 
     async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
-        self.authorize(&req, "CancelJob")?;
-        Ok(Response::new(job_to_pb(&self.core.cancel(&req.into_inner().job_id)?)))
+        let caller = self.authorize(&req, "CancelJob", Need::Jobs)?;
+        let id = req.into_inner().job_id;
+        self.core.owned(&caller, &id)?;
+        Ok(Response::new(job_to_pb(&self.core.cancel(&id)?)))
     }
 
     async fn fetch_result(&self, req: Request<pb::FetchResultRequest>) -> Result<Response<pb::FetchResultResponse>, Status> {
+        let caller = self.authorize(&req, "FetchResult", Need::Read)?;
         let req = req.into_inner();
+        self.core.owned(&caller, &req.job_id)?;
         let (content, sha256) = self.core.fetch_result(&req.job_id, &req.path)?;
         Ok(Response::new(pb::FetchResultResponse { content, sha256 }))
     }
@@ -105,7 +116,9 @@ impl Orchestrator for JobService {
     type FetchRunStream = ChunkStream;
 
     async fn fetch_run(&self, req: Request<pb::FetchRunRequest>) -> Result<Response<ChunkStream>, Status> {
+        let caller = self.authorize(&req, "FetchRun", Need::Read)?;
         let req = req.into_inner();
+        self.core.owned(&caller, &req.job_id)?;
         let root = self.core.run_root(&req.job_id)?;
         let chunk = if req.chunk_bytes == 0 { FETCH_CHUNK } else { (req.chunk_bytes as usize).min(FETCH_CHUNK) };
         let (tx, out) = tokio::sync::mpsc::channel(4);
@@ -118,7 +131,7 @@ impl Orchestrator for JobService {
     }
 
     async fn register_worker(&self, req: Request<pb::RegisterWorkerRequest>) -> Result<Response<pb::RegisterWorkerResponse>, Status> {
-        self.authorize(&req, "RegisterWorker")?;
+        self.authorize(&req, "RegisterWorker", Need::Worker)?;
         let ad = WorkerAd::from(req.into_inner());
         let core = self.core.clone();
         let (w, timeout) = blocking(move || core.register_worker(ad)).await?;
@@ -126,21 +139,22 @@ impl Orchestrator for JobService {
     }
 
     async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Result<Response<pb::HeartbeatResponse>, Status> {
-        self.authorize(&req, "Heartbeat")?;
+        self.authorize(&req, "Heartbeat", Need::Worker)?;
         let r = req.into_inner();
         let drain = lock(&self.core.workers).heartbeat(&r.worker_id, r.epoch, r.protocol_version).map_err(JobError::from)?;
         Ok(Response::new(pb::HeartbeatResponse { drain }))
     }
 
     async fn drain_worker(&self, req: Request<pb::DrainWorkerRequest>) -> Result<Response<pb::Worker>, Status> {
-        self.authorize(&req, "DrainWorker")?;
+        self.authorize(&req, "DrainWorker", Need::Admin)?;
         let id = req.into_inner().worker_id;
         let core = self.core.clone();
         let view = blocking(move || core.drain_worker(&id)).await?;
         Ok(Response::new(worker_to_pb(&view)))
     }
 
-    async fn list_workers(&self, _: Request<pb::ListWorkersRequest>) -> Result<Response<pb::ListWorkersResponse>, Status> {
+    async fn list_workers(&self, req: Request<pb::ListWorkersRequest>) -> Result<Response<pb::ListWorkersResponse>, Status> {
+        self.authorize(&req, "ListWorkers", Need::Read)?;
         let workers = lock(&self.core.workers).list().iter().map(worker_to_pb).collect();
         Ok(Response::new(pb::ListWorkersResponse { workers }))
     }

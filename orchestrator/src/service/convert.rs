@@ -104,6 +104,8 @@ pub(crate) fn job_to_pb(j: &JobRecord) -> pb::Job {
         started_unix: j.started,
         finished_unix: j.finished,
         resumes: j.resumes,
+        owner: j.owner.clone(),
+        workers: j.workers,
     }
 }
 
@@ -172,6 +174,7 @@ impl From<pb::SubmitJobRequest> for Submission {
             priority: r.priority,
             checkpoint_every: r.checkpoint_every_steps,
             scene_file: r.scene_file,
+            workers: r.workers,
         }
     }
 }

@@ -3,6 +3,7 @@
 //! watch`), the newest stress profile as inline-able SVG, and the run directory's files as
 //! links. No script or style is fetched from anywhere: everything is in the page.
 
+use super::auth::Caller;
 use super::error::JobError;
 use super::fetch::run_files;
 use super::shared::{Core, lock};
@@ -44,18 +45,19 @@ fn percent(j: &JobRecord) -> f64 {
 }
 
 /// `GET /`: every job, newest first, with state and progress.
-pub(crate) fn job_list(core: &Core) -> Result<String, JobError> {
-    let mut jobs = lock(&core.store).list()?;
+pub(crate) fn job_list(core: &Core, caller: &Caller) -> Result<String, JobError> {
+    let mut jobs = core.jobs_of(caller)?;
     jobs.sort_by(|a, b| b.submitted.cmp(&a.submitted).then(b.id.cmp(&a.id)));
     let mut rows = String::new();
     for j in &jobs {
         let p = percent(j);
         let _ = write!(
             rows,
-            "<tr id=\"job-{id}\" data-state=\"{st}\"><td><a href=\"/jobs/{id}\">{id}</a></td><td>{scene}</td><td class=\"state {st}\">{st}</td>\
+            "<tr id=\"job-{id}\" data-state=\"{st}\"><td><a href=\"/jobs/{id}\">{id}</a></td><td>{scene}</td><td class=\"owner\">{owner}</td><td class=\"state {st}\">{st}</td>\
              <td><progress max=\"100\" value=\"{p:.1}\"></progress> {p:.1} % ({step}/{steps})</td><td>{sub}</td><td>{err}</td></tr>",
             id = esc(&j.id),
             scene = esc(&j.scene),
+            owner = esc(&j.owner),
             st = j.state.as_str(),
             step = j.step,
             steps = j.steps,
@@ -64,7 +66,7 @@ pub(crate) fn job_list(core: &Core) -> Result<String, JobError> {
         );
     }
     let body = format!(
-        "<h1>mscale jobs</h1><p>{} jobs; <a href=\"/metrics\">metrics</a></p><table id=\"jobs\"><tr><th>job</th><th>scene</th><th>state</th>\
+        "<h1>mscale jobs</h1><p>{} jobs; <a href=\"/metrics\">metrics</a></p><table id=\"jobs\"><tr><th>job</th><th>scene</th><th>owner</th><th>state</th>\
          <th>progress</th><th>submitted (UTC)</th><th>note</th></tr>{rows}</table>\
          <script>setTimeout(()=>location.reload(),5000)</script>",
         jobs.len()

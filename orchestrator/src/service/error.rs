@@ -32,6 +32,12 @@ pub enum JobError {
     NoToken { call: String },
     #[error("{call}: the bearer token is not this orchestrator's")]
     WrongToken { call: String },
+    /// The token is known, but its user or role may not make the call.
+    #[error("{call}: user {user} (role {role}) may not make this call: {why}")]
+    Forbidden { call: String, user: String, role: &'static str, why: &'static str },
+    /// A per-user limit refuses the submission.
+    #[error("user {user}: {what}")]
+    Limit { user: String, what: String },
     #[error("the orchestrator is stopping; the job resumes when it restarts")]
     Stopping,
     #[error(transparent)]

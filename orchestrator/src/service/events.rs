@@ -201,7 +201,15 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let store = Store::open(dir.path()).unwrap();
         let registry = Registry::load(&store, Duration::from_secs(15)).unwrap();
-        let core = Core::new(store, registry, dir.path().to_path_buf(), "t".into(), 0, 0, Default::default());
+        let core = Core::new(
+            store,
+            registry,
+            dir.path().to_path_buf(),
+            super::super::auth::Users::single("t", Default::default()),
+            0,
+            0,
+            Default::default(),
+        );
         lock(&core.store).insert(&test_job("j1", 0)).unwrap();
         let published = WATCH_BACKLOG as u64 + 50;
         let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();

@@ -9,6 +9,7 @@
 //! (the run directory's files as links) and `GET /jobs/ID/files/PATH` (one of them). TLS, like
 //! the gRPC port, with the server's certificate; off loopback only with TLS.
 
+use super::auth::{Caller, Need};
 use super::convert::is_final;
 use super::dashboard;
 use super::error::JobError;
@@ -79,6 +80,7 @@ fn error(e: JobError) -> Response {
         JobError::NotFound(_) | JobError::NoRunDir(_) | JobError::Unreadable { .. } => StatusCode::NOT_FOUND,
         JobError::NotInRun(_) | JobError::BadFile { .. } | JobError::BadScene(_) => StatusCode::BAD_REQUEST,
         JobError::NoToken { .. } | JobError::WrongToken { .. } => StatusCode::UNAUTHORIZED,
+        JobError::Forbidden { .. } => StatusCode::FORBIDDEN,
         JobError::TooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
         JobError::Stopping => StatusCode::SERVICE_UNAVAILABLE,
         JobError::BeyondEvents { .. } => StatusCode::RANGE_NOT_SATISFIABLE,
@@ -92,15 +94,26 @@ fn error(e: JobError) -> Response {
     text(status, format!("{}{hint}\n", e.chain()))
 }
 
-/// Checks the token of `req`; on success, the cookie to set (when it came in the query).
-fn authorize(h: &Http, req: &Request, call: &str) -> Result<Option<HeaderValue>, Response> {
+/// Checks the token of `req` (the same users as the gRPC port; a token is always needed here);
+/// on success, who called and the cookie to set (when the token came in the query).
+fn authorize(h: &Http, req: &Request, call: &str, need: Need) -> Result<(Caller, Option<HeaderValue>), Response> {
     let (token, from_query) = given_token(req.headers(), req.uri().query());
-    h.core.authorize(&token, call).map_err(error)?;
+    if token.is_empty() {
+        return Err(error(JobError::NoToken { call: call.to_string() }));
+    }
+    let caller = h.core.authorize(&token, call, need).map_err(error)?;
     if !from_query {
-        return Ok(None);
+        return Ok((caller, None));
     }
     let secure = if h.tls { "; Secure" } else { "" };
-    Ok(HeaderValue::from_str(&format!("{COOKIE}={token}; Path=/; HttpOnly; SameSite=Strict{secure}")).ok())
+    Ok((caller, HeaderValue::from_str(&format!("{COOKIE}={token}; Path=/; HttpOnly; SameSite=Strict{secure}")).ok()))
+}
+
+/// [`authorize`] for a page of job `id`: its owner or an admin (another user's job is not found).
+fn authorize_job(h: &Http, req: &Request, call: &str, id: &str) -> Result<Option<HeaderValue>, Response> {
+    let (caller, cookie) = authorize(h, req, call, Need::Read)?;
+    h.core.owned(&caller, id).map_err(error)?;
+    Ok(cookie)
 }
 
 /// `body` as HTML, with the cookie when there is one to set.
@@ -121,7 +134,7 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, JobError> + S
 }
 
 async fn metrics(State(h): State<Http>, req: Request) -> Response {
-    if let Err(r) = authorize(&h, &req, "metrics") {
+    if let Err(r) = authorize(&h, &req, "metrics", Need::Admin) {
         return r;
     }
     let core = h.core.clone();
@@ -132,19 +145,19 @@ async fn metrics(State(h): State<Http>, req: Request) -> Response {
 }
 
 async fn jobs(State(h): State<Http>, req: Request) -> Response {
-    let cookie = match authorize(&h, &req, "dashboard") {
+    let (caller, cookie) = match authorize(&h, &req, "dashboard", Need::Read) {
         Ok(c) => c,
         Err(r) => return r,
     };
     let core = h.core.clone();
-    match blocking(move || dashboard::job_list(&core)).await {
+    match blocking(move || dashboard::job_list(&core, &caller)).await {
         Ok(page) => html(page, cookie),
         Err(r) => r,
     }
 }
 
 async fn job(State(h): State<Http>, Path(id): Path<String>, req: Request) -> Response {
-    let cookie = match authorize(&h, &req, "dashboard") {
+    let cookie = match authorize_job(&h, &req, "dashboard", &id) {
         Ok(c) => c,
         Err(r) => return r,
     };
@@ -156,7 +169,7 @@ async fn job(State(h): State<Http>, Path(id): Path<String>, req: Request) -> Res
 }
 
 async fn results(State(h): State<Http>, Path(id): Path<String>, req: Request) -> Response {
-    if let Err(r) = authorize(&h, &req, "dashboard") {
+    if let Err(r) = authorize_job(&h, &req, "dashboard", &id) {
         return r;
     }
     let core = h.core.clone();
@@ -167,7 +180,7 @@ async fn results(State(h): State<Http>, Path(id): Path<String>, req: Request) ->
 }
 
 async fn stress(State(h): State<Http>, Path(id): Path<String>, req: Request) -> Response {
-    if let Err(r) = authorize(&h, &req, "dashboard") {
+    if let Err(r) = authorize_job(&h, &req, "dashboard", &id) {
         return r;
     }
     let core = h.core.clone();
@@ -178,7 +191,7 @@ async fn stress(State(h): State<Http>, Path(id): Path<String>, req: Request) -> 
 }
 
 async fn file(State(h): State<Http>, Path((id, path)): Path<(String, String)>, req: Request) -> Response {
-    if let Err(r) = authorize(&h, &req, "FetchResult") {
+    if let Err(r) = authorize_job(&h, &req, "FetchResult", &id) {
         return r;
     }
     let core = h.core.clone();
@@ -208,7 +221,7 @@ async fn file(State(h): State<Http>, Path((id, path)): Path<(String, String)>, r
 /// `id: SEQ`, `event: job`, `data: JSON`; an error as `event: failure`; the stream ends after
 /// the final event.
 async fn events(State(h): State<Http>, Path(id): Path<String>, req: Request) -> Response {
-    if let Err(r) = authorize(&h, &req, "dashboard") {
+    if let Err(r) = authorize_job(&h, &req, "dashboard", &id) {
         return r;
     }
     let query_after = req.uri().query().and_then(|q| q.split('&').find_map(|kv| kv.strip_prefix("after="))).and_then(|v| v.parse().ok());

@@ -1,7 +1,7 @@
 //! Submitted jobs: their scene and the files it names, written under `jobs/<id>/input/` and
 //! validated with the messages of `mscale check`.
 
-use super::auth::constant_time_eq;
+use super::auth::{Caller, constant_time_eq};
 use super::error::JobError;
 use super::shared::{Core, lock};
 use super::store::{JobRecord, JobState, now_unix};
@@ -21,6 +21,8 @@ pub(crate) struct Submission {
     pub(crate) checkpoint_every: u64,
     /// The scene's file name on the submitting side, for messages.
     pub(crate) scene_file: String,
+    /// Workers wanted (0: every free one).
+    pub(crate) workers: u32,
 }
 
 /// A file a submitted scene names.
@@ -101,13 +103,37 @@ fn prepare_inputs(dir: &Path, sub: &Submission) -> Result<Loaded, JobError> {
 }
 
 impl Core {
-    /// Queues a submitted job (its inputs written and its scene valid); returns its id.
-    pub(crate) fn submit(&self, sub: &Submission) -> Result<String, JobError> {
+    /// Queues a job submitted by `caller` (within its limits, its inputs written and its
+    /// scene valid); returns its id.
+    pub(crate) fn submit(&self, caller: &Caller, sub: &Submission) -> Result<String, JobError> {
+        let limits = caller.limits;
+        let limit = |what: String| JobError::Limit { user: caller.user.clone(), what };
+        let uploaded: u64 = sub.scene_text.len() as u64 + sub.files.iter().map(|f| f.content.len() as u64).sum::<u64>();
+        if let Some(max) = limits.max_upload_bytes.filter(|m| uploaded > *m) {
+            return Err(limit(format!(
+                "the job uploads {uploaded} bytes (the scene and the files it names), over the limit max_upload_bytes = {max}"
+            )));
+        }
+        if let Some(max) = limits.max_jobs {
+            let active = lock(&self.store).active_jobs(&caller.user)?;
+            if active >= max {
+                return Err(limit(format!(
+                    "{active} jobs are queued or running, the limit max_jobs = {max}; wait for one to end or cancel one"
+                )));
+            }
+        }
         let id = self.new_id();
         let dir = self.job_dir(&id);
         let loaded = prepare_inputs(&dir, sub).inspect_err(|_| {
             let _ = std::fs::remove_dir_all(&dir);
         })?;
+        let (snapshots, key) = loaded.snapshots();
+        if let Some(max) = limits.max_snapshots.filter(|m| snapshots > *m) {
+            let _ = std::fs::remove_dir_all(&dir);
+            return Err(limit(format!(
+                "the scene writes {key} = {snapshots} snapshots, over the limit max_snapshots = {max}; write fewer (--set {key}=...)"
+            )));
+        }
         let job = JobRecord {
             id: id.clone(),
             scene: loaded.name().to_string(),
@@ -124,9 +150,26 @@ impl Core {
             started: 0,
             finished: 0,
             resumes: 0,
+            owner: caller.user.clone(),
+            workers: sub.workers,
         };
-        lock(&self.store).insert(&job)?;
-        tracing::info!("job {id} queued: scene {} ({} steps), priority {}", job.scene, job.steps, job.priority);
+        {
+            // Checked again with the insert: two submits at once do not both pass the limit.
+            let mut store = lock(&self.store);
+            if let Some(max) = limits.max_jobs {
+                let active = store.active_jobs(&caller.user)?;
+                if active >= max {
+                    drop(store);
+                    let _ = std::fs::remove_dir_all(&dir);
+                    return Err(limit(format!(
+                        "{active} jobs are queued or running, the limit max_jobs = {max}; wait for one to end or cancel one"
+                    )));
+                }
+            }
+            store.insert(&job)?;
+        }
+        let wants = if job.workers == 0 { "every free worker".to_string() } else { format!("{} workers", job.workers) };
+        tracing::info!("job {id} queued for {}: scene {} ({} steps), priority {}, {wants}", job.owner, job.scene, job.steps, job.priority);
         self.wake_runner();
         Ok(id)
     }

@@ -1,9 +1,11 @@
-//! The life of a job: the runner thread takes queued jobs one at a time, by priority, and runs
-//! each with the run driver of `mscale run` on the usable workers (in this process when there
-//! are none), moving it off workers that are lost on the way; CancelJob stops it.
+//! The life of a job: the runner thread starts queued jobs side by side ([`schedule`]), each
+//! on its own thread and its own workers (in this process when there are none, one at a time),
+//! with the run driver of `mscale run`, moving it off workers that are lost on the way;
+//! CancelJob stops it.
 
 use super::convert::pb_worker_state;
 use super::error::JobError;
+use super::schedule::{self, Placement};
 use super::shared::{Core, RunningJob, lock};
 use super::store::{EventKind, JobRecord, JobState, WorkerRecord, WorkerState};
 use super::workers;
@@ -13,6 +15,7 @@ use anyhow::Result;
 use coupling::MdShared;
 use mscale_proto::orchestrator::v1 as pb;
 use prost::Message;
+use std::collections::HashMap;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -21,16 +24,21 @@ use std::time::{Duration, Instant};
 /// Times a job moves off lost workers before it fails.
 const MAX_ROLLBACKS: u32 = 16;
 
-/// Runs queued jobs one at a time until the orchestrator stops.
+/// Starts queued jobs side by side, each on its own thread and its own workers (see
+/// [`schedule`]), until the orchestrator stops; then waits for the running ones to checkpoint.
 pub(crate) fn runner(core: Arc<Core>) {
+    let mut threads: Vec<std::thread::JoinHandle<()>> = Vec::new();
+    // Whether a job's scene needs MD (read once per job).
+    let mut needs_md: HashMap<String, bool> = HashMap::new();
     loop {
+        threads.retain(|t| !t.is_finished());
         if core.stopping.load(Ordering::SeqCst) {
-            return;
+            break;
         }
         let next = if core.waiting_for_local_workers() {
             None
         } else {
-            match lock(&core.store).next_queued() {
+            match next_placement(&core, &mut needs_md) {
                 Ok(n) => n,
                 Err(e) => {
                     tracing::error!("job store: {e:#}");
@@ -39,7 +47,15 @@ pub(crate) fn runner(core: Arc<Core>) {
             }
         };
         match next {
-            Some(job) => run_job(&core, job),
+            Some((job, placement)) => {
+                let core2 = core.clone();
+                let name = format!("job-{}", job.id);
+                needs_md.remove(&job.id);
+                match std::thread::Builder::new().name(name).spawn(move || run_job(&core2, job, placement)) {
+                    Ok(t) => threads.push(t),
+                    Err(e) => tracing::error!("cannot start a job thread: {e}"),
+                }
+            }
             None => {
                 let mut woken = lock(&core.wake.0);
                 if !*woken {
@@ -49,6 +65,77 @@ pub(crate) fn runner(core: Arc<Core>) {
             }
         }
     }
+    for t in threads {
+        let _ = t.join();
+    }
+}
+
+/// The next queued job that can start now and where, marked as running there (its workers
+/// busy, its entry in `core.running`); None when none can.
+fn next_placement(core: &Arc<Core>, needs_md: &mut HashMap<String, bool>) -> Result<Option<(JobRecord, Placement)>> {
+    let queued = lock(&core.store).queued()?;
+    if queued.is_empty() {
+        return Ok(None);
+    }
+    // Read before the locks: loading a scene takes a while.
+    needs_md.retain(|id, _| queued.iter().any(|j| &j.id == id));
+    for job in &queued {
+        needs_md.entry(job.id.clone()).or_insert_with(|| {
+            Loaded::load(&core.job_dir(&job.id).join("input/scene.toml"), &job.overrides).map_or(true, |l| l.needs_md())
+        });
+    }
+    let mut reg = lock(&core.workers);
+    let mut running = lock(&core.running);
+    let mut per_owner: HashMap<String, usize> = HashMap::new();
+    for r in running.values() {
+        *per_owner.entry(r.owner.clone()).or_default() += 1;
+    }
+    let in_process_busy = running.values().any(|r| r.in_process);
+    let usable = reg.usable();
+    // Free workers, less those a running job waits for (it lost its own).
+    let waiting: Vec<String> = running.values().filter_map(|r| lock(&r.waits_for).clone()).collect();
+    let free: Vec<WorkerRecord> = usable.iter().filter(|w| !reg.is_busy(w.epoch) && !waiting.contains(&w.kind())).cloned().collect();
+    let (mut workers_blocked, mut slot_blocked) = (false, false);
+    // A job placed a moment ago is still `queued` in the store until its thread says otherwise.
+    let queued: Vec<JobRecord> = queued.into_iter().filter(|j| !running.contains_key(&j.id)).collect();
+    for job in schedule::order(queued, &per_owner) {
+        let md = needs_md.get(&job.id).copied().unwrap_or(true);
+        let needs = if md && !usable.is_empty() { schedule::Needs::Workers(job.workers) } else { schedule::Needs::InProcess };
+        let placement = match needs {
+            schedule::Needs::InProcess if !in_process_busy && !slot_blocked => Some(Placement::InProcess),
+            schedule::Needs::InProcess => {
+                slot_blocked = true;
+                None
+            }
+            schedule::Needs::Workers(_) if workers_blocked => None,
+            schedule::Needs::Workers(want) => {
+                let p = schedule::pick(&free, &usable, want).map(Placement::Workers);
+                workers_blocked |= p.is_none();
+                p
+            }
+        };
+        let Some(placement) = placement else { continue };
+        let epochs: Vec<u64> = match &placement {
+            Placement::Workers(ws) => ws.iter().map(|w| w.epoch).collect(),
+            Placement::InProcess => Vec::new(),
+        };
+        reg.set_busy(&epochs, &job.id);
+        running.insert(
+            job.id.clone(),
+            RunningJob {
+                id: job.id.clone(),
+                owner: job.owner.clone(),
+                stop: Arc::new(AtomicBool::new(false)),
+                user_cancel: Arc::new(AtomicBool::new(false)),
+                reassign: Arc::new(AtomicBool::new(false)),
+                workers: epochs,
+                in_process: matches!(placement, Placement::InProcess),
+                waits_for: Arc::new(Mutex::new(None)),
+            },
+        );
+        return Ok(Some((job, placement)));
+    }
+    Ok(None)
 }
 
 /// How one attempt of a job on a set of workers ended.
@@ -57,35 +144,49 @@ enum Attempt {
     Error(anyhow::Error),
 }
 
-fn run_job(core: &Arc<Core>, job: JobRecord) {
+/// The flags of a running job (set up by [`next_placement`]).
+fn flags_of(core: &Core, id: &str) -> Option<(Arc<AtomicBool>, Arc<AtomicBool>, Arc<AtomicBool>, Arc<Mutex<Option<String>>>)> {
+    lock(&core.running).get(id).map(|r| (r.stop.clone(), r.user_cancel.clone(), r.reassign.clone(), r.waits_for.clone()))
+}
+
+/// A job's run ends: its workers are free, the scheduler looks again.
+fn release(core: &Core, id: &str) {
+    let run = lock(&core.running).remove(id);
+    if let Some(run) = run {
+        lock(&core.workers).set_busy(&run.workers, "");
+    }
+    lock(&core.workers).release_job(id);
+    core.wake_runner();
+}
+
+fn run_job(core: &Arc<Core>, job: JobRecord, placement: Placement) {
     let id = job.id.clone();
-    let flags = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)), Arc::new(AtomicBool::new(false)));
-    *lock(&core.running) = Some(RunningJob {
-        id: id.clone(),
-        stop: flags.0.clone(),
-        user_cancel: flags.1.clone(),
-        reassign: flags.2.clone(),
-        workers: Vec::new(),
-    });
+    let Some(flags) = flags_of(core, &id) else { return };
     // A job cancelled between being picked and starting stays cancelled and is not run.
     match lock(&core.store).transition(&id, JobState::Running, if job.resumes > 0 { "resumed" } else { "started" }, "") {
         Ok(true) => {}
         Ok(false) => {
-            *lock(&core.running) = None;
+            release(core, &id);
             return;
         }
         Err(e) => {
             tracing::error!("job {id}: cannot record running: {e:#}");
-            *lock(&core.running) = None;
             // Not in a tight loop while the store fails.
             std::thread::sleep(Duration::from_secs(1));
+            release(core, &id);
             return;
         }
     }
     core.publish_stored(&id);
-    let outcome = run_on_workers(core, &job, &flags.0, &flags.2);
-    *lock(&core.running) = None;
+    let assigned = match placement {
+        Placement::Workers(ws) => ws,
+        Placement::InProcess => Vec::new(),
+    };
+    let outcome = run_on_workers(core, &job, assigned, &flags.0, &flags.2, &flags.3);
     let stopping = core.stopping.load(Ordering::SeqCst);
+    let user_cancel = flags.1.load(Ordering::SeqCst);
+    // Free the workers before the final event: a watcher that sees the job end finds them free.
+    release(core, &id);
     match outcome {
         Attempt::Done(Outcome::Completed(summary)) => {
             let digest = summary["state_digest"].as_str().unwrap_or_default().to_string();
@@ -103,7 +204,7 @@ fn run_job(core: &Arc<Core>, job: JobRecord) {
             tracing::error!("job {id} failed: {why}");
             core.transition(&id, JobState::Failed, &why, "")
         }
-        Attempt::Done(Outcome::Cancelled { checkpoint, step }) if stopping && !flags.1.load(Ordering::SeqCst) => {
+        Attempt::Done(Outcome::Cancelled { checkpoint, step }) if stopping && !user_cancel => {
             tracing::info!("job {id}: checkpointed at step {step} ({}) as the orchestrator stops", checkpoint.display());
             core.note_event(&id, EventKind::Checkpoint, &format!("checkpoint at step {step} as the orchestrator stops"));
             core.transition(&id, JobState::Queued, "the orchestrator stopped; resumes from its last checkpoint", "");
@@ -119,52 +220,100 @@ fn run_job(core: &Arc<Core>, job: JobRecord) {
     }
 }
 
-/// Runs a job on the usable workers (in-process when there are none), moving it off workers
-/// that are lost on the way: the run rolls back to its last checkpoint (from the start when
-/// it has none) onto the surviving workers of the same back end and precision.
-fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, reassign: &Arc<AtomicBool>) -> Attempt {
+/// Workers of `kind` to replace the job's lost ones when none of its own survived: free ones
+/// at once, else it waits until a running job releases one. None when no live worker of
+/// `kind` is left in the pool (nothing to wait for), or the job is stopped while it waits.
+fn replacements(
+    core: &Core,
+    id: &str,
+    kind: &str,
+    n: usize,
+    stop: &AtomicBool,
+    waits_for: &Mutex<Option<String>>,
+) -> Option<Vec<WorkerRecord>> {
+    let mut told = false;
+    loop {
+        {
+            let mut reg = lock(&core.workers);
+            let usable: Vec<WorkerRecord> = reg.usable().into_iter().filter(|w| w.kind() == kind).collect();
+            if usable.is_empty() {
+                *lock(waits_for) = None;
+                return None;
+            }
+            let free: Vec<WorkerRecord> = usable.iter().filter(|w| !reg.is_busy(w.epoch)).take(n.max(1)).cloned().collect();
+            if !free.is_empty() {
+                let epochs: Vec<u64> = free.iter().map(|w| w.epoch).collect();
+                reg.set_busy(&epochs, id);
+                if let Some(r) = lock(&core.running).get_mut(id) {
+                    r.workers.extend(&epochs);
+                }
+                *lock(waits_for) = None;
+                return Some(free);
+            }
+        }
+        if !told {
+            *lock(waits_for) = Some(kind.to_string());
+            core.note(id, &format!("none of the job's workers is left; it waits for a worker of back end {kind} to be free"));
+            told = true;
+        }
+        if stop.load(Ordering::SeqCst) || core.stopping.load(Ordering::SeqCst) {
+            *lock(waits_for) = None;
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+/// Runs a job on `assigned` (in-process when empty), moving it off workers that are lost on
+/// the way: the run rolls back to its last checkpoint (from the start when it has none) onto
+/// its surviving workers, or when none survived, onto replacements of the same back end and
+/// precision (waiting for one to be free).
+fn run_on_workers(
+    core: &Arc<Core>,
+    job: &JobRecord,
+    mut assigned: Vec<WorkerRecord>,
+    stop: &Arc<AtomicBool>,
+    reassign: &Arc<AtomicBool>,
+    waits_for: &Mutex<Option<String>>,
+) -> Attempt {
     let id = &job.id;
     let run_dir = core.job_dir(id).join("run");
     let loaded = match Loaded::load(&core.job_dir(id).join("input/scene.toml"), &job.overrides) {
         Ok(l) => l,
         Err(e) => return Attempt::Error(anyhow::anyhow!("{e}")),
     };
-    // Once boxes lived on workers of one kind, they only move to workers of that kind.
-    let mut kind: Option<String> = None;
     let mut rollbacks = 0;
     loop {
-        let assigned = workers::choose(&lock(&core.workers).usable(), kind.as_deref());
-        if let (Some(k), true) = (&kind, assigned.is_empty()) {
-            // Every worker lost at once is also what SIGTERM to a whole allocation looks like:
-            // the orchestrator's own SIGTERM gets a moment to arrive (see run_job).
-            let waited = std::time::Instant::now();
-            while !core.stopping.load(Ordering::SeqCst) && waited.elapsed() < Duration::from_secs(3) {
-                std::thread::sleep(Duration::from_millis(20));
-            }
-            return Attempt::Done(Outcome::Failed(
-                serde_json::Value::Null,
-                format!("no live worker of back end {k} is left to take the job's boxes"),
-            ));
-        }
-        let epochs: Vec<u64> = assigned.iter().map(|w| w.epoch).collect();
-        lock(&core.workers).set_busy(&epochs, id);
-        if let Some(r) = lock(&core.running).as_mut() {
-            r.workers = epochs.clone();
-        }
         let last_step = Arc::new(AtomicU64::new(0));
         let result = match attempt(core, job, &loaded, &run_dir, &assigned, stop, &last_step) {
             Ok(o) => Attempt::Done(o),
             Err(e) => Attempt::Error(e),
         };
-        lock(&core.workers).set_busy(&epochs, "");
         let step = last_step.load(Ordering::SeqCst);
+        let live = |w: &WorkerRecord| lock(&core.workers).get(w.epoch).is_some_and(|r| r.state != WorkerState::Lost);
         let why = match &result {
             Attempt::Done(Outcome::Cancelled { step, .. })
                 if reassign.load(Ordering::SeqCst) && !core.stopping.load(Ordering::SeqCst) && !is_user_cancel(core, id) =>
             {
                 reassign.store(false, Ordering::SeqCst);
                 stop.store(false, Ordering::SeqCst);
-                kind = assigned.first().map(WorkerRecord::kind);
+                let kind = assigned[0].kind();
+                let before = assigned.len();
+                assigned.retain(|w| live(w));
+                if assigned.is_empty() {
+                    match replacements(core, id, &kind, before, stop, waits_for) {
+                        Some(r) => assigned = r,
+                        // (Every worker lost at once is also what SIGTERM to a whole allocation
+                        // looks like: when the orchestrator is stopping, the job is requeued.)
+                        None if stop.load(Ordering::SeqCst) || core.stopping.load(Ordering::SeqCst) => return result,
+                        None => {
+                            return Attempt::Done(Outcome::Failed(
+                                serde_json::Value::Null,
+                                format!("no live worker of back end {kind} is left to take the job's boxes"),
+                            ));
+                        }
+                    }
+                }
                 core.note(id, &format!("a worker was declared lost; checkpointed after step {step} and continues on the live workers"));
                 core.metrics.recovery("move");
                 continue;
@@ -174,13 +323,8 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
             _ => return result,
         };
         // Did it fail because workers are gone? (Not: an error of a worker that still answers.)
-        let lost: Vec<&WorkerRecord> = assigned
-            .iter()
-            .filter(|w| {
-                let gone = lock(&core.workers).get(w.epoch).is_none_or(|r| r.state == WorkerState::Lost);
-                gone || !workers::answers(&w.ad.address, Duration::from_secs(3))
-            })
-            .collect();
+        let lost: Vec<WorkerRecord> =
+            assigned.iter().filter(|w| !live(w) || !workers::answers(&w.ad.address, Duration::from_secs(3))).cloned().collect();
         if lost.is_empty() {
             return result;
         }
@@ -197,12 +341,24 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
             }
         }
         let k = assigned[0].kind();
-        let survivors = workers::choose(&lock(&core.workers).usable(), Some(&k));
-        if survivors.is_empty() {
-            return Attempt::Done(Outcome::Failed(
-                serde_json::Value::Null,
-                format!("worker {names} was lost at step {at} ({why}); no live worker of back end {k} is left to restore its boxes onto"),
-            ));
+        let before = assigned.len();
+        assigned.retain(|w| !lost.iter().any(|l| l.epoch == w.epoch) && live(w));
+        if assigned.is_empty() {
+            match replacements(core, id, &k, before, stop, waits_for) {
+                Some(r) => assigned = r,
+                None if stop.load(Ordering::SeqCst) && !core.stopping.load(Ordering::SeqCst) => {
+                    let step = crate::checkpoint::list(&run_dir).ok().and_then(|l| l.first().map(|c| c.0)).unwrap_or(0);
+                    return Attempt::Done(Outcome::Cancelled { checkpoint: run_dir.join("checkpoints"), step });
+                }
+                None => {
+                    return Attempt::Done(Outcome::Failed(
+                        serde_json::Value::Null,
+                        format!(
+                            "worker {names} was lost at step {at} ({why}); no live worker of back end {k} is left to restore its boxes onto"
+                        ),
+                    ));
+                }
+            }
         }
         rollbacks += 1;
         if rollbacks > MAX_ROLLBACKS {
@@ -213,18 +369,17 @@ fn run_on_workers(core: &Arc<Core>, job: &JobRecord, stop: &Arc<AtomicBool>, rea
         }
         let from = crate::checkpoint::list(&run_dir).ok().and_then(|l| l.first().map(|c| c.0));
         let from = from.map_or("the start (no checkpoint yet)".to_string(), |s| format!("its checkpoint of step {s}"));
-        let onto = survivors.iter().map(|w| w.id.as_str()).collect::<Vec<_>>().join(", ");
+        let onto = assigned.iter().map(|w| w.id.as_str()).collect::<Vec<_>>().join(", ");
         core.note(id, &format!("worker {names} was lost at step {at}; rolled back to {from} onto {onto}"));
         core.metrics.recovery("rollback");
         tracing::warn!(
             "job {id}: worker {names} was lost at step {at} ({why}); its boxes could not be replayed alone, so the whole job is rolling back to {from} onto {onto}"
         );
-        kind = Some(k);
     }
 }
 
 fn is_user_cancel(core: &Core, id: &str) -> bool {
-    lock(&core.running).as_ref().is_some_and(|r| r.id == id && r.user_cancel.load(Ordering::SeqCst))
+    lock(&core.running).get(id).is_some_and(|r| r.user_cancel.load(Ordering::SeqCst))
 }
 
 /// The job's workers as a watch event shows them, with their load in this attempt.
@@ -271,7 +426,8 @@ fn attempt(
     let core3 = core.clone();
     opts.md_hook = Some(Arc::new(move |m: &Arc<Mutex<MdShared>>| {
         *lock(&slot) = Some(m.clone());
-        *lock(&core3.aborts) = lock(m).pool.abort_handles().into_iter().collect();
+        // Keyed by address: the jobs' workers are disjoint.
+        lock(&core3.aborts).extend(lock(m).pool.abort_handles());
     }));
     opts.step_deadline = core.step_deadline;
     let (core4, id4, assigned4) = (core.clone(), id.clone(), assigned.to_vec());
@@ -358,7 +514,7 @@ fn attempt(
         tracing::info!("job {id}: on workers {shares}");
     }
     let outcome = loaded.run(&opts);
-    lock(&core.aborts).clear();
+    lock(&core.aborts).retain(|addr, _| !assigned.iter().any(|w| &w.ad.address == addr));
     outcome
 }
 
@@ -370,7 +526,7 @@ impl Core {
         match job.state {
             JobState::Queued => self.transition(id, JobState::Cancelled, "cancelled by a user before it started", ""),
             JobState::Running => {
-                if let Some(run) = lock(&self.running).as_ref().filter(|r| r.id == id) {
+                if let Some(run) = lock(&self.running).get(id) {
                     run.user_cancel.store(true, Ordering::SeqCst);
                     run.stop.store(true, Ordering::SeqCst);
                 }

@@ -2,8 +2,9 @@
 //!
 //! Jobs are scenes submitted with the files they name; they are validated at submit with the
 //! messages of `mscale check`, kept in the SQLite [`store::Store`] under the state directory, and run
-//! one at a time, by priority, on a dedicated thread with the same run driver as `mscale run`
-//! (so a job ends with the digest `mscale run` gives). Jobs checkpoint at an interval; a job
+//! side by side on disjoint sets of workers (`schedule`: by priority, then fair share between
+//! users), each on its own thread with the same run driver as `mscale run` (so a job ends with
+//! the digest `mscale run` gives). Jobs checkpoint at an interval; a job
 //! that was running when the orchestrator died is resumed from its last checkpoint on restart.
 //!
 //! Layout of the state directory: `jobs.sqlite`, `token` (generated when no token file is
@@ -11,16 +12,22 @@
 //! directory: outputs, checkpoints, summary.json).
 //!
 //! Workers (`md-worker serve --orchestrator URL`, or `--local-workers N` started here) register
-//! and heartbeat ([`workers`]). A job's MD boxes are spread over the live workers of one
-//! back end and precision in proportion to their throughput, or run in this process when there
-//! are none. A worker that stops answering mid-job (killed, or past `--step-deadline`) is
+//! and heartbeat ([`workers`]). A job's MD boxes are spread over the workers it was given (its
+//! `--workers N`, or every free one, of one back end and precision) in proportion to their
+//! throughput, or run in this process when the pool has none (one such job at a time). A worker that stops answering mid-job (killed, or past `--step-deadline`) is
 //! declared lost and only its boxes are rebuilt on the job's surviving workers of the same back
 //! end and precision: restored from the last checkpoint and sent again every input logged since
 //! (`md_worker::recovery`), so the job ends with the digest of an uninterrupted run; with no
-//! survivor the job fails naming the worker and the step. A worker silent for longer than the
+//! survivor it waits for a worker of its kind that another job releases and rolls back onto
+//! it, and where the pool has no live worker of its kind left it fails naming the worker and
+//! the step. A worker silent for longer than the
 //! worker timeout is declared lost and a call in flight on it is aborted, with the same
 //! recovery. Where replay is impossible (the input log outgrew its bound) the whole job rolls
 //! back to its last checkpoint onto the survivors instead.
+//!
+//! `schedule`: the queue goes by priority, then fair share (a user with fewer jobs running
+//! first), then submission; a job that cannot start holds back later jobs from what it waits
+//! for, so a released worker goes to the first waiting job. No preemption.
 //!
 //! Watch events: every event of a job has a sequence number (1, 2, 3, ... with no gaps), given
 //! in the store transaction that records it (the store keeps state changes, checkpoints and
@@ -28,9 +35,12 @@
 //! store and then follow a broadcast channel; one that lags is caught up from the store again,
 //! so an event is never skipped. Progress is published at most every 100 ms.
 //!
-//! Security: mutating calls (SubmitJob, CancelJob, RegisterWorker, Heartbeat, DrainWorker)
-//! need `authorization: Bearer <token>`,
-//! compared in constant time; requests are bounded in size; FetchResult cannot leave the job's
+//! Security: calls carry `authorization: Bearer <token>`; the token names a user with a role
+//! (`auth`: one admin token, or a users file read again on SIGHUP). A job belongs to its
+//! submitter: only it or an admin may see, watch, fetch or cancel it (another user's job
+//! answers as an unknown one); a worker token may only register and heartbeat. Tokens are
+//! compared in constant time; per-user limits (jobs, upload bytes, snapshots) refuse a
+//! submission naming the limit; requests are bounded in size; FetchResult cannot leave the job's
 //! run directory; nothing runs through a shell. TLS (rustls) is served with `--tls-cert` and
 //! `--tls-key`, and required to listen on anything but a loopback address.
 
@@ -51,6 +61,7 @@ mod http;
 mod inputs;
 mod jobs;
 mod metrics;
+mod schedule;
 mod shared;
 pub mod store;
 pub mod workers;
@@ -77,8 +88,10 @@ pub const DEFAULT_CHECKPOINT_EVERY: u64 = 100;
 pub struct ServeOptions {
     pub state_dir: PathBuf,
     pub listen: String,
-    /// The bearer token mutating calls must carry.
+    /// The single-token mode's token (the admin user); unused with `access.users_file`.
     pub token: String,
+    /// Users and their limits.
+    pub access: AccessOptions,
     pub checkpoint_every: u64,
     /// PEM certificate chain and private key: serve over TLS (rustls).
     pub tls: Option<(Vec<u8>, Vec<u8>)>,
@@ -96,6 +109,19 @@ pub struct ServeOptions {
     pub http: Option<String>,
 }
 
+/// Who may call `mscale serve`, and the per-user limits.
+#[derive(Debug, Clone, Default)]
+pub struct AccessOptions {
+    /// The users file (`--users`): users, roles, token hashes; read again on SIGHUP. None: the
+    /// single-token mode.
+    pub users_file: Option<PathBuf>,
+    /// Limits of every user (`--max-jobs-per-user`, `--max-upload-bytes`, `--max-snapshots`)
+    /// where the users file sets none.
+    pub limits: auth::Limits,
+}
+
+pub use auth::{Limits, Role, parse_users};
+
 /// The worker pool options of `mscale serve`.
 #[derive(Debug, Clone, Copy)]
 pub struct PoolOptions {
@@ -109,6 +135,7 @@ pub struct PoolOptions {
 
 /// `mscale serve`: reads the token (generating one into the state directory when no file is
 /// given) and the TLS files, then serves until SIGINT/SIGTERM.
+#[allow(clippy::too_many_arguments)] // one per group of `mscale serve` flags
 pub fn serve_command(
     state: PathBuf,
     listen: String,
@@ -117,17 +144,25 @@ pub fn serve_command(
     tls: Option<(PathBuf, PathBuf)>,
     pool: PoolOptions,
     http: Option<String>,
+    access: AccessOptions,
 ) -> Result<i32> {
     anyhow::ensure!(
         pool.worker_timeout_s.is_finite() && pool.worker_timeout_s > 0.0,
         "--worker-timeout {} must be a positive number of seconds",
         pool.worker_timeout_s
     );
-    let token = match &token_file {
-        Some(f) => read_token(f)?,
-        None => auth::generated_token(&state)?,
+    if let (Some(_), Some(t)) = (&access.users_file, &token_file) {
+        bail!(
+            "--users and --token-file {} exclude each other: give the admin token a [[user]] with role = \"admin\" in the users file",
+            t.display()
+        );
+    }
+    // With users, local workers get a token of their own (a worker user), made at every start.
+    let (token, token_file) = match (&access.users_file, token_file) {
+        (Some(_), _) => (String::new(), state.join("local-worker-token")),
+        (None, Some(f)) => (read_token(&f)?, f),
+        (None, None) => (auth::generated_token(&state)?, state.join("token")),
     };
-    let token_file = token_file.unwrap_or_else(|| state.join("token"));
     let local_ca = tls.as_ref().map(|t| t.0.clone());
     let tls = match tls {
         Some((cert, key)) => {
@@ -140,6 +175,7 @@ pub fn serve_command(
         state_dir: state,
         listen,
         token,
+        access,
         checkpoint_every,
         tls,
         local_workers: pool.local_workers,
@@ -176,8 +212,18 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         tracing::info!("job {id} was running when the orchestrator stopped: queued again, resumes from its last checkpoint");
     }
     let registry = Registry::load(&store, opts.worker_timeout)?;
-    let core =
-        Core::new(store, registry, opts.state_dir.clone(), opts.token, opts.checkpoint_every, opts.local_workers, opts.step_deadline);
+    let users = match &opts.access.users_file {
+        Some(file) => {
+            let token = auth::random_token()?;
+            auth::write_private(&opts.token_file, &token)?;
+            let local = auth::User::with_token("local-workers", Role::Worker, &token);
+            let users = auth::Users::from_file(file, vec![local], opts.access.limits)?;
+            tracing::info!("users from {} (read again on SIGHUP)", file.display());
+            users
+        }
+        None => auth::Users::single(&opts.token, opts.access.limits),
+    };
+    let core = Core::new(store, registry, opts.state_dir.clone(), users, opts.checkpoint_every, opts.local_workers, opts.step_deadline);
     let listener = std::net::TcpListener::bind(addr).with_context(|| format!("cannot listen on {addr}"))?;
     listener.set_nonblocking(true)?;
     let http_listener = match http_addr {
@@ -244,6 +290,14 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
             }));
         }
         tracing::info!("state in {}", opts.state_dir.display());
+        let mut hangup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).context("cannot catch SIGHUP")?;
+        let reload_core = core.clone();
+        tokio::spawn(async move {
+            while hangup.recv().await.is_some() {
+                let core = reload_core.clone();
+                let _ = tokio::task::spawn_blocking(move || core.reload_users()).await;
+            }
+        });
         let shutdown = async {
             let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).ok();
             tokio::select! {

@@ -1,5 +1,6 @@
 //! What the service's calls, the job runner and the worker monitor share: [`Core`].
 
+use super::auth::Users;
 use super::error::JobError;
 use super::events::LiveJob;
 use super::store::{JobRecord, Store};
@@ -8,7 +9,7 @@ use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{Arc, Condvar, Mutex, RwLock};
 use std::time::{Duration, Instant};
 use tokio::sync::watch;
 
@@ -19,19 +20,28 @@ pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
+pub(crate) fn read<T>(m: &RwLock<T>) -> std::sync::RwLockReadGuard<'_, T> {
+    m.read().unwrap_or_else(|p| p.into_inner())
+}
+
+pub(crate) fn write<T>(m: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
+    m.write().unwrap_or_else(|p| p.into_inner())
+}
+
 /// What the service and the job runner share.
 pub(crate) struct Core {
     pub(crate) store: Mutex<Store>,
     pub(crate) state_dir: PathBuf,
-    pub(crate) token: String,
+    /// Who may call (read again on SIGHUP).
+    pub(crate) users: RwLock<Users>,
     pub(crate) checkpoint_every: u64,
     /// The event channels of jobs somebody watches (lock after `store`).
     pub(crate) live: Mutex<HashMap<String, LiveJob>>,
     /// The progress details (end time, ETA, drift, workers) of running jobs' latest progress
     /// event, encoded: state events carry them too.
     pub(crate) details: Mutex<HashMap<String, Vec<u8>>>,
-    /// The running job and its flags.
-    pub(crate) running: Mutex<Option<RunningJob>>,
+    /// The running jobs and their flags, by id (lock after `workers`, before `store`).
+    pub(crate) running: Mutex<HashMap<String, RunningJob>>,
     /// Registered workers (lock before `store` when both are needed).
     pub(crate) workers: Mutex<Registry>,
     /// Jobs wait (up to [`LOCAL_WORKERS_WAIT`]) until this many workers have registered: the
@@ -52,9 +62,10 @@ pub(crate) struct Core {
     pub(crate) metrics: super::metrics::Metrics,
 }
 
-/// The job on the runner thread.
+/// A running job (each on its own thread).
 pub(crate) struct RunningJob {
     pub(crate) id: String,
+    pub(crate) owner: String,
     /// Stops the run after its current step, with a checkpoint.
     pub(crate) stop: Arc<AtomicBool>,
     /// Set with `stop` by CancelJob.
@@ -63,6 +74,11 @@ pub(crate) struct RunningJob {
     pub(crate) reassign: Arc<AtomicBool>,
     /// Epochs of the workers holding its boxes.
     pub(crate) workers: Vec<u64>,
+    /// It runs in this process (the one in-process slot).
+    pub(crate) in_process: bool,
+    /// The worker kind it waits for, having lost all of its workers (free ones of the kind go
+    /// to it before queued jobs).
+    pub(crate) waits_for: Arc<Mutex<Option<String>>>,
 }
 
 impl Core {
@@ -72,7 +88,7 @@ impl Core {
         store: Store,
         registry: Registry,
         state_dir: PathBuf,
-        token: String,
+        users: Users,
         checkpoint_every: u64,
         expect_workers: usize,
         step_deadline: md_worker::recovery::StepDeadline,
@@ -80,11 +96,11 @@ impl Core {
         Arc::new(Core {
             store: Mutex::new(store),
             state_dir,
-            token,
+            users: RwLock::new(users),
             checkpoint_every,
             live: Mutex::new(HashMap::new()),
             details: Mutex::new(HashMap::new()),
-            running: Mutex::new(None),
+            running: Mutex::new(HashMap::new()),
             workers: Mutex::new(registry),
             expect_workers,
             started: Instant::now(),
@@ -104,6 +120,24 @@ impl Core {
 
     pub(crate) fn get(&self, id: &str) -> Result<JobRecord, JobError> {
         lock(&self.store).get(id)?.ok_or_else(|| JobError::NotFound(id.to_string()))
+    }
+
+    /// The job, when `caller` may see it: its owner or an admin. Another user's job answers
+    /// as a job that does not exist, so ids cannot be probed.
+    pub(crate) fn owned(&self, caller: &super::auth::Caller, id: &str) -> Result<JobRecord, JobError> {
+        let job = self.get(id)?;
+        if caller.is_admin() || job.owner == caller.user {
+            Ok(job)
+        } else {
+            tracing::info!("user {} asked for job {id} of another user: answered as unknown", caller.user);
+            Err(JobError::NotFound(id.to_string()))
+        }
+    }
+
+    /// The jobs `caller` sees, oldest first: its own, or every job for an admin.
+    pub(crate) fn jobs_of(&self, caller: &super::auth::Caller) -> Result<Vec<JobRecord>, JobError> {
+        let store = lock(&self.store);
+        Ok(if caller.is_admin() { store.list()? } else { store.list_of(&caller.user)? })
     }
 
     /// Whether jobs should still wait for `--local-workers` to register.
@@ -126,7 +160,7 @@ impl Core {
     /// Stops the runner (the running job checkpoints and stays queued) and ends watch streams.
     pub(crate) fn stop(&self) {
         self.stopping.store(true, Ordering::SeqCst);
-        if let Some(run) = lock(&self.running).as_ref() {
+        for run in lock(&self.running).values() {
             run.stop.store(true, Ordering::SeqCst);
         }
         self.stop_watchers.send_replace(true);

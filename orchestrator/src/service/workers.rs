@@ -194,6 +194,16 @@ impl Registry {
             .collect()
     }
 
+    /// Whether a worker holds a job's boxes.
+    pub fn is_busy(&self, epoch: u64) -> bool {
+        self.busy.contains_key(&epoch)
+    }
+
+    /// Clears every worker still marked as holding `job`'s boxes.
+    pub fn release_job(&mut self, job: &str) {
+        self.busy.retain(|_, j| j != job);
+    }
+
     /// Marks workers as holding a job's boxes (an empty `job` clears them).
     pub fn set_busy(&mut self, epochs: &[u64], job: &str) {
         for e in epochs {
@@ -354,7 +364,7 @@ pub(crate) fn monitor(core: Arc<Core>) {
                             "aborting the MD calls on the lost worker w{epoch}: its boxes are replayed on the job's other workers"
                         );
                         h.abort(&why);
-                    } else if let Some(run) = lock(&core.running).as_ref().filter(|r| r.workers.contains(&epoch)) {
+                    } else if let Some(run) = lock(&core.running).values().find(|r| r.workers.contains(&epoch)) {
                         tracing::warn!("job {}: moves off the lost worker w{epoch} (checkpoint after this step)", run.id);
                         run.reassign.store(true, Ordering::SeqCst);
                         run.stop.store(true, Ordering::SeqCst);

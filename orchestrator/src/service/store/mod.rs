@@ -123,6 +123,10 @@ pub struct JobRecord {
     pub started: i64,
     pub finished: i64,
     pub resumes: u32,
+    /// The user who submitted it.
+    pub owner: String,
+    /// Workers it asked for (0: every free worker).
+    pub workers: u32,
 }
 
 /// What a job event reports (stored as its lowercase name).
@@ -179,7 +183,7 @@ pub fn now_unix() -> i64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs() as i64).unwrap_or(0)
 }
 
-const COLUMNS: &str = "id, scene, state, priority, overrides, checkpoint_every, step, steps, sim_time, error, state_digest, submitted, started, finished, resumes";
+const COLUMNS: &str = "id, scene, state, priority, overrides, checkpoint_every, step, steps, sim_time, error, state_digest, submitted, started, finished, resumes, owner, workers";
 
 fn record(r: &rusqlite::Row<'_>) -> rusqlite::Result<(JobRecord, String)> {
     let overrides: String = r.get(4)?;
@@ -201,6 +205,8 @@ fn record(r: &rusqlite::Row<'_>) -> rusqlite::Result<(JobRecord, String)> {
             started: r.get(12)?,
             finished: r.get(13)?,
             resumes: r.get::<_, i64>(14)? as u32,
+            owner: r.get(15)?,
+            workers: r.get::<_, i64>(16)? as u32,
         },
         state,
     ))
@@ -251,8 +257,8 @@ impl Store {
     pub fn insert(&mut self, job: &JobRecord) -> Result<()> {
         let tx = self.db.transaction()?;
         tx.execute(
-            "INSERT INTO jobs (id, scene, state, priority, overrides, checkpoint_every, steps, submitted) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
-            params![job.id, job.scene, job.state.as_str(), job.priority, serde_json::to_string(&job.overrides)?, job.checkpoint_every as i64, job.steps as i64, job.submitted],
+            "INSERT INTO jobs (id, scene, state, priority, overrides, checkpoint_every, steps, submitted, owner, workers) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)",
+            params![job.id, job.scene, job.state.as_str(), job.priority, serde_json::to_string(&job.overrides)?, job.checkpoint_every as i64, job.steps as i64, job.submitted, job.owner, job.workers as i64],
         )?;
         tx.execute("INSERT INTO history VALUES (?1, ?2, ?3, 'submitted')", params![job.id, job.submitted, job.state.as_str()])?;
         append_event(&tx, &job.id, EventKind::State, "submitted", &[], 0)?;
@@ -268,6 +274,28 @@ impl Store {
     /// Every job, oldest first.
     pub fn list(&self) -> Result<Vec<JobRecord>> {
         let mut q = self.db.prepare(&format!("SELECT {COLUMNS} FROM jobs ORDER BY seq"))?;
+        let rows = q.query_map([], record)?.collect::<rusqlite::Result<Vec<_>>>()?;
+        rows.into_iter().map(finish_record).collect()
+    }
+
+    /// The jobs of `owner`, oldest first.
+    pub fn list_of(&self, owner: &str) -> Result<Vec<JobRecord>> {
+        let mut q = self.db.prepare(&format!("SELECT {COLUMNS} FROM jobs WHERE owner = ?1 ORDER BY seq"))?;
+        let rows = q.query_map(params![owner], record)?.collect::<rusqlite::Result<Vec<_>>>()?;
+        rows.into_iter().map(finish_record).collect()
+    }
+
+    /// How many jobs of `owner` are queued or running.
+    pub fn active_jobs(&self, owner: &str) -> Result<u64> {
+        let n: i64 =
+            self.db
+                .query_row("SELECT COUNT(*) FROM jobs WHERE owner = ?1 AND state IN ('queued', 'running')", params![owner], |r| r.get(0))?;
+        Ok(n as u64)
+    }
+
+    /// Every queued job in the order of the queue: highest priority, then oldest.
+    pub fn queued(&self) -> Result<Vec<JobRecord>> {
+        let mut q = self.db.prepare(&format!("SELECT {COLUMNS} FROM jobs WHERE state = 'queued' ORDER BY priority DESC, seq ASC"))?;
         let rows = q.query_map([], record)?.collect::<rusqlite::Result<Vec<_>>>()?;
         rows.into_iter().map(finish_record).collect()
     }
@@ -565,6 +593,8 @@ pub(crate) fn test_job(id: &str, priority: i32) -> JobRecord {
         started: 0,
         finished: 0,
         resumes: 0,
+        owner: "admin".into(),
+        workers: 0,
     }
 }
 

@@ -3,7 +3,7 @@
 //! higher version) is refused rather than guessed at.
 
 /// The schema version [`Store::open`] brings a store to (`PRAGMA user_version`).
-pub const SCHEMA_VERSION: usize = 2;
+pub const SCHEMA_VERSION: usize = 3;
 
 /// Version 1: the tables. Stores written before the schema was versioned are at version 0
 /// with some or all of these tables (`events` came last); `IF NOT EXISTS` keeps what they hold.
@@ -75,7 +75,15 @@ const SCHEMA_2: &str = "
     SELECT id, 1, 'state', CASE WHEN finished > 0 THEN finished ELSE submitted END, state, step, steps, sim_time, error, X''
     FROM jobs WHERE id NOT IN (SELECT job_id FROM events);";
 
+/// Version 3: a job belongs to the user who submitted it and asks for a number of workers (0:
+/// every free one). Jobs stored before users existed belong to `admin`, the user of the
+/// single-token mode, and ask for every worker (what they got).
+const SCHEMA_3: &str = "
+    ALTER TABLE jobs ADD COLUMN owner TEXT NOT NULL DEFAULT 'admin';
+    ALTER TABLE jobs ADD COLUMN workers INTEGER NOT NULL DEFAULT 0;
+    CREATE INDEX IF NOT EXISTS jobs_by_owner ON jobs (owner, state);";
+
 pub(crate) fn migrations() -> rusqlite_migration::Migrations<'static> {
     use rusqlite_migration::M;
-    rusqlite_migration::Migrations::new(vec![M::up(SCHEMA_1), M::up(SCHEMA_2)])
+    rusqlite_migration::Migrations::new(vec![M::up(SCHEMA_1), M::up(SCHEMA_2), M::up(SCHEMA_3)])
 }

@@ -92,6 +92,8 @@ fn a_store_of_the_unversioned_schema_opens_with_its_jobs_and_events() {
     assert_eq!(user_version(dir.path()), SCHEMA_VERSION as i64);
     let a = s.get("a").unwrap().unwrap();
     assert_eq!((a.state, a.priority, a.overrides.clone(), a.checkpoint_every), (JobState::Running, 3, vec!["k=1".to_string()], 10));
+    // A job from before users belongs to the single-token mode's admin and takes every worker.
+    assert_eq!((a.owner.as_str(), a.workers), ("admin", 0));
     // Its events are kept as they were (none added), and the numbering goes on.
     assert_eq!(
         s.events_after("a", 0, 10).unwrap().iter().map(|e| (e.seq, e.message.clone())).collect::<Vec<_>>(),
@@ -165,4 +167,28 @@ fn workers_get_a_new_epoch_per_registration_and_lost_is_final() {
     assert_eq!(states, vec![(a.id.clone(), WorkerState::Lost), (b.id, WorkerState::Live), (c.id, WorkerState::Live)]);
     let h: Vec<String> = s.worker_history(a.epoch).unwrap().into_iter().map(|h| h.1).collect();
     assert_eq!(h, vec!["live", "draining", "lost"]);
+}
+
+#[test]
+fn jobs_keep_their_owner_and_workers_and_are_listed_per_owner() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut s = Store::open(dir.path()).unwrap();
+    for (id, owner, workers, priority) in [("a", "alice", 2, 0), ("b", "bob", 0, 5), ("c", "alice", 1, 5)] {
+        let mut j = test_job(id, priority);
+        (j.owner, j.workers) = (owner.into(), workers);
+        s.insert(&j).unwrap();
+    }
+    drop(s);
+    let mut s = Store::open(dir.path()).unwrap();
+    let a = s.get("a").unwrap().unwrap();
+    assert_eq!((a.owner.as_str(), a.workers), ("alice", 2));
+    let ids = |v: Vec<JobRecord>| v.into_iter().map(|j| j.id).collect::<Vec<_>>();
+    assert_eq!(ids(s.list_of("alice").unwrap()), vec!["a", "c"]);
+    assert_eq!(ids(s.list_of("carol").unwrap()), Vec::<String>::new());
+    assert_eq!(ids(s.queued().unwrap()), vec!["b", "c", "a"]);
+    assert_eq!(s.active_jobs("alice").unwrap(), 2);
+    s.transition("a", JobState::Running, "started", "").unwrap();
+    s.transition("c", JobState::Cancelled, "", "").unwrap();
+    assert_eq!(s.active_jobs("alice").unwrap(), 1);
+    assert_eq!(s.active_jobs("bob").unwrap(), 1);
 }
