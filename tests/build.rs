@@ -5,7 +5,9 @@
 //! tests/slurm.rs.
 
 fn main() {
-    for (var, cfg) in [("MSCALE_REQUIRE_MPI", "require_mpi"), ("MSCALE_REQUIRE_BROWSER", "require_browser"), ("MSCALE_REQUIRE_SLURM", "require_slurm")] {
+    for (var, cfg) in
+        [("MSCALE_REQUIRE_MPI", "require_mpi"), ("MSCALE_REQUIRE_BROWSER", "require_browser"), ("MSCALE_REQUIRE_SLURM", "require_slurm")]
+    {
         println!("cargo::rustc-check-cfg=cfg({cfg})");
         println!("cargo::rerun-if-env-changed={var}");
         if std::env::var(var).is_ok_and(|v| v == "1") {

@@ -13,12 +13,12 @@
 
 pub mod closure;
 pub mod ddmp;
-pub mod diffusion;
 pub mod diagnostics;
+pub mod diffusion;
 pub mod exact;
 pub mod grid;
-pub mod mls;
 pub mod kinematics;
+pub mod mls;
 pub mod par;
 pub mod particles;
 pub mod shape;

@@ -71,7 +71,11 @@ fn content_changes_by_exactly_the_boundary_source() {
             let change = Diffusion::content(&sim.points) - before;
             let scale = sim.points.scalar.iter().zip(&sim.points.volume0).map(|(c, v)| (c * v).abs()).sum::<f64>().max(1.0);
             assert!(change.abs() > 1e-3, "case {k}: something must flow in ({change})");
-            assert!((change - d.boundary_content).abs() < 1e-13 * scale, "case {k} {scheme:?}: change {change:e} vs source {:e}", d.boundary_content);
+            assert!(
+                (change - d.boundary_content).abs() < 1e-13 * scale,
+                "case {k} {scheme:?}: change {change:e} vs source {:e}",
+                d.boundary_content
+            );
             if lo == Some(FaceCondition::Flux(0.7)) && hi.is_none() {
                 // A pure flux face: exactly j t enters.
                 assert!((change - 0.7 * sim.time).abs() < 1e-13, "{change} vs {}", 0.7 * sim.time);
@@ -90,7 +94,15 @@ fn heat_table_6_1() {
     let mut measured = Vec::new();
     for mode in [DirichletMode::Rate, DirichletMode::Value] {
         for (beta, printed) in table {
-            let mut sim = heat_sim(SchemeKind::Ugimp, 20, 2, 1e-5, (Some(FaceCondition::Dirichlet(1.0)), Some(FaceCondition::Dirichlet(0.0))), mode, beta);
+            let mut sim = heat_sim(
+                SchemeKind::Ugimp,
+                20,
+                2,
+                1e-5,
+                (Some(FaceCondition::Dirichlet(1.0)), Some(FaceCondition::Dirichlet(0.0))),
+                mode,
+                beta,
+            );
             let mut errs = Vec::new();
             for &n in &times {
                 while (sim.step as usize) < n {
@@ -132,7 +144,15 @@ fn convergence(hs: &[f64]) -> Vec<(f64, f64)> {
             let cells = (1.0 / h).round() as usize;
             let dt = 0.25 * h * h;
             let steps = (0.25 / dt).round() as usize;
-            let mut sim = heat_sim(SchemeKind::Mpm, cells, 2, dt, (Some(FaceCondition::Dirichlet(1.0)), Some(FaceCondition::Dirichlet(0.0))), DirichletMode::Rate, 1.0);
+            let mut sim = heat_sim(
+                SchemeKind::Mpm,
+                cells,
+                2,
+                dt,
+                (Some(FaceCondition::Dirichlet(1.0)), Some(FaceCondition::Dirichlet(0.0))),
+                DirichletMode::Rate,
+                1.0,
+            );
             for _ in 0..steps {
                 sim.step().expect("steps");
             }

@@ -232,10 +232,7 @@ fn write_snapshot<const D: usize>(
     let step = sim.step;
     if scene.output.particles {
         let file = format!("particles_{step:08}.csv");
-        output::write_atomic(
-            &dir.join("snapshots").join(&file),
-            output::particles_csv(&sim.points, &columns(&sim.points, md)).as_bytes(),
-        )?;
+        output::write_atomic(&dir.join("snapshots").join(&file), output::particles_csv(&sim.points, &columns(&sim.points, md)).as_bytes())?;
         snaps.index.push_str(&format!("{step},{:e},{file}\n", sim.time));
         output::write_atomic(&dir.join("snapshots/index.csv"), snaps.index.as_bytes())?;
     }
@@ -434,11 +431,8 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
 
     let times =
         SummaryTimes { wall: before.wall_s + wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s };
-    let direct_json = direct
-        .as_ref()
-        .map(|d| d.json.clone())
-        .or_else(|| manufactured_errors(loaded, &sim))
-        .or(film.as_ref().map(|f| f.json()));
+    let direct_json =
+        direct.as_ref().map(|d| d.json.clone()).or_else(|| manufactured_errors(loaded, &sim)).or(film.as_ref().map(|f| f.json()));
     if let Some(f) = &film {
         tracing::info!("{}", f.log_line());
     }

@@ -336,7 +336,11 @@ impl Scene {
                 finite_positive(loc, &k("material.shear_modulus"), m.shear_modulus, "the shear modulus (Pa)")?;
                 finite_positive(loc, &k("material.yield_stress"), m.yield_stress, "the yield stress (Pa)")?;
                 if !(m.hardening_modulus.is_finite() && m.hardening_modulus >= 0.0) {
-                    return Err(loc.err(&k("material.hardening_modulus"), m.hardening_modulus, "the hardening modulus (Pa) must be finite and >= 0 (0: perfect plasticity)"));
+                    return Err(loc.err(
+                        &k("material.hardening_modulus"),
+                        m.hardening_modulus,
+                        "the hardening modulus (Pa) must be finite and >= 0 (0: perfect plasticity)",
+                    ));
                 }
                 if !m.chemical_expansion.is_finite() {
                     return Err(loc.err(&k("material.chemical_expansion"), m.chemical_expansion, "must be a finite number"));
@@ -808,7 +812,10 @@ impl Scene {
             return Err(loc.err(
                 "reference.solution",
                 "\"thin-film-lithiation\"",
-                format!("needs a 1D scene along the film normal (the in-plane axes are held by the 1D kinematics); this one has dimension {}", self.domain.dimension),
+                format!(
+                    "needs a 1D scene along the film normal (the in-plane axes are held by the 1D kinematics); this one has dimension {}",
+                    self.domain.dimension
+                ),
             ));
         }
         let Some(b) = self.bodies.get(&r.body) else {
@@ -822,11 +829,19 @@ impl Scene {
             return Err(loc.err(
                 "reference.body",
                 format!("{:?}", r.body),
-                format!("the thin-film solution needs a hypoelastic-plastic body with a [lithiation]; this one is {}{}", b.material.law(), if b.lithiation.is_none() { " without lithiation" } else { "" }),
+                format!(
+                    "the thin-film solution needs a hypoelastic-plastic body with a [lithiation]; this one is {}{}",
+                    b.material.law(),
+                    if b.lithiation.is_none() { " without lithiation" } else { "" }
+                ),
             ));
         }
         if !matches!(self.boundary.x_min, FaceSpec::Named(FaceName::Fixed | FaceName::Reflective | FaceName::Roller)) {
-            return Err(loc.err("boundary.x_min", face_debug(&self.boundary.x_min), "the substrate face of a thin film must be fixed (or reflective)"));
+            return Err(loc.err(
+                "boundary.x_min",
+                face_debug(&self.boundary.x_min),
+                "the substrate face of a thin film must be fixed (or reflective)",
+            ));
         }
         Ok(())
     }
