@@ -114,7 +114,7 @@ pub trait Closure: Send {
     /// Whether `advance` is a pure function of the batch (start stress in `stress`, velocity
     /// gradient, deformation gradient, mass, volume) and `dt`, keeping no state between calls,
     /// so the implicit integrator may call it once per Newton residual and keep only the last
-    /// call ([`crate::solver::TimeIntegrator::ImplicitTrapezoidal`]). The default (false) is
+    /// call (the implicit-trapezoidal integrator). The default (false) is
     /// right for closures with history (MD boxes), which the implicit integrator refuses.
     fn repeatable(&self) -> bool {
         false

@@ -354,8 +354,8 @@ pub fn list(run_dir: &Path) -> Result<Vec<(u64, PathBuf)>> {
     Ok(out)
 }
 
-/// What a checkpoint file holds: an MPM run's [`Checkpoint`] or a cell run's
-/// (`crate::cell_run`), in the same file format, directory and rotation.
+/// What a checkpoint file holds: an MPM run's [`Checkpoint`] or the cell run driver's,
+/// in the same file format, directory and rotation.
 pub trait Saved: Serialize + serde::de::DeserializeOwned {
     /// The step the state is at the end of (names the file).
     fn step(&self) -> u64;
