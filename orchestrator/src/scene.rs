@@ -64,6 +64,61 @@ pub struct Scene {
     pub output: Output,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reference: Option<Reference>,
+    /// Diffusion of the scalar field the points carry (concentration or temperature).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub diffusion: Option<DiffusionSpec>,
+}
+
+/// `[diffusion]`: explicit diffusion of the points' scalar field in the current configuration
+/// (continuum::diffusion; every body carries the field, its `lithiation.initial` or 0).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct DiffusionSpec {
+    /// Diffusivity K (m^2/s): k / (rho0 C) for heat, D for a concentration.
+    pub diffusivity: f64,
+    /// FLIP fraction beta of the point update (1: FLIP, 0: PIC; B 6.16).
+    #[serde(default = "default_flip")]
+    pub flip_fraction: f64,
+    /// `rate` (the Dirichlet value reaches the points through the nodal rate, the default; it
+    /// reproduces B Table 6.1) or `value` (on the nodal value only).
+    #[serde(default)]
+    pub dirichlet: DirichletSpec,
+    /// Face conditions: `{ value = c }` (Dirichlet) or `{ flux = j }` (into the body, per unit
+    /// area per second); a face not given has no flux.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x_min: Option<FaceBc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x_max: Option<FaceBc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub y_min: Option<FaceBc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub y_max: Option<FaceBc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_min: Option<FaceBc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_max: Option<FaceBc>,
+}
+
+fn default_flip() -> f64 {
+    1.0
+}
+
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "kebab-case")]
+pub enum DirichletSpec {
+    #[default]
+    Rate,
+    Value,
+}
+
+/// A diffusion face condition: exactly one of `value` and `flux`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct FaceBc {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub value: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flux: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -467,6 +522,19 @@ pub enum Reference {
     /// The derived in-plane stress path of a uniformly lithiated film on a rigid substrate
     /// (see [`continuum::exact::thin_film_stress`]).
     ThinFilmLithiation(ThinFilmReference),
+    /// The Fourier series of 1D diffusion between two Dirichlet faces from a uniform initial
+    /// value (B 6.95), scored by the RMS over the points (B 6.97 with its square).
+    HeatSeries(HeatSeriesReference),
+}
+
+/// `solution = "heat-series"`: a 1D scene with `[diffusion]` values on both faces and every
+/// body starting at `initial`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct HeatSeriesReference {
+    /// The uniform initial value.
+    #[serde(default)]
+    pub initial: f64,
 }
 
 /// `solution = "thin-film-lithiation"`: a 1D scene along the film normal (x; the in-plane
@@ -532,7 +600,7 @@ mod validate;
 
 pub use names::{Component, Deformation, FaceName, FaceSpec, MdPrecision, SceneName, ViscosityForm};
 pub(crate) use resolve::for_each_point;
-pub use resolve::{Law, ResolvedBody, ResolvedMd, ResolvedScene};
+pub use resolve::{Law, ResolvedBody, ResolvedDiffusion, ResolvedMd, ResolvedScene};
 
 pub use parse::{apply_overrides, load, parse};
 pub use validate::{CFL_LIMIT, MAX_ATOMS_PER_BOX};

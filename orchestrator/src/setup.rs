@@ -92,7 +92,7 @@ pub fn points<const D: usize>(scene: &ResolvedScene, grid: &Grid<D>) -> Result<P
     }
     // The optional fields: a concentration when a body is lithiated, a plastic strain when a
     // law is plastic (scenes with neither allocate nothing).
-    let scalar = scene.bodies.iter().any(|b| b.lithiation.is_some());
+    let scalar = scene.diffusion.is_some() || scene.bodies.iter().any(|b| b.lithiation.is_some());
     let plastic = scene.bodies.iter().any(|b| matches!(b.law, Law::HypoelasticPlastic(_)));
     pts.with_fields(scalar, plastic);
     if scalar {
@@ -113,6 +113,12 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
         .with_sub_points(scene.sub_points)
         .with_small_mass_fraction(scene.small_mass_fraction);
     sim.integrator = scene.integrator;
+    if let Some(d) = &scene.diffusion {
+        let mut diffusion = continuum::diffusion::Diffusion::<D>::new(d.diffusivity, std::array::from_fn(|a| d.faces[a]));
+        diffusion.flip = d.flip;
+        diffusion.dirichlet = d.dirichlet;
+        sim.diffusion = Some(diffusion);
+    }
     if !sim.points.scalar.is_empty() {
         let body = sim.points.body.clone();
         sim.prescribed_scalar_rate = body.iter().map(|&b| scene.bodies[b as usize].lithiation.map_or(0.0, |l| l.1)).collect();
