@@ -156,7 +156,14 @@ impl<const D: usize> Diffusion<D> {
     /// One explicit step of `dt` at time `time` on `stencil` (the solver's, at x^n; ignored in
     /// the reference form): writes every point's rate into `scalar_rate` (added to what is there)
     /// and advances `scalar`.
-    pub fn step(&mut self, grid: &Grid<D>, scheme: SchemeKind, stencil: &Stencil<D>, pts: &mut Particles<D>, dt: f64) -> Result<(), OutsideGrid> {
+    pub fn step(
+        &mut self,
+        grid: &Grid<D>,
+        scheme: SchemeKind,
+        stencil: &Stencil<D>,
+        pts: &mut Particles<D>,
+        dt: f64,
+    ) -> Result<(), OutsideGrid> {
         let n_nodes = grid.node_count();
         let reference = self.configuration == Configuration::Reference;
         if reference && self.reference_stencil.is_none() {
