@@ -145,7 +145,11 @@ pub fn thin_film_stress(law: &crate::silicon::ChemoPlastic, dc: f64) -> (f64, f6
     let (m, eta, h) = (law.biaxial_modulus(), law.chemical_expansion, law.hardening_modulus);
     let x = eta * dc.abs();
     let yield_x = law.yield_stress / m;
-    let (sigma, eps) = if x <= yield_x { (m * x, 0.0) } else { (law.yield_stress + h * m * (x - yield_x) / (h + m / 2.0), m * (x - yield_x) / (h + m / 2.0)) };
+    let (sigma, eps) = if x <= yield_x {
+        (m * x, 0.0)
+    } else {
+        (law.yield_stress + h * m * (x - yield_x) / (h + m / 2.0), m * (x - yield_x) / (h + m / 2.0))
+    };
     (-sigma * dc.signum(), eps)
 }
 

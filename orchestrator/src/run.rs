@@ -195,7 +195,10 @@ fn heat_series_errors<const D: usize>(loaded: &LoadedScene, sim: &Simulation<D>)
     let rms = |pairs: Vec<(f64, f64)>| (pairs.iter().map(|(x, c)| (c - exact(*x)).powi(2)).sum::<f64>() / pairs.len().max(1) as f64).sqrt();
     let particles = rms((0..pts.len()).map(|p| (pts.x[p][0], pts.scalar.get(p).copied().unwrap_or(f64::NAN))).collect());
     let nodes = sim.diffusion.as_ref().map(|df| {
-        rms((0..df.node_value.len()).filter(|&i| df.node_capacity[i] > 0.0).map(|i| (sim.grid.node_position(sim.grid.unlinear(i))[0], df.node_value[i])).collect())
+        rms((0..df.node_value.len())
+            .filter(|&i| df.node_capacity[i] > 0.0)
+            .map(|i| (sim.grid.node_position(sim.grid.unlinear(i))[0], df.node_value[i]))
+            .collect())
     });
     let num = |v: f64| if v.is_finite() { json!(v) } else { Value::Null };
     tracing::info!("heat-series RMS at t = {:e} s: points {particles:.6}, nodes {:.6}", sim.time, nodes.unwrap_or(f64::NAN));
@@ -264,10 +267,7 @@ fn write_snapshot<const D: usize>(
     let step = sim.step;
     if scene.output.particles {
         let file = format!("particles_{step:08}.csv");
-        output::write_atomic(
-            &dir.join("snapshots").join(&file),
-            output::particles_csv(&sim.points, &columns(&sim.points, md)).as_bytes(),
-        )?;
+        output::write_atomic(&dir.join("snapshots").join(&file), output::particles_csv(&sim.points, &columns(&sim.points, md)).as_bytes())?;
         snaps.index.push_str(&format!("{step},{:e},{file}\n", sim.time));
         output::write_atomic(&dir.join("snapshots/index.csv"), snaps.index.as_bytes())?;
     }
@@ -460,7 +460,8 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
 
     let times =
         SummaryTimes { wall: before.wall_s + wall.elapsed().as_secs_f64(), setup: setup_s, continuum: continuum_s, output: output_s };
-    let direct_json = direct.as_ref().map(|d| d.json.clone()).or(film.as_ref().map(|f| f.json())).or_else(|| heat_series_errors(loaded, &sim));
+    let direct_json =
+        direct.as_ref().map(|d| d.json.clone()).or(film.as_ref().map(|f| f.json())).or_else(|| heat_series_errors(loaded, &sim));
     if let Some(f) = &film {
         tracing::info!("{}", f.log_line());
     }

@@ -190,7 +190,13 @@ impl Scene {
             let cond = match (f.value, f.flux) {
                 (Some(v), None) if v.is_finite() => FaceCondition::Dirichlet(v),
                 (None, Some(j)) if j.is_finite() => FaceCondition::Flux(j),
-                _ => return Err(loc.err(&key, format!("{f:?}"), "give exactly one finite `value` (Dirichlet) or `flux` (into the body, per unit area per second)")),
+                _ => {
+                    return Err(loc.err(
+                        &key,
+                        format!("{f:?}"),
+                        "give exactly one finite `value` (Dirichlet) or `flux` (into the body, per unit area per second)",
+                    ));
+                }
             };
             if k % 2 == 0 { faces[k / 2].0 = Some(cond) } else { faces[k / 2].1 = Some(cond) }
         }
@@ -388,7 +394,11 @@ impl Scene {
                 finite_positive(loc, &k("material.shear_modulus"), m.shear_modulus, "the shear modulus (Pa)")?;
                 finite_positive(loc, &k("material.yield_stress"), m.yield_stress, "the yield stress (Pa)")?;
                 if !(m.hardening_modulus.is_finite() && m.hardening_modulus >= 0.0) {
-                    return Err(loc.err(&k("material.hardening_modulus"), m.hardening_modulus, "the hardening modulus (Pa) must be finite and >= 0 (0: perfect plasticity)"));
+                    return Err(loc.err(
+                        &k("material.hardening_modulus"),
+                        m.hardening_modulus,
+                        "the hardening modulus (Pa) must be finite and >= 0 (0: perfect plasticity)",
+                    ));
                 }
                 if !m.chemical_expansion.is_finite() {
                     return Err(loc.err(&k("material.chemical_expansion"), m.chemical_expansion, "must be a finite number"));
@@ -609,8 +619,18 @@ impl Scene {
             Some(Reference::ThinFilmLithiation(r)) => self.validate_thin_film(loc, &r).map(|_| None),
             Some(Reference::HeatSeries(_)) => {
                 let ok = self.domain.dimension == 1
-                    && self.diffusion.as_ref().is_some_and(|d| d.x_min.as_ref().is_some_and(|f| f.value.is_some()) && d.x_max.as_ref().is_some_and(|f| f.value.is_some()));
-                if ok { Ok(None) } else { Err(loc.err("reference.solution", "\"heat-series\"", "needs a 1D scene with [diffusion] x_min = { value = .. } and x_max = { value = .. }")) }
+                    && self.diffusion.as_ref().is_some_and(|d| {
+                        d.x_min.as_ref().is_some_and(|f| f.value.is_some()) && d.x_max.as_ref().is_some_and(|f| f.value.is_some())
+                    });
+                if ok {
+                    Ok(None)
+                } else {
+                    Err(loc.err(
+                        "reference.solution",
+                        "\"heat-series\"",
+                        "needs a 1D scene with [diffusion] x_min = { value = .. } and x_max = { value = .. }",
+                    ))
+                }
             }
             Some(Reference::DirectMd(r)) => {
                 let file = self.validate_direct_md(loc, &r, base)?;
@@ -719,7 +739,10 @@ impl Scene {
             return Err(loc.err(
                 "reference.solution",
                 "\"thin-film-lithiation\"",
-                format!("needs a 1D scene along the film normal (the in-plane axes are held by the 1D kinematics); this one has dimension {}", self.domain.dimension),
+                format!(
+                    "needs a 1D scene along the film normal (the in-plane axes are held by the 1D kinematics); this one has dimension {}",
+                    self.domain.dimension
+                ),
             ));
         }
         let Some(b) = self.bodies.get(&r.body) else {
@@ -733,11 +756,19 @@ impl Scene {
             return Err(loc.err(
                 "reference.body",
                 format!("{:?}", r.body),
-                format!("the thin-film solution needs a hypoelastic-plastic body with a [lithiation]; this one is {}{}", b.material.law(), if b.lithiation.is_none() { " without lithiation" } else { "" }),
+                format!(
+                    "the thin-film solution needs a hypoelastic-plastic body with a [lithiation]; this one is {}{}",
+                    b.material.law(),
+                    if b.lithiation.is_none() { " without lithiation" } else { "" }
+                ),
             ));
         }
         if !matches!(self.boundary.x_min, FaceSpec::Named(FaceName::Fixed | FaceName::Reflective | FaceName::Roller)) {
-            return Err(loc.err("boundary.x_min", face_debug(&self.boundary.x_min), "the substrate face of a thin film must be fixed (or reflective)"));
+            return Err(loc.err(
+                "boundary.x_min",
+                face_debug(&self.boundary.x_min),
+                "the substrate face of a thin film must be fixed (or reflective)",
+            ));
         }
         Ok(())
     }
