@@ -688,6 +688,31 @@ end_time = 1e-12
     }
 
     #[test]
+    fn the_shipped_battery_scenes_resolve_and_the_diffusion_bound_is_named() {
+        let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+        let read = |f: &str| std::fs::read_to_string(base.join(f)).unwrap();
+        let heat = read("heat-1d.toml");
+        let l = parse("heat-1d.toml", &heat, &[], &base, "heat-1d").unwrap();
+        let d = l.resolved.diffusion.as_ref().unwrap();
+        assert!((d.bound - 1.25e-3).abs() < 1e-15, "h^2 / (2 K) = 1.25e-3 s, got {}", d.bound);
+        let sets = vec!["scheme.timestep=2e-3".to_string()];
+        let e = parse("heat-1d.toml", &heat, &sets, &base, "heat-1d").map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("corrected explicit diffusion bound dt <= J_min h0^2 / (2 d K) = 1.250000e-3 s"), "{e}");
+        // A pre-strained bar at J = 1.6 tightens it by 1.6 (h0 = h / J); one at J = 0.8 relaxes it.
+        let sets = vec!["bodies.bar.initial_strain=[0.6, 0.0, 0.0]".to_string(), "scheme.timestep=1e-3".to_string()];
+        let e = parse("heat-1d.toml", &heat, &sets, &base, "heat-1d").map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("= 7.812500e-4 s") && e.contains("J_max = 1.6"), "{e}");
+        let sets = vec!["bodies.bar.initial_strain=[-0.2, 0.0, 0.0]".to_string(), "scheme.timestep=1.5e-3".to_string()];
+        let l = parse("heat-1d.toml", &heat, &sets, &base, "heat-1d").unwrap();
+        assert!((l.resolved.diffusion.as_ref().unwrap().bound - 1.5625e-3).abs() < 1e-15);
+        let film = read("si-thin-film.toml");
+        let l = parse("si-thin-film.toml", &film, &[], &base, "si-thin-film").unwrap();
+        let Law::HypoelasticPlastic(law) = &l.resolved.bodies[0].law else { panic!("the film's law") };
+        assert_eq!(*law, continuum::silicon::ChemoPlastic::SILICON);
+        assert_eq!(l.resolved.bodies[0].lithiation, Some((0.0, 1.0e7)));
+    }
+
+    #[test]
     fn a_resolved_scene_has_typed_values_measured_lattices_and_point_counts() {
         let sets: Vec<String> = vec!["scheme.particles_per_cell=2".into()];
         let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");

@@ -201,7 +201,7 @@ impl Scene {
             if k % 2 == 0 { faces[k / 2].0 = Some(cond) } else { faces[k / 2].1 = Some(cond) }
         }
         let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
-        let j_max = self.bodies.values().map(|b| b.initial_strain.iter().map(|e| 1.0 + e).product::<f64>()).fold(1.0f64, f64::max);
+        let j_max = self.bodies.values().map(|b| b.initial_strain.iter().map(|e| 1.0 + e).product::<f64>()).fold(0.0f64, f64::max);
         let bound = continuum::diffusion::explicit_bound(h, dim, d.diffusivity, j_max);
         if dt > bound {
             // validate_scheme has filled both `cfl` and `timestep`: name the time step.
