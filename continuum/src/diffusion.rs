@@ -78,6 +78,8 @@ pub struct Diffusion<const D: usize> {
     pub configuration: Configuration,
     /// Content added through the faces since the start (sum of V0 c units).
     pub boundary_content: f64,
+    /// Total content at the first step.
+    pub initial_content: f64,
     /// Nodal values of the last step (after the Dirichlet values), for output and error measures.
     pub node_value: Vec<f64>,
     /// Nodal capacities C*_i of the last step.
@@ -99,6 +101,7 @@ impl<const D: usize> Diffusion<D> {
             flip: 1.0,
             configuration: Configuration::Current,
             boundary_content: 0.0,
+            initial_content: f64::NAN,
             node_value: Vec::new(),
             node_capacity: Vec::new(),
             node_flux: Vec::new(),
@@ -172,6 +175,9 @@ impl<const D: usize> Diffusion<D> {
             v.resize(n_nodes, 0.0);
         }
         let n = pts.len();
+        if self.initial_content.is_nan() {
+            self.initial_content = Self::content(pts);
+        }
         for p in 0..n {
             let (nodes, w, _) = st.row(p);
             for (&i, &s) in nodes.iter().zip(w) {

@@ -136,57 +136,68 @@ fn heat_table_6_1() {
     assert!(value.iter().all(|&e| e > 0.1) && value[2] > 0.95 * value[0], "value variant: flat boundary-layer error {value:?}");
 }
 
-/// B 7.1.2: c_t = c_xx on [0, 1], c(0) = 1, c(1) = 0, 2 points per cell, dt = 0.25 h^2, RMS of
-/// the relative error at t = 0.25 over h = 0.1 ... 0.01 (0.005 ... 0.001: ignored, heavy).
-fn convergence(hs: &[f64]) -> Vec<(f64, f64)> {
+/// B 7.1.2: c_t = c_xx on [0, 1], c(0) = 1, c(1) = 0, 2 points per cell, hats, rate Dirichlet,
+/// dt = 0.25 h^2, at t = 0.25. Returns per h: (h, the thesis's RMS of the relative error
+/// (7.14)-(7.15) over the points, the absolute RMS over the points, the absolute RMS at the
+/// nodes).
+fn convergence(hs: &[f64]) -> Vec<(f64, f64, f64, f64)> {
     hs.iter()
         .map(|&h| {
             let cells = (1.0 / h).round() as usize;
             let dt = 0.25 * h * h;
             let steps = (0.25 / dt).round() as usize;
-            let mut sim = heat_sim(
-                SchemeKind::Mpm,
-                cells,
-                2,
-                dt,
-                (Some(FaceCondition::Dirichlet(1.0)), Some(FaceCondition::Dirichlet(0.0))),
-                DirichletMode::Rate,
-                1.0,
-            );
+            let faces = (Some(FaceCondition::Dirichlet(1.0)), Some(FaceCondition::Dirichlet(0.0)));
+            let mut sim = heat_sim(SchemeKind::Mpm, cells, 2, dt, faces, DirichletMode::Rate, 1.0);
             for _ in 0..steps {
                 sim.step().expect("steps");
             }
             let t = sim.time;
+            let exact = |x: f64| heat_series(x, t, 1.0, 1.0, (0.0, 1.0, 0.0), 1000);
             let p = &sim.points;
-            let sum: f64 = p
-                .scalar
-                .iter()
-                .zip(&p.x)
-                .map(|(c, x)| {
-                    let exact = heat_series(x[0], t, 1.0, 1.0, (0.0, 1.0, 0.0), 1000);
-                    if exact == 0.0 { 0.0 } else { ((exact - c) / exact).powi(2) }
-                })
-                .sum();
-            (h, (sum / p.len() as f64).sqrt())
+            let (mut rel, mut abs) = (0.0, 0.0);
+            for (c, x) in p.scalar.iter().zip(&p.x) {
+                let e = exact(x[0]);
+                rel += if e == 0.0 { 0.0 } else { ((e - c) / e).powi(2) };
+                abs += (e - c).powi(2);
+            }
+            let d = sim.diffusion.as_ref().expect("diffusion");
+            let nodes: f64 =
+                d.node_value.iter().enumerate().map(|(i, c)| (c - exact(i as f64 * h)).powi(2)).sum::<f64>() / d.node_value.len() as f64;
+            let n = p.len() as f64;
+            (h, (rel / n).sqrt(), (abs / n).sqrt(), nodes.sqrt())
         })
         .collect()
 }
 
+fn orders(e: &[(f64, f64, f64, f64)], pick: impl Fn(&(f64, f64, f64, f64)) -> f64) -> Vec<f64> {
+    e.windows(2).map(|w| (pick(&w[0]) / pick(&w[1])).ln() / (w[0].0 / w[1].0).ln()).collect()
+}
+
+/// Measured (h = 0.1, 0.05, 0.02, 0.01): the thesis's relative RMS converges at order 0.5 only
+/// (it reports O(h)): FLIP leaves an O(h) error on the points next to a Dirichlet face, and
+/// at x = 1, where c vanishes, that is an O(1) relative error on a fraction h of the points.
+/// The absolute error over the points converges at 1.5 (an O(h) error on O(1) points of N ~ 1/h)
+/// and the nodes at 2 (the 3-point scheme the nodal update is for stationary hats); measured
+/// orders 0.48-0.50, 1.50-1.51, 1.96-1.99. The assertions pin them.
 #[test]
 fn diffusion_converges_at_t_0_25() {
     let e = convergence(&[0.1, 0.05, 0.02, 0.01]);
-    let orders: Vec<f64> = e.windows(2).map(|w| (w[0].1 / w[1].1).ln() / (w[0].0 / w[1].0).ln()).collect();
-    eprintln!("relative RMS error at t = 0.25: {e:?}, orders {orders:.3?}");
-    assert!(orders.iter().all(|&o| o >= 0.9), "order >= 0.9: {orders:?}");
+    let (rel, abs, nodes) = (orders(&e, |r| r.1), orders(&e, |r| r.2), orders(&e, |r| r.3));
+    eprintln!(
+        "t = 0.25 errors (h, relative RMS, absolute RMS, nodes): {e:?}\norders: relative {rel:.3?}, absolute {abs:.3?}, nodes {nodes:.3?}"
+    );
+    assert!(rel.iter().all(|&o| (0.4..0.6).contains(&o)), "relative RMS order about 0.5: {rel:?}");
+    assert!(abs.iter().all(|&o| o >= 1.4), "absolute RMS order about 1.5: {abs:?}");
+    assert!(nodes.iter().all(|&o| o >= 1.9), "nodal RMS order about 2: {nodes:?}");
 }
 
 #[test]
 #[ignore = "heavy: h down to 0.001 is 2000 points x 1e6 steps"]
 fn diffusion_converges_at_t_0_25_full_range() {
     let e = convergence(&[0.1, 0.05, 0.02, 0.01, 0.005, 0.002, 0.001]);
-    let orders: Vec<f64> = e.windows(2).map(|w| (w[0].1 / w[1].1).ln() / (w[0].0 / w[1].0).ln()).collect();
-    eprintln!("relative RMS error at t = 0.25: {e:?}, orders {orders:.3?}");
-    assert!(orders.iter().all(|&o| o >= 0.9), "order >= 0.9: {orders:?}");
+    let (rel, abs, nodes) = (orders(&e, |r| r.1), orders(&e, |r| r.2), orders(&e, |r| r.3));
+    eprintln!("t = 0.25 errors: {e:?}\norders: relative {rel:.3?}, absolute {abs:.3?}, nodes {nodes:.3?}");
+    assert!(abs.iter().all(|&o| o >= 0.9), "absolute RMS order >= 0.9: {abs:?}");
 }
 
 /// C.3 corrected: a bar pre-strained to J, reference form, hats, 2 symmetric points per cell,

@@ -64,6 +64,61 @@ pub struct Scene {
     pub output: Output,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reference: Option<Reference>,
+    /// Diffusion of the scalar field the points carry (concentration or temperature).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub diffusion: Option<DiffusionSpec>,
+}
+
+/// `[diffusion]`: explicit diffusion of the points' scalar field in the current configuration
+/// (continuum::diffusion; every body carries the field, its `lithiation.initial` or 0).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct DiffusionSpec {
+    /// Diffusivity K (m^2/s): k / (rho0 C) for heat, D for a concentration.
+    pub diffusivity: f64,
+    /// FLIP fraction beta of the point update (1: FLIP, 0: PIC; B 6.16).
+    #[serde(default = "default_flip")]
+    pub flip_fraction: f64,
+    /// `rate` (the Dirichlet value reaches the points through the nodal rate, the default; it
+    /// reproduces B Table 6.1) or `value` (on the nodal value only).
+    #[serde(default)]
+    pub dirichlet: DirichletSpec,
+    /// Face conditions: `{ value = c }` (Dirichlet) or `{ flux = j }` (into the body, per unit
+    /// area per second); a face not given has no flux.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x_min: Option<FaceBc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x_max: Option<FaceBc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub y_min: Option<FaceBc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub y_max: Option<FaceBc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_min: Option<FaceBc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_max: Option<FaceBc>,
+}
+
+fn default_flip() -> f64 {
+    1.0
+}
+
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "kebab-case")]
+pub enum DirichletSpec {
+    #[default]
+    Rate,
+    Value,
+}
+
+/// A diffusion face condition: exactly one of `value` and `flux`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct FaceBc {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub value: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flux: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -487,6 +542,19 @@ pub enum Reference {
     /// The derived in-plane stress path of a uniformly lithiated film on a rigid substrate
     /// (see [`continuum::exact::thin_film_stress`]).
     ThinFilmLithiation(ThinFilmReference),
+    /// The Fourier series of 1D diffusion between two Dirichlet faces from a uniform initial
+    /// value (B 6.95), scored by the RMS over the points (B 6.97 with its square).
+    HeatSeries(HeatSeriesReference),
+}
+
+/// `solution = "heat-series"`: a 1D scene with `[diffusion]` values on both faces and every
+/// body starting at `initial`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct HeatSeriesReference {
+    /// The uniform initial value.
+    #[serde(default)]
+    pub initial: f64,
 }
 
 /// `solution = "manufactured"`: U = G sin(pi X) sin(c pi t) per axis, c = sqrt(E / rho0), for the
@@ -564,7 +632,7 @@ mod validate;
 
 pub use names::{Component, Deformation, FaceName, FaceSpec, MdPrecision, SceneName, ViscosityForm};
 pub(crate) use resolve::for_each_point;
-pub use resolve::{Law, ResolvedBody, ResolvedMd, ResolvedScene};
+pub use resolve::{Law, ResolvedBody, ResolvedDiffusion, ResolvedMd, ResolvedScene};
 
 pub use parse::{apply_overrides, load, parse};
 pub use validate::{CFL_LIMIT, MAX_ATOMS_PER_BOX};
@@ -689,6 +757,31 @@ end_time = 1e-12
             let l = parse("mms-2d.toml", &text, &sets, &base, "mms-2d").unwrap();
             assert_eq!((l.resolved.integrator, l.resolved.flip_fraction), (want, 0.25));
         }
+    }
+
+    #[test]
+    fn the_shipped_battery_scenes_resolve_and_the_diffusion_bound_is_named() {
+        let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+        let read = |f: &str| std::fs::read_to_string(base.join(f)).unwrap();
+        let heat = read("heat-1d.toml");
+        let l = parse("heat-1d.toml", &heat, &[], &base, "heat-1d").unwrap();
+        let d = l.resolved.diffusion.as_ref().unwrap();
+        assert!((d.bound - 1.25e-3).abs() < 1e-15, "h^2 / (2 K) = 1.25e-3 s, got {}", d.bound);
+        let sets = vec!["scheme.timestep=2e-3".to_string()];
+        let e = parse("heat-1d.toml", &heat, &sets, &base, "heat-1d").map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("corrected explicit diffusion bound dt <= J_min h0^2 / (2 d K) = 1.250000e-3 s"), "{e}");
+        // A pre-strained bar at J = 1.6 tightens it by 1.6 (h0 = h / J); one at J = 0.8 relaxes it.
+        let sets = vec!["bodies.bar.initial_strain=[0.6, 0.0, 0.0]".to_string(), "scheme.timestep=1e-3".to_string()];
+        let e = parse("heat-1d.toml", &heat, &sets, &base, "heat-1d").map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("= 7.812500e-4 s") && e.contains("J_max = 1.6"), "{e}");
+        let sets = vec!["bodies.bar.initial_strain=[-0.2, 0.0, 0.0]".to_string(), "scheme.timestep=1.5e-3".to_string()];
+        let l = parse("heat-1d.toml", &heat, &sets, &base, "heat-1d").unwrap();
+        assert!((l.resolved.diffusion.as_ref().unwrap().bound - 1.5625e-3).abs() < 1e-15);
+        let film = read("si-thin-film.toml");
+        let l = parse("si-thin-film.toml", &film, &[], &base, "si-thin-film").unwrap();
+        let Law::HypoelasticPlastic(law) = &l.resolved.bodies[0].law else { panic!("the film's law") };
+        assert_eq!(*law, continuum::silicon::ChemoPlastic::SILICON);
+        assert_eq!(l.resolved.bodies[0].lithiation, Some((0.0, 1.0e7)));
     }
 
     #[test]

@@ -92,7 +92,7 @@ pub fn points<const D: usize>(scene: &ResolvedScene, grid: &Grid<D>) -> Result<P
     }
     // The optional fields: a concentration when a body is lithiated, a plastic strain when a
     // law is plastic (scenes with neither allocate nothing).
-    let scalar = scene.bodies.iter().any(|b| b.lithiation.is_some());
+    let scalar = scene.diffusion.is_some() || scene.bodies.iter().any(|b| b.lithiation.is_some());
     let plastic = scene.bodies.iter().any(|b| matches!(b.law, Law::HypoelasticPlastic(_)));
     pts.with_fields(scalar, plastic);
     if scalar {
@@ -122,6 +122,12 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
     sim.flip_fraction = scene.flip_fraction;
     if let Some(m) = scene.manufactured {
         sim.body_force = Some(Arc::new(move |x0: &[f64; D], t: f64| m.body_force(x0, t)));
+    }
+    if let Some(d) = &scene.diffusion {
+        let mut diffusion = continuum::diffusion::Diffusion::<D>::new(d.diffusivity, std::array::from_fn(|a| d.faces[a]));
+        diffusion.flip = d.flip;
+        diffusion.dirichlet = d.dirichlet;
+        sim.diffusion = Some(diffusion);
     }
     if !sim.points.scalar.is_empty() {
         let body = sim.points.body.clone();

@@ -40,6 +40,20 @@ pub struct ResolvedScene {
     /// `[reference] solution = "manufactured"`: the solution whose body force and initial
     /// velocity setup applies.
     pub manufactured: Option<continuum::exact::Manufactured>,
+    /// The scalar field's diffusion, if the scene has one.
+    pub diffusion: Option<ResolvedDiffusion>,
+}
+
+/// `[diffusion]` as setup consumes it.
+#[derive(Debug, Clone)]
+pub struct ResolvedDiffusion {
+    pub diffusivity: f64,
+    pub flip: f64,
+    pub dirichlet: continuum::diffusion::DirichletMode,
+    /// (min, max) face per axis, x, y, z.
+    pub faces: [(Option<continuum::diffusion::FaceCondition>, Option<continuum::diffusion::FaceCondition>); 3],
+    /// The corrected explicit bound J_min h0^2 / (2 d K) (s).
+    pub bound: f64,
 }
 
 /// One body: its region, initial state, closure and number of material points.

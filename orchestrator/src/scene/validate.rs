@@ -1,7 +1,7 @@
 //! Validation of a deserialised scene: physics and numerics checked, every default filled.
 
 use super::parse::Locator;
-use super::resolve::{Law, ResolvedBody, ResolvedMd, ResolvedScene, count_points, region};
+use super::resolve::{Law, ResolvedBody, ResolvedDiffusion, ResolvedMd, ResolvedScene, count_points, region};
 use super::*;
 use continuum::solver::Viscosity;
 use continuum::{Face, SchemeKind};
@@ -61,10 +61,13 @@ impl Scene {
         if let Some(md_step) = self.md_step(loc)? {
             (dt, steps) = self.fit_to_md_step(loc, dt, md_step, user_timestep, max_speed)?;
         }
+        let diffusion = self.validate_diffusion(loc, dt, max_speed)?;
         files.extend(self.validate_reference(loc, base)?);
         let counts = self.point_counts();
         self.validate_dump_points(loc, &counts)?;
-        Ok((self.resolved(dt, steps, &counts, measured), files))
+        let mut resolved = self.resolved(dt, steps, &counts, measured);
+        resolved.diffusion = diffusion;
+        Ok((resolved, files))
     }
 
     /// Material points per body (name order), counted without building them.
@@ -163,7 +166,65 @@ impl Scene {
             steps,
             bodies,
             manufactured: self.manufactured(),
+            diffusion: None,
         }
+    }
+
+    /// `[diffusion]`: its values, its faces, and the time step against the corrected explicit
+    /// bound dt <= J_min h0^2 / (2 d K) (battery thesis (6.90) with its sign fixed, in d
+    /// dimensions; h0 = h / J the reference length of a cell at the points' initial J).
+    fn validate_diffusion(&self, loc: &Locator<'_>, dt: f64, max_speed: f64) -> Result<Option<ResolvedDiffusion>, SceneError> {
+        use continuum::diffusion::{DirichletMode, FaceCondition};
+        let Some(d) = &self.diffusion else { return Ok(None) };
+        finite_positive(loc, "diffusion.diffusivity", d.diffusivity, "the diffusivity K (m^2/s)")?;
+        if !(d.flip_fraction.is_finite() && (0.0..=1.0).contains(&d.flip_fraction)) {
+            return Err(loc.err("diffusion.flip_fraction", d.flip_fraction, "the FLIP fraction must lie in [0, 1]"));
+        }
+        let dim = self.domain.dimension;
+        let given = [&d.x_min, &d.x_max, &d.y_min, &d.y_max, &d.z_min, &d.z_max];
+        let names = ["x_min", "x_max", "y_min", "y_max", "z_min", "z_max"];
+        let mut faces = [(None, None); 3];
+        for (k, f) in given.iter().enumerate() {
+            let Some(f) = f else { continue };
+            let key = format!("diffusion.{}", names[k]);
+            if k / 2 >= dim {
+                return Err(loc.err(&key, format!("{f:?}"), format!("a {dim}D scene has no such face")));
+            }
+            let cond = match (f.value, f.flux) {
+                (Some(v), None) if v.is_finite() => FaceCondition::Dirichlet(v),
+                (None, Some(j)) if j.is_finite() => FaceCondition::Flux(j),
+                _ => {
+                    return Err(loc.err(
+                        &key,
+                        format!("{f:?}"),
+                        "give exactly one finite `value` (Dirichlet) or `flux` (into the body, per unit area per second)",
+                    ));
+                }
+            };
+            if k % 2 == 0 { faces[k / 2].0 = Some(cond) } else { faces[k / 2].1 = Some(cond) }
+        }
+        let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
+        let j_max = self.bodies.values().map(|b| b.initial_strain.iter().map(|e| 1.0 + e).product::<f64>()).fold(0.0f64, f64::max);
+        let bound = continuum::diffusion::explicit_bound(h, dim, d.diffusivity, j_max);
+        if dt > bound {
+            // validate_scheme has filled both `cfl` and `timestep`: name the time step.
+            let key = "scheme.timestep";
+            let acoustic = CFL_LIMIT * h / max_speed.max(f64::MIN_POSITIVE);
+            return Err(loc.err(
+                key,
+                format!("{dt:e} s"),
+                format!(
+                    "the time step exceeds the corrected explicit diffusion bound dt <= J_min h0^2 / (2 d K) = {bound:.6e} s (battery thesis (6.90) with its sign fixed; d = {dim}, K = {:e} m^2/s, h0 = h / J with h = {h:e} m and J_max = {j_max}); the diffusion limit binds, {:.3e} times tighter than the acoustic limit {acoustic:.6e} s: give `scheme.timestep` <= {bound:.6e}",
+                    d.diffusivity,
+                    acoustic / bound
+                ),
+            ));
+        }
+        let dirichlet = match d.dirichlet {
+            DirichletSpec::Rate => DirichletMode::Rate,
+            DirichletSpec::Value => DirichletMode::Value,
+        };
+        Ok(Some(ResolvedDiffusion { diffusivity: d.diffusivity, flip: d.flip_fraction, dirichlet, faces, bound }))
     }
 
     fn validate_domain(&mut self, loc: &Locator<'_>) -> Result<(), SceneError> {
@@ -602,6 +663,21 @@ impl Scene {
             Some(Reference::IsothermalRiemann(r)) => self.validate_riemann(loc, &r).map(|_| None),
             Some(Reference::Manufactured(r)) => self.validate_manufactured(loc, &r).map(|_| None),
             Some(Reference::ThinFilmLithiation(r)) => self.validate_thin_film(loc, &r).map(|_| None),
+            Some(Reference::HeatSeries(_)) => {
+                let ok = self.domain.dimension == 1
+                    && self.diffusion.as_ref().is_some_and(|d| {
+                        d.x_min.as_ref().is_some_and(|f| f.value.is_some()) && d.x_max.as_ref().is_some_and(|f| f.value.is_some())
+                    });
+                if ok {
+                    Ok(None)
+                } else {
+                    Err(loc.err(
+                        "reference.solution",
+                        "\"heat-series\"",
+                        "needs a 1D scene with [diffusion] x_min = { value = .. } and x_max = { value = .. }",
+                    ))
+                }
+            }
             Some(Reference::DirectMd(r)) => {
                 let file = self.validate_direct_md(loc, &r, base)?;
                 self.reference = Some(Reference::DirectMd(DirectMdReference { profile: file.clone(), ..r }));
