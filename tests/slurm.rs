@@ -3,7 +3,7 @@
 //!
 //! - `deploy/slurm/mscale-cluster.sbatch`, submitted with sbatch as it is (its #SBATCH lines
 //!   are the allocation): the orchestrator as one job step, two worker pools as MPI job steps
-//!   (`srun --mpi=pmi2`), a scene submitted and watched to its end; the digest it fetched is
+//!   (`srun --mpi=pmix`), a scene submitted and watched to its end; the digest it fetched is
 //!   the one `mscale run` gives in one process.
 //! - A second allocation: one worker step is killed mid-job (`scancel --signal=KILL JOB.STEP`),
 //!   and the job still ends with the undisturbed digest (the survivor takes the lost boxes).
@@ -14,7 +14,7 @@
 //!
 //! Ignored unless `MSCALE_REQUIRE_SLURM=1` at build time (tests/build.rs); then they run and
 //! fail when Slurm is missing. `MSCALE_MPI_WORKER` (an md-worker built with `--features mpi`)
-//! makes the pools' md-worker that one, so each step is an MPI program under srun's PMI-2.
+//! makes the pools' md-worker that one, so each step is an MPI program under srun's PMIx.
 
 // A panic is how these tests report a failure, also in their helper functions.
 #![allow(clippy::unwrap_used)]
@@ -135,21 +135,18 @@ impl Site {
 
     fn wait_for_checkpoint(&self, job: &str, slurm_job: &str) {
         let dir = self.state.join("jobs").join(job).join("run/checkpoints");
-        let start = Instant::now();
-        while std::fs::read_dir(&dir)
-            .map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".ckpt")).count())
-            .unwrap_or(0)
-            == 0
-        {
-            assert!(start.elapsed() < Duration::from_secs(240), "no checkpoint of job {job}:\n{}", self.output(slurm_job));
-            std::thread::sleep(Duration::from_millis(10));
-        }
+        let mut polls = 0u32;
+        wait_for_ckpt(&dir, || {
+            polls += 1;
+            // The allocation ended (the job failed, say): no checkpoint will come.
+            let ended = polls.is_multiple_of(50) && is_final(&job_state(slurm_job));
+            ended.then(|| self.output(slurm_job))
+        });
     }
 
     /// Waits for a checkpoint of a job of a local orchestrator.
-    fn wait_for_checkpoint_local(&self, job: &str, server: &mscale_tests::Listening) {
-        let dir = self.state.join("jobs").join(job).join("run/checkpoints");
-        wait_for_ckpt(&dir, || server.proc.log());
+    fn wait_for_checkpoint_local(&self, job: &str) {
+        wait_for_ckpt(&self.state.join("jobs").join(job).join("run/checkpoints"), || None);
     }
 
     /// The state_digest of the summary the cluster script fetched for `job`.
@@ -158,12 +155,16 @@ impl Site {
     }
 }
 
-fn wait_for_ckpt(dir: &Path, log: impl Fn() -> String) {
+/// Waits for a checkpoint file in `dir`; `gone` says (with a log) when none can come any more.
+fn wait_for_ckpt(dir: &Path, mut gone: impl FnMut() -> Option<String>) {
     let start = Instant::now();
-    while std::fs::read_dir(dir).map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".ckpt")).count()).unwrap_or(0)
-        == 0
-    {
-        assert!(start.elapsed() < Duration::from_secs(240), "no checkpoint in {}:\n{}", dir.display(), log());
+    let count =
+        || std::fs::read_dir(dir).map(|d| d.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".ckpt")).count()).unwrap_or(0);
+    while count() == 0 {
+        if let Some(log) = gone() {
+            panic!("no checkpoint in {} and none will come:\n{log}", dir.display());
+        }
+        assert!(start.elapsed() < Duration::from_secs(240), "no checkpoint in {} after 240 s", dir.display());
         std::thread::sleep(Duration::from_millis(10));
     }
 }
@@ -280,9 +281,10 @@ fn the_cluster_sbatch_runs_a_job_survives_a_killed_worker_step_and_resumes_after
     assert!(!site.state.join("results").join(&job).exists(), "the job ended before scancel; make LONGER longer");
     let mut env = ports(&site);
     env.push(("MSCALE_JOB", job.clone()));
-    env.push(("MSCALE_MIN_WORKERS", "1".into()));
+    // Its script waits for two live workers: its own pool and the md-workers.sbatch one.
+    env.push(("MSCALE_MIN_WORKERS", "2".into()));
     let d = site.sbatch(&["--ntasks-per-node=1"], script, &[], &env);
-    let out = site.wait_output(&d, "worker pools live", Duration::from_secs(240));
+    let out = site.wait_output(&d, "mscale serve: listening on", Duration::from_secs(240));
     let server = format!("https://{}:{}", hostname(), env[0].1);
     let ca = site.state.join(format!("tls-{d}/ca.crt"));
     let mut more = vec![
@@ -296,6 +298,7 @@ fn the_cluster_sbatch_runs_a_job_survives_a_killed_worker_step_and_resumes_after
     let out = format!("{out}\n{}", site.output(&d));
     assert_eq!(state, "COMPLETED exit 0:0", "{out}");
     assert!(out.contains(&format!("watching job {job}")) && out.contains("resuming from its last checkpoint"), "{out}");
+    assert!(out.contains("mscale-cluster: 2 of 2 worker pools live"), "the md-workers.sbatch pool did not join: {out}");
     assert_eq!(site.fetched_digest(&job), straight, "{out}");
     // The md-workers.sbatch pool ran (its health check and its worker's listening line).
     let workers = site.output(&e);
@@ -390,7 +393,7 @@ fn pools_launched_through_slurm_run_a_job_survive_a_cancelled_pool_and_are_relea
         assert!(o.status.success(), "{}", mscale_tests::text(&o));
         String::from_utf8_lossy(&o.stdout).trim().to_string()
     };
-    site.wait_for_checkpoint_local(&client_job, &server);
+    site.wait_for_checkpoint_local(&client_job);
     ok(Command::new("scancel").arg(&a));
     let o = mscale(&["watch", &client_job], &addr, &token);
     assert!(o.status.success(), "{}\n{}", mscale_tests::text(&o), server.proc.log());

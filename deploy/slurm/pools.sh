@@ -15,13 +15,15 @@
 # (`mpi` is accepted as another name of `cpu`.) Each worker registers under NODE:PORT and
 # heartbeats; the orchestrator spreads a job's boxes over the registered workers in proportion
 # to their throughput. Reads MSCALE_CA_FILE (the orchestrator's TLS authority), MSCALE_BIN (the
-# directory of md-worker), MSCALE_WORKER_PORT (default 50051), MSCALE_SRUN_MPI (default pmi2),
+# directory of md-worker), MSCALE_WORKER_PORT (default 50051), MSCALE_SRUN_MPI (default pmix;
+# Debian's Open MPI speaks PMIx to srun and has no Slurm PMI-2 client, pmi2 suits MPI libraries built
+# with Slurm's PMI-2 such as MPICH),
 # GPUS_PER_NODE (default: from SLURM_GPUS_PER_NODE).
 
 start_pools() {
   local url="$1" token_file="$2"
   shift 2
-  local base="${MSCALE_WORKER_PORT:-50051}" mpi="${MSCALE_SRUN_MPI:-pmi2}" node k port
+  local base="${MSCALE_WORKER_PORT:-50051}" mpi="${MSCALE_SRUN_MPI:-pmix}" node k port
   local gpus="${GPUS_PER_NODE:-${SLURM_GPUS_PER_NODE:-0}}"
   gpus="${gpus##*:}"
   local kind="${MSCALE_POOL:-}"

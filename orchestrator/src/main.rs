@@ -81,6 +81,11 @@ enum Command {
         http: Option<String>,
         #[command(flatten)]
         access: Access,
+        /// The workers the state directory knows from an earlier run are gone (they ran in a
+        /// batch allocation that ended): declare them lost at start, before any job resumes,
+        /// instead of waiting out their heartbeat timeout.
+        #[arg(long)]
+        forget_workers: bool,
     },
     /// List the workers registered with a running `mscale serve`; launch and release worker
     /// pools through Slurm.
@@ -264,7 +269,7 @@ enum WorkersCommand {
         #[arg(long, value_name = "T")]
         time: Option<String>,
         /// srun --mpi plugin of the worker steps.
-        #[arg(long, value_name = "PLUGIN", default_value = "pmi2")]
+        #[arg(long, value_name = "PLUGIN", default_value = "pmix")]
         mpi: String,
         /// The md-worker program, on a path every node sees (default: the one next to mscale).
         #[arg(long, value_name = "PATH")]
@@ -364,8 +369,10 @@ fn dispatch(cli: Cli) -> i32 {
             step_deadline,
             http,
             access,
+            forget_workers,
         } => {
-            let pool = orchestrator::service::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline };
+            let pool =
+                orchestrator::service::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline, forget_workers };
             report(orchestrator::service::serve_command(
                 state,
                 listen,

@@ -107,6 +107,8 @@ pub struct ServeOptions {
     pub step_deadline: md_worker::recovery::StepDeadline,
     /// Where to serve the dashboard and `/metrics` (`--http`), over TLS when `tls` is set.
     pub http: Option<String>,
+    /// Workers the store knows from an earlier run are lost at start (`--forget-workers`).
+    pub forget_workers: bool,
 }
 
 /// Who may call `mscale serve`, and the per-user limits.
@@ -131,6 +133,8 @@ pub struct PoolOptions {
     pub worker_timeout_s: f64,
     /// Bound on each call to a worker (`--step-deadline`).
     pub step_deadline: md_worker::recovery::StepDeadline,
+    /// `--forget-workers`: the workers of an earlier run are gone (a new Slurm allocation).
+    pub forget_workers: bool,
 }
 
 /// `mscale serve`: reads the token (generating one into the state directory when no file is
@@ -184,6 +188,7 @@ pub fn serve_command(
         worker_timeout: Duration::from_secs_f64(pool.worker_timeout_s),
         step_deadline: pool.step_deadline,
         http,
+        forget_workers: pool.forget_workers,
     })?;
     Ok(crate::exit::OK)
 }
@@ -211,7 +216,15 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
     for id in store.requeue_interrupted()? {
         tracing::info!("job {id} was running when the orchestrator stopped: queued again, resumes from its last checkpoint");
     }
-    let registry = Registry::load(&store, opts.worker_timeout)?;
+    let mut registry = Registry::load(&store, opts.worker_timeout)?;
+    if opts.forget_workers {
+        // Before any job resumes: a job must not be handed to workers that ended with the
+        // allocation of the previous orchestrator.
+        let known: Vec<u64> = registry.list().iter().map(|v| v.record.epoch).collect();
+        for epoch in known {
+            registry.declare_lost(&mut store, epoch, "from an earlier run of the orchestrator (--forget-workers)")?;
+        }
+    }
     let users = match &opts.access.users_file {
         Some(file) => {
             let token = auth::random_token()?;
