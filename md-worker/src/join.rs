@@ -40,6 +40,13 @@ pub struct JoinArgs {
     /// Reach the orchestrator over TLS, trusting this PEM certificate authority.
     #[arg(long, value_name = "PEM", requires = "orchestrator")]
     pub ca_file: Option<PathBuf>,
+    /// Present this PEM client certificate to the orchestrator (mutual TLS: `mscale serve
+    /// --tls-client-ca`); needs --ca-file and --client-key.
+    #[arg(long, value_name = "PEM", requires_all = ["ca_file", "client_key"])]
+    pub client_cert: Option<PathBuf>,
+    /// PEM private key of --client-cert.
+    #[arg(long, value_name = "PEM", requires = "client_cert")]
+    pub client_key: Option<PathBuf>,
     /// Seconds between heartbeats (at most a third of the orchestrator's worker timeout is used).
     #[arg(long, value_name = "SECONDS", default_value_t = 2.0)]
     pub heartbeat_every: f64,
@@ -136,11 +143,12 @@ impl Join {
             "--heartbeat-every {} must be a positive number of seconds",
             args.heartbeat_every
         );
-        let ca = args
-            .ca_file
-            .as_ref()
-            .map(|f| std::fs::read(f).with_context(|| format!("cannot read the CA file {}", f.display())))
-            .transpose()?;
+        let read = |f: &PathBuf, what: &str| std::fs::read(f).with_context(|| format!("cannot read the {what} {}", f.display()));
+        let identity = match (&args.client_cert, &args.client_key) {
+            (Some(c), Some(k)) => Some((read(c, "client certificate")?, read(k, "client key")?)),
+            _ => None,
+        };
+        let ca = args.ca_file.as_ref().map(|f| read(f, "CA file")).transpose()?.map(|ca| (ca, identity));
         let (configured, heartbeat) = (args.throughput, Duration::from_secs_f64(args.heartbeat_every));
         if let Some(t) = configured {
             anyhow::ensure!(t.is_finite() && t > 0.0, "--throughput {t} must be a positive number of atom-steps per second");
@@ -185,15 +193,20 @@ fn fatal(s: &tonic::Status) -> bool {
     matches!(s.code(), Code::FailedPrecondition | Code::Unauthenticated | Code::InvalidArgument | Code::PermissionDenied)
 }
 
-async fn connect(url: &str, ca: Option<&[u8]>) -> Result<OrchestratorClient<tonic::transport::Channel>> {
+/// The authority to trust and the client identity (certificate, key) to present, PEM.
+type TlsFiles = (Vec<u8>, Option<(Vec<u8>, Vec<u8>)>);
+
+async fn connect(url: &str, tls: Option<&TlsFiles>) -> Result<OrchestratorClient<tonic::transport::Channel>> {
     let mut ep = tonic::transport::Endpoint::from_shared(url.to_string())
         .with_context(|| format!("bad orchestrator URL {url:?}"))?
         .connect_timeout(Duration::from_secs(5))
         .timeout(Duration::from_secs(10));
-    if let Some(pem) = ca {
-        ep = ep
-            .tls_config(tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(pem)))
-            .context("bad TLS settings")?;
+    if let Some((pem, identity)) = tls {
+        let mut config = tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(pem));
+        if let Some((cert, key)) = identity {
+            config = config.identity(tonic::transport::Identity::from_pem(cert, key));
+        }
+        ep = ep.tls_config(config).context("bad TLS settings")?;
     }
     Ok(OrchestratorClient::new(ep.connect_lazy()))
 }
@@ -203,7 +216,7 @@ async fn member(
     url: String,
     address: String,
     token: String,
-    ca: Option<Vec<u8>>,
+    ca: Option<TlsFiles>,
     configured: Option<f64>,
     heartbeat: Duration,
     kind: WorkerKind,
@@ -218,7 +231,7 @@ async fn member(
         }
     };
     tracing::info!("throughput {atom_steps_per_s:.3e} atom-steps/s ({source})");
-    let mut client = connect(&url, ca.as_deref()).await?;
+    let mut client = connect(&url, ca.as_ref()).await?;
     let cores = kind.threads.as_ref().map_or_else(rayon::current_num_threads, |p| p.current_num_threads()) as u32;
     let register = pb::RegisterWorkerRequest {
         address: address.clone(),

@@ -47,9 +47,12 @@ impl Client {
         let mut endpoint = tonic::transport::Endpoint::from_shared(url.clone())?.connect_timeout(std::time::Duration::from_secs(10));
         if let Some(ca) = ca {
             let pem = std::fs::read(ca).with_context(|| format!("cannot read the CA file {}", ca.display()))?;
-            endpoint = endpoint
-                .tls_config(tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(pem)))
-                .context("bad TLS settings")?;
+            let mut config = tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(pem));
+            if let Some((cert, key)) = CLIENT_IDENTITY.get() {
+                let read = |p: &Path| std::fs::read(p).with_context(|| format!("cannot read {}", p.display()));
+                config = config.identity(tonic::transport::Identity::from_pem(read(cert)?, read(key)?));
+            }
+            endpoint = endpoint.tls_config(config).context("bad TLS settings")?;
         }
         let channel = rt.block_on(endpoint.connect()).with_context(|| format!("cannot reach the orchestrator at {server}"))?;
         let inner = OrchestratorClient::new(channel.clone()).max_decoding_message_size(MAX_MESSAGE).max_encoding_message_size(MAX_MESSAGE);
@@ -418,6 +421,13 @@ pub fn is_final(ev: &pb::JobEvent) -> bool {
 // ---- the verbs, as `mscale` runs them (each returns its exit code) ----
 
 static CA_FILE: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+static CLIENT_IDENTITY: std::sync::OnceLock<(PathBuf, PathBuf)> = std::sync::OnceLock::new();
+
+/// Makes the client verbs present this PEM client certificate and key over TLS (mutual TLS,
+/// `mscale serve --tls-client-ca`; `--client-cert`/`--client-key`).
+pub fn use_client_identity(cert: PathBuf, key: PathBuf) {
+    let _ = CLIENT_IDENTITY.set((cert, key));
+}
 
 /// Makes the client verbs connect over TLS, trusting this PEM certificate authority
 /// (`--ca-file` or `MSCALE_CA_FILE`).

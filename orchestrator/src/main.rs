@@ -191,12 +191,17 @@ struct Access {
     /// Snapshots a job may write (`output.snapshots`; default: no limit).
     #[arg(long, value_name = "N")]
     max_snapshots: Option<u64>,
+    /// Mutual TLS: every client and worker must present a certificate signed by this PEM
+    /// authority (needs --tls-cert and --tls-key; local workers present the server's own).
+    #[arg(long, value_name = "PEM", requires = "tls_cert")]
+    tls_client_ca: Option<PathBuf>,
 }
 
 impl Access {
     fn options(self) -> orchestrator::service::AccessOptions {
         orchestrator::service::AccessOptions {
             users_file: self.users,
+            client_ca: self.tls_client_ca,
             limits: orchestrator::service::Limits {
                 max_jobs: self.max_jobs_per_user,
                 max_upload_bytes: self.max_upload_bytes,
@@ -229,6 +234,13 @@ struct Conn {
     /// Connect over TLS, trusting this PEM certificate authority.
     #[arg(long, value_name = "PEM", env = "MSCALE_CA_FILE")]
     ca_file: Option<PathBuf>,
+    /// Present this PEM client certificate (mutual TLS: `serve --tls-client-ca`); needs
+    /// --ca-file and --client-key.
+    #[arg(long, value_name = "PEM", env = "MSCALE_CLIENT_CERT", requires_all = ["ca_file", "client_key"])]
+    client_cert: Option<PathBuf>,
+    /// PEM private key of --client-cert.
+    #[arg(long, value_name = "PEM", env = "MSCALE_CLIENT_KEY", requires = "client_cert")]
+    client_key: Option<PathBuf>,
 }
 
 impl Conn {
@@ -236,6 +248,9 @@ impl Conn {
     fn ca(&self) -> anyhow::Result<()> {
         if let Some(ca) = &self.ca_file {
             orchestrator::client::use_ca_file(ca.clone());
+        }
+        if let (Some(c), Some(k)) = (&self.client_cert, &self.client_key) {
+            orchestrator::client::use_client_identity(c.clone(), k.clone());
         }
         Ok(())
     }

@@ -101,6 +101,10 @@ pub struct ServeOptions {
     pub token_file: PathBuf,
     /// What local workers trust to reach a TLS orchestrator (the certificate file).
     pub local_ca: Option<PathBuf>,
+    /// The client identity (certificate, key files) local workers present under mutual TLS.
+    pub local_identity: Option<(PathBuf, PathBuf)>,
+    /// PEM authority client certificates must be signed by (mutual TLS).
+    pub client_ca: Option<Vec<u8>>,
     /// A worker without a heartbeat for this long is declared lost.
     pub worker_timeout: Duration,
     /// Bound on each call to a worker.
@@ -117,6 +121,9 @@ pub struct AccessOptions {
     /// The users file (`--users`): users, roles, token hashes; read again on SIGHUP. None: the
     /// single-token mode.
     pub users_file: Option<PathBuf>,
+    /// Mutual TLS (`--tls-client-ca`): clients and workers must present a certificate signed
+    /// by this PEM authority.
+    pub client_ca: Option<PathBuf>,
     /// Limits of every user (`--max-jobs-per-user`, `--max-upload-bytes`, `--max-snapshots`)
     /// where the users file sets none.
     pub limits: auth::Limits,
@@ -168,6 +175,14 @@ pub fn serve_command(
         (None, None) => (auth::generated_token(&state)?, state.join("token")),
     };
     let local_ca = tls.as_ref().map(|t| t.0.clone());
+    if access.client_ca.is_some() && tls.is_none() {
+        bail!("--tls-client-ca needs --tls-cert and --tls-key: mutual TLS is TLS");
+    }
+    let local_identity = access.client_ca.as_ref().and(tls.clone());
+    let client_ca = match &access.client_ca {
+        Some(p) => Some(std::fs::read(p).with_context(|| format!("cannot read --tls-client-ca {}", p.display()))?),
+        None => None,
+    };
     let tls = match tls {
         Some((cert, key)) => {
             let read = |p: &Path| std::fs::read(p).with_context(|| format!("cannot read {}", p.display()));
@@ -185,6 +200,8 @@ pub fn serve_command(
         local_workers: pool.local_workers,
         token_file,
         local_ca,
+        local_identity,
+        client_ca,
         worker_timeout: Duration::from_secs_f64(pool.worker_timeout_s),
         step_deadline: pool.step_deadline,
         http,
@@ -257,6 +274,7 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         &format!("{scheme}://{bound}"),
         &opts.token_file,
         opts.local_ca.as_deref(),
+        opts.local_identity.as_ref(),
         &opts.state_dir.join("workers"),
     )?;
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("cannot start the gRPC runtime")?;
@@ -275,9 +293,11 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         let settings = mscale_proto::server::Settings { timeout: Some(Duration::from_secs(60)), ..Default::default() };
         let mut builder = mscale_proto::server::builder(&settings);
         if let Some((cert, key)) = &opts.tls {
-            builder = builder
-                .tls_config(tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key)))
-                .context("bad TLS certificate or key")?;
+            let mut config = tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key));
+            if let Some(ca) = &opts.client_ca {
+                config = config.client_ca_root(tonic::transport::Certificate::from_pem(ca)).client_auth_optional(false);
+            }
+            builder = builder.tls_config(config).context("bad TLS certificate or key")?;
         }
         let service = OrchestratorServer::new(api::JobService::new(core.clone()))
             .max_decoding_message_size(MAX_MESSAGE)

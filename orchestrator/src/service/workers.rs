@@ -272,7 +272,14 @@ impl LocalWorkers {
     /// Starts `n` workers on 127.0.0.1 (free ports) that join the orchestrator at `url` with
     /// the token in `token_file`; each gets an equal share of the cores. No shell: the
     /// arguments go to the program as they are.
-    pub fn start(n: usize, url: &str, token_file: &Path, ca_file: Option<&Path>, log_dir: &Path) -> Result<Self> {
+    pub fn start(
+        n: usize,
+        url: &str,
+        token_file: &Path,
+        ca_file: Option<&Path>,
+        identity: Option<&(PathBuf, PathBuf)>,
+        log_dir: &Path,
+    ) -> Result<Self> {
         let mut workers = LocalWorkers { children: Vec::new() };
         if n == 0 {
             return Ok(workers);
@@ -303,6 +310,9 @@ impl LocalWorkers {
             .stderr(log);
             if let Some(ca) = ca_file {
                 cmd.arg("--ca-file").arg(ca);
+            }
+            if let Some((cert, key)) = identity {
+                cmd.arg("--client-cert").arg(cert).arg("--client-key").arg(key);
             }
             die_with_parent(&mut cmd);
             let child = cmd.spawn().with_context(|| format!("cannot start {}", program.display()))?;
