@@ -53,6 +53,8 @@ pub struct ImplicitOptions {
     pub max_iterations: usize,
     /// No point may move more than this many cells in one step (the stencil is frozen).
     pub max_motion_cells: f64,
+    /// Adaptive steps (None: the fixed dt of the scene).
+    pub adaptive: Option<Adaptive>,
 }
 
 impl Default for ImplicitOptions {
@@ -64,6 +66,7 @@ impl Default for ImplicitOptions {
             residual_tolerance: 1e-8,
             max_iterations: 20,
             max_motion_cells: 0.5,
+            adaptive: None,
         }
     }
 }
@@ -98,6 +101,9 @@ pub struct ImplicitStats {
     /// tolerance; `last_energy_scale` is the kinetic plus strain energy it is judged against.
     pub last_energy_defect: f64,
     pub last_energy_scale: f64,
+    /// WRMS error norm of the last accepted step (0 without adaptive steps) and its dt (s).
+    pub last_error_norm: f64,
+    pub last_dt: f64,
 }
 
 /// Options, record and the nodal history the error estimates need.
@@ -105,8 +111,74 @@ pub struct ImplicitStats {
 pub struct Implicit {
     pub options: ImplicitOptions,
     pub stats: ImplicitStats,
-    /// a^n of the previous step per node dof (for the velocity error estimate).
+    /// a^n of the previous step per node dof (for the velocity error estimate), and its dt.
     prev_acc: Vec<f64>,
+    prev_dt: f64,
+}
+
+/// What Newton returns: the converged displacement, its trial state and force, the record.
+struct NewtonOut {
+    u: Vec<f64>,
+    trial: Trial,
+    force: Vec<f64>,
+    history: Vec<f64>,
+    iterations: usize,
+    residuals: u64,
+    colours: usize,
+    times: [f64; 3],
+}
+
+/// The outcome of one attempt at a step.
+enum Attempt {
+    Accepted {
+        report: StepReport,
+        err: f64,
+        speed: f64,
+    },
+    /// The estimated local error (WRMS) exceeds 1 (adaptive steps only).
+    Rejected {
+        err: f64,
+    },
+    /// Newton failed or the motion bound was hit (a smaller dt may succeed).
+    Failed(SolverError),
+}
+
+/// Adaptive time step (the thesis's future work 9.6.2, as proposed in the notes): WRMS norm of
+/// le_u and le_v with weights 1/(rtol |y| + atol), accept at err <= 1,
+/// dt_new = dt min(max_growth, max(min_shrink, safety err^-1/3)) (local error O(dt^3)), and a
+/// cap so no point moves more than 0.9 x the motion bound in the next step.
+#[derive(Debug, Clone)]
+pub struct Adaptive {
+    pub rtol: f64,
+    /// Absolute tolerance of the nodal displacement (m).
+    pub atol_u: f64,
+    /// Absolute tolerance of the nodal velocity (m/s).
+    pub atol_v: f64,
+    pub safety: f64,
+    pub max_growth: f64,
+    pub min_shrink: f64,
+    pub dt_min: f64,
+    pub dt_max: f64,
+    /// Rejected attempts of one step before the run stops.
+    pub max_rejections: usize,
+}
+
+impl Adaptive {
+    /// The notes' defaults (safety 0.9, growth at most 2, shrink at least 0.2) with the given
+    /// tolerances and no dt bounds beyond positive and finite.
+    pub fn new(rtol: f64, atol_u: f64, atol_v: f64) -> Self {
+        Adaptive {
+            rtol,
+            atol_u,
+            atol_v,
+            safety: 0.9,
+            max_growth: 2.0,
+            min_shrink: 0.2,
+            dt_min: 0.0,
+            dt_max: f64::INFINITY,
+            max_rejections: 10,
+        }
+    }
 }
 
 /// The trial state of every point for one displacement field.
@@ -581,13 +653,62 @@ impl<const D: usize> Simulation<D> {
         Ok((nf, dense, residuals))
     }
 
-    /// One implicit trapezoidal step (module docs).
+    /// One implicit trapezoidal step (module docs). With [`ImplicitOptions::adaptive`], steps
+    /// whose Newton fails, that would move a point past the motion bound, or whose estimated
+    /// local error exceeds 1 in the WRMS norm are rejected and retried with a smaller dt; an
+    /// accepted step sets the next dt from its error (and the motion cap).
     pub(super) fn implicit_step(&mut self) -> Result<StepReport, SolverError> {
-        let started = Instant::now();
-        let s = self.implicit_setup()?;
-        let (step, dt, floor) = (s.step, s.dt, s.floor);
+        let mut rejections = 0;
+        loop {
+            let attempt = self.implicit_attempt()?;
+            let Some(ad) = self.implicit.options.adaptive.clone() else {
+                return match attempt {
+                    Attempt::Accepted { report, .. } => Ok(report),
+                    Attempt::Failed(e) => Err(e),
+                    Attempt::Rejected { .. } => unreachable!("only adaptive steps are rejected on their error"),
+                };
+            };
+            let factor = |err: f64| if err > 0.0 { ad.safety * err.powf(-1.0 / 3.0) } else { ad.max_growth };
+            match attempt {
+                Attempt::Accepted { report, err, speed } => {
+                    let mut dt = self.dt * factor(err).clamp(ad.min_shrink, ad.max_growth);
+                    if speed > 0.0 {
+                        dt = dt.min(0.9 * self.implicit.options.max_motion_cells * self.grid.min_spacing() / speed);
+                    }
+                    self.dt = dt.clamp(ad.dt_min, ad.dt_max);
+                    return Ok(report);
+                }
+                Attempt::Rejected { err } => {
+                    self.implicit.stats.rejected_steps += 1;
+                    self.dt *= factor(err).clamp(ad.min_shrink, 0.9);
+                    rejections += 1;
+                    if self.dt < ad.dt_min || rejections > ad.max_rejections {
+                        return Err(SolverError::Diverged {
+                            step: self.step + 1,
+                            what: format!(
+                                "{rejections} rejected attempts, the last with local error {err:.3e} (WRMS), dt = {:e} s",
+                                self.dt
+                            ),
+                            cause: "the error tolerance cannot be met above dt_min: loosen rtol/atol or lower dt_min",
+                        });
+                    }
+                }
+                Attempt::Failed(e) => {
+                    self.implicit.stats.rejected_steps += 1;
+                    self.dt *= ad.min_shrink;
+                    rejections += 1;
+                    if self.dt < ad.dt_min || rejections > ad.max_rejections {
+                        return Err(e);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Newton on the step's residual from the predictor, then the motion bound.
+    fn implicit_newton(&mut self, s: &Setup) -> Result<NewtonOut, SolverError> {
+        let (step, _dt) = (s.step, s.dt);
         let h_min = self.grid.min_spacing();
-        let ndof = s.index_of.len();
         let nf = s.free.len();
         let opts = self.implicit.options.clone();
         let mut u = s.u0.clone();
@@ -654,8 +775,6 @@ impl<const D: usize> Simulation<D> {
             }
             iterations += 1;
         }
-        let Setup { index_of, mass, v0, v1_fixed, f0, b0, b1, a0, .. } = s;
-        let mass_of = |g: usize| mass[g];
         // Motion bound: the stencil was frozen, so no point may cross more than half a cell.
         let (st, pts) = (&self.stencil, &self.points);
         let motion = (0..pts.len())
@@ -680,6 +799,23 @@ impl<const D: usize> Simulation<D> {
             });
         }
 
+        Ok(NewtonOut { u, trial, force, history, iterations, residuals, colours, times: [t_res, t_jac, t_solve] })
+    }
+
+    /// One attempt at the step with the current dt.
+    fn implicit_attempt(&mut self) -> Result<Attempt, SolverError> {
+        let started = Instant::now();
+        let s = self.implicit_setup()?;
+        let (step, dt, floor) = (s.step, s.dt, s.floor);
+        let ndof = s.index_of.len();
+        let nf = s.free.len();
+        let n = match self.implicit_newton(&s) {
+            Ok(n) => n,
+            Err(e) => return Ok(Attempt::Failed(e)),
+        };
+        let NewtonOut { u, trial, force, history, iterations, residuals, colours, times: [t_res, t_jac, t_solve] } = n;
+        let Setup { index_of, mass, v0, v1_fixed, f0, b0, b1, a0, .. } = s;
+        let mass_of = |g: usize| mass[g];
         // Commit.
         let a1: Vec<f64> = (0..ndof)
             .map(|g| {
@@ -693,6 +829,36 @@ impl<const D: usize> Simulation<D> {
             })
             .collect();
         let v1: Vec<f64> = (0..ndof).map(|g| if index_of[g] != FREE_NONE { 2.0 * u[g] / dt - v0[g] } else { v1_fixed[g] }).collect();
+        // Local error estimates: le_u = dt^2/12 (a^{n+1} - a^n) and le_v = dt^3/12 a'' with
+        // a'' from the three accelerations (unequal steps: 2 [(a1 - a0)/dt - (a0 - a_prev)/dt_prev]
+        // / (dt + dt_prev), which is (a1 - 2 a0 + a_prev)/dt^2 for equal ones).
+        let (mut eu, mut ev) = (0.0_f64, 0.0_f64);
+        let (mut wu, mut wv, mut speed) = (0.0_f64, 0.0_f64, 0.0_f64);
+        let have_prev = self.implicit.prev_acc.len() == ndof;
+        let dtp = self.implicit.prev_dt;
+        let ad = self.implicit.options.adaptive.clone();
+        for g in 0..ndof {
+            if index_of[g] != FREE_NONE {
+                let le_u = dt * dt / 12.0 * (a1[g] - a0[g]);
+                eu = eu.max(le_u.abs());
+                speed = speed.max(v1[g].abs());
+                let le_v = if have_prev {
+                    let add = 2.0 * ((a1[g] - a0[g]) / dt - (a0[g] - self.implicit.prev_acc[g]) / dtp) / (dt + dtp);
+                    dt * dt * dt / 12.0 * add
+                } else {
+                    0.0
+                };
+                ev = ev.max(le_v.abs());
+                if let Some(ad) = &ad {
+                    wu += (le_u / (ad.rtol * u[g].abs() + ad.atol_u)).powi(2);
+                    wv += (le_v / (ad.rtol * v1[g].abs() + ad.atol_v)).powi(2);
+                }
+            }
+        }
+        let err = (wu.max(wv) / nf.max(1) as f64).sqrt();
+        if ad.is_some() && err > 1.0 {
+            return Ok(Attempt::Rejected { err });
+        }
         // Impulse the constraints added: m (v^{n+1} - v^n) - dt/2 (f^n + f^{n+1} + b^n + b^{n+1}).
         for g in 0..ndof {
             if index_of[g] == FREE_NONE && mass_of(g) > floor {
@@ -701,17 +867,8 @@ impl<const D: usize> Simulation<D> {
                 self.wall_impulse_magnitude += dp.abs();
             }
         }
-        let (mut eu, mut ev) = (0.0_f64, 0.0_f64);
-        let have_prev = self.implicit.prev_acc.len() == ndof;
-        for g in 0..ndof {
-            if index_of[g] != FREE_NONE {
-                eu = eu.max((dt * dt / 12.0 * (a1[g] - a0[g])).abs());
-                if have_prev {
-                    ev = ev.max((dt / 12.0 * (a1[g] - 2.0 * a0[g] + self.implicit.prev_acc[g])).abs());
-                }
-            }
-        }
         self.implicit.prev_acc = a0;
+        self.implicit.prev_dt = dt;
         let (mut defect, mut ke0) = (0.0, 0.0);
         for g in 0..ndof {
             if index_of[g] != FREE_NONE {
@@ -748,8 +905,10 @@ impl<const D: usize> Simulation<D> {
         s.last_error_v = ev;
         s.last_energy_defect = defect;
         s.last_energy_scale = ke0 + work.abs() + self.points.internal_energy.iter().map(|e| e.abs()).sum::<f64>();
+        s.last_error_norm = err;
+        s.last_dt = dt;
         self.guard(step)?;
-        Ok(StepReport { step, time: self.time })
+        Ok(Attempt::Accepted { report: StepReport { step, time: self.time }, err, speed })
     }
 
     /// (5.53)-(5.59): points take the converged trial state; velocities by the nodal increment,

@@ -435,3 +435,33 @@ fn the_same_state_for_one_and_two_threads() {
     };
     assert_eq!(run(1), run(2));
 }
+
+/// Adaptive steps: the WRMS local error sets dt (for mode one, err ~ (w dt)^2 / (12 rtol), so
+/// rtol = 1e-3 settles near w dt = 0.11); a step far too large is rejected and retried.
+#[test]
+fn adaptive_steps_grow_to_the_tolerance_and_reject_too_large_ones() {
+    use continuum::solver::implicit::Adaptive;
+    let w = C * PI;
+    for (cfl, expect_reject) in [(0.05, false), (40.0, true)] {
+        let mut s = mode_bar(200, 2, cfl, 1e-4);
+        let dt0 = s.dt;
+        s.implicit.options.adaptive = Some(Adaptive::new(1e-3, 1e-12, 1e-12));
+        for _ in 0..40 {
+            s.step().expect("step");
+        }
+        let st = &s.implicit.stats;
+        let wdt = w * st.last_dt;
+        println!(
+            "start cfl {cfl}: w dt {:.3} -> {wdt:.3} after 40 steps, {} rejected, last err {:.3}, t = {:.4e} s",
+            w * dt0,
+            st.rejected_steps,
+            st.last_error_norm,
+            s.time
+        );
+        assert!(st.last_error_norm <= 1.0);
+        assert!((0.05..0.25).contains(&wdt), "{wdt}");
+        // Growing by up to 2x may overshoot once; a 40x too large start must be rejected.
+        assert!(if expect_reject { st.rejected_steps >= 1 } else { st.rejected_steps <= 2 }, "{}", st.rejected_steps);
+        assert!(s.totals().energy().is_finite());
+    }
+}
