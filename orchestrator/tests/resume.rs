@@ -130,6 +130,25 @@ fn md_run_resumes_to_the_same_digest() {
     provenance_is_truthful(&s, "continuum f64, md double");
 }
 
+/// Starts `mscale ARGS` (a run into `dir` with checkpoints), sends SIGTERM once its first
+/// checkpoint exists, and checks that it stopped mid-run with exit code 1 and told how to resume.
+fn stop_with_sigterm(args: &[&str], dir: &Path) {
+    let child =
+        Command::new(env!("CARGO_BIN_EXE_mscale")).args(args).env("RUST_LOG", "warn").stderr(std::process::Stdio::piped()).spawn().unwrap();
+    let start = std::time::Instant::now();
+    while checkpoints(dir).is_empty() {
+        assert!(start.elapsed().as_secs() < 60, "no checkpoint after 60 s");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let pid = child.id().to_string();
+    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    let out = child.wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(!dir.join("summary.json").exists(), "the run finished before SIGTERM arrived; make it longer");
+    assert_eq!(out.status.code(), Some(1), "{log}");
+    assert!(log.contains("cancelled after step") && log.contains("--resume"), "{log}");
+}
+
 #[test]
 fn sigterm_checkpoints_and_the_run_resumes_to_the_same_digest() {
     let tmp = tempfile::tempdir().unwrap();
@@ -141,25 +160,7 @@ fn sigterm_checkpoints_and_the_run_resumes_to_the_same_digest() {
     let reference = summary(&straight);
 
     let stopped = tmp.path().join("stopped");
-    let child = Command::new(env!("CARGO_BIN_EXE_mscale"))
-        .args([&["run", SMALL, "--out", stopped.to_str().unwrap(), "--checkpoint-every", "100"][..], &sets].concat())
-        .env("RUST_LOG", "warn")
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let start = std::time::Instant::now();
-    while checkpoints(&stopped).is_empty() {
-        assert!(start.elapsed().as_secs() < 60, "no checkpoint after 60 s");
-        std::thread::sleep(std::time::Duration::from_millis(5));
-    }
-    let pid = child.id().to_string();
-    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
-    let out = child.wait_with_output().unwrap();
-    let log = String::from_utf8_lossy(&out.stderr);
-    assert!(!stopped.join("summary.json").exists(), "the run finished before SIGTERM arrived; make it longer");
-    assert_eq!(out.status.code(), Some(1), "{log}");
-    assert!(log.contains("cancelled after step") && log.contains("--resume"), "{log}");
-
+    stop_with_sigterm(&[&["run", SMALL, "--out", stopped.to_str().unwrap(), "--checkpoint-every", "100"][..], &sets].concat(), &stopped);
     ok(&["run", "--resume", stopped.to_str().unwrap()]);
     same_state(&reference, &summary(&stopped));
 }
@@ -269,25 +270,7 @@ fn sigterm_checkpoints_a_cell_run_and_it_resumes_to_the_same_digest() {
     let reference = summary(&straight);
 
     let stopped = tmp.path().join("stopped");
-    let child = Command::new(env!("CARGO_BIN_EXE_mscale"))
-        .args([&["run", CELL, "--out", stopped.to_str().unwrap(), "--checkpoint-every", "1"][..], &sets].concat())
-        .env("RUST_LOG", "warn")
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let start = std::time::Instant::now();
-    while checkpoints(&stopped).is_empty() {
-        assert!(start.elapsed().as_secs() < 60, "no checkpoint after 60 s");
-        std::thread::sleep(std::time::Duration::from_millis(5));
-    }
-    let pid = child.id().to_string();
-    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
-    let out = child.wait_with_output().unwrap();
-    let log = String::from_utf8_lossy(&out.stderr);
-    assert!(!stopped.join("summary.json").exists(), "the run finished before SIGTERM arrived; make it longer");
-    assert_eq!(out.status.code(), Some(1), "{log}");
-    assert!(log.contains("cancelled after step") && log.contains("--resume"), "{log}");
-
+    stop_with_sigterm(&[&["run", CELL, "--out", stopped.to_str().unwrap(), "--checkpoint-every", "1"][..], &sets].concat(), &stopped);
     ok(&["run", "--resume", stopped.to_str().unwrap()]);
     same_cell_state(&reference, &summary(&stopped));
 }
