@@ -721,7 +721,7 @@ impl<const D: usize> Simulation<D> {
         let mut colours = 0usize;
         loop {
             let clock = Instant::now();
-            let (r, scale) = self.implicit_residual(&s, &u, &mut trial, &mut force).map_err(|e| newton_error(e, &history))?;
+            let (r, scale) = self.implicit_residual(s, &u, &mut trial, &mut force).map_err(|e| newton_error(e, &history))?;
             residuals += 1;
             t_res += clock.elapsed().as_secs_f64();
             let rnorm = r.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
@@ -753,7 +753,7 @@ impl<const D: usize> Simulation<D> {
             }
             let clock = Instant::now();
             let (vals, fd_residuals, c) =
-                self.implicit_jacobian(&s, opts.jacobian, &u, &r, &trial).map_err(|e| newton_error(e, &history))?;
+                self.implicit_jacobian(s, opts.jacobian, &u, &r, &trial).map_err(|e| newton_error(e, &history))?;
             residuals += fd_residuals;
             colours = c;
             t_jac += clock.elapsed().as_secs_f64();
