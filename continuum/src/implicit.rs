@@ -440,19 +440,8 @@ impl<const D: usize> Simulation<D> {
         if let Some(why) = self.implicit_unsupported() {
             return Err(SolverError::Diverged { step, what: why, cause: "a closure or option the implicit integrator cannot use" });
         }
-        self.build_stencil().map_err(|o| SolverError::Diverged {
-            step,
-            what: if o.inverted {
-                format!("the domain of particle {} turned inside out (non-positive corner Jacobian)", o.point)
-            } else {
-                format!("particle {} left the grid along axis {} (position {:e} m)", o.point, o.axis, o.position)
-            },
-            cause: if o.inverted {
-                "time step too large or a domain sheared past its limit (use cpdi1)"
-            } else {
-                "the body moved past a non-periodic face: enlarge the domain or use a wall"
-            },
-        })?;
+        // (The implicit integrator refuses ddmp: only cpdi1 is suggested.)
+        self.build_stencil().map_err(|o| stencil_error(step, &o, "time step too large or a domain sheared past its limit (use cpdi1)"))?;
         // No small-mass velocity averaging (7.7): the nodal momentum is exactly that of the points.
         let eps = std::mem::replace(&mut self.small_mass, 0.0);
         self.map_to_grid();

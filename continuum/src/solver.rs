@@ -299,19 +299,8 @@ impl<const D: usize> Simulation<D> {
         }
         let step = self.step + 1;
         let dt = self.dt;
-        self.build_stencil().map_err(|o| SolverError::Diverged {
-            step,
-            what: if o.inverted {
-                format!("the domain of particle {} turned inside out (non-positive corner Jacobian)", o.point)
-            } else {
-                format!("particle {} left the grid along axis {} (position {:e} m)", o.point, o.axis, o.position)
-            },
-            cause: if o.inverted {
-                "time step too large or a domain sheared past its limit (use cpdi1 or ddmp)"
-            } else {
-                "the body moved past a non-periodic face: enlarge the domain or use a wall"
-            },
-        })?;
+        self.build_stencil()
+            .map_err(|o| stencil_error(step, &o, "time step too large or a domain sheared past its limit (use cpdi1 or ddmp)"))?;
         let c = self.wave_speed();
         if self.scheme == SchemeKind::Impm {
             self.impm_grid(step)?;
@@ -953,4 +942,23 @@ fn tensor_viscosity<const D: usize>(pts: &Particles<D>, p: usize, d: &Mat3, l: &
         }
     }
     q
+}
+
+/// The guard's error for a stencil that could not be built at `step`: a point outside the grid
+/// or a CPDI domain turned inside out (`inverted_cause`: the likely cause then, with the schemes
+/// the integrator can offer instead).
+pub(crate) fn stencil_error(step: u64, o: &OutsideGrid, inverted_cause: &'static str) -> SolverError {
+    if o.inverted {
+        SolverError::Diverged {
+            step,
+            what: format!("the domain of particle {} turned inside out (non-positive corner Jacobian)", o.point),
+            cause: inverted_cause,
+        }
+    } else {
+        SolverError::Diverged {
+            step,
+            what: format!("particle {} left the grid along axis {} (position {:e} m)", o.point, o.axis, o.position),
+            cause: "the body moved past a non-periodic face: enlarge the domain or use a wall",
+        }
+    }
 }
