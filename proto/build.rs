@@ -6,9 +6,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let out = std::path::PathBuf::from(std::env::var("OUT_DIR")?);
     tonic_build::configure()
         .file_descriptor_set_path(out.join("mscale_descriptor.bin"))
-        // The two messages of MdWorker.Step use hand-written codecs (src/fast.rs), same wire format.
-        .extern_path(".mscale.coupling.v1.StepBatch", "crate::fast::StepBatch")
-        .extern_path(".mscale.coupling.v1.StepResults", "crate::fast::StepResults")
         .compile_protos(&["mscale/coupling/v1/coupling.proto", "mscale/orchestrator/v1/orchestrator.proto"], &["."])?;
     println!("cargo:rerun-if-changed=mscale");
     Ok(())

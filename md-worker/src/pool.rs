@@ -1025,17 +1025,13 @@ impl Endpoint for Remote {
         let what = format!("continuum step {step}");
         let result = guarded(&self.rt, &self.abort, self.deadline, &what, async {
             for c in &chunks {
-                let batch = pb::StepBatch { session, step, work: c.iter().map(wire::work_to_pb).collect() };
+                let batch = wire::batch_to_pb(session, step, c);
                 stream.tx.send(batch).await.map_err(|_| CallError::Lost(format!("the step stream to {addr} closed")))?;
             }
             let mut out = Vec::with_capacity(work.len());
             for _ in &chunks {
                 match stream.rx.message().await {
-                    Ok(Some(r)) => {
-                        for res in r.results {
-                            out.push(wire::result_from_pb(&res).map_err(|e| CallError::Refused(e.to_string()))?);
-                        }
-                    }
+                    Ok(Some(r)) => out.extend(wire::results_from_pb(&r).map_err(|e| CallError::Refused(e.to_string()))?),
                     Ok(None) => return Err(CallError::Lost(format!("{addr} closed the step stream"))),
                     Err(s) => return Err(status_error(&s)),
                 }

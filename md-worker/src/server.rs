@@ -206,7 +206,7 @@ impl MdWorker for WorkerService {
                         .get(&batch.session)
                         .cloned()
                         .ok_or_else(|| Status::not_found(format!("no session {}", batch.session)))?;
-                    let work = batch.work.iter().map(wire::work_from_pb).collect::<Result<Vec<_>, _>>().map_err(wire::status)?;
+                    let work = wire::batch_from_pb(&batch).map_err(wire::status)?;
                     let sizes: Vec<(u64, u64)> = {
                         let atoms = lock(&atoms);
                         work.iter().map(|w| (w.steps, atoms.get(&(batch.session, w.id)).copied().unwrap_or(0))).collect()
@@ -219,11 +219,7 @@ impl MdWorker for WorkerService {
                     })
                     .await?;
                     metrics.batch(sizes, secs);
-                    Ok(pb::StepResults {
-                        step: batch.step,
-                        results: results.iter().map(wire::result_to_pb).collect(),
-                        compute_seconds: secs,
-                    })
+                    Ok(wire::results_to_pb(batch.step, &results, secs))
                 }
                 .await;
                 let failed = reply.is_err();

@@ -137,83 +137,120 @@ fn sampling_from_pb(point: u64, v: i32) -> Result<StressSampling, MdError> {
     }
 }
 
-pub fn work_to_pb(w: &BoxWork) -> pb::WorkItem {
-    let l = &w.velocity_gradient;
-    pb::WorkItem {
-        point_id: w.id,
-        velocity_gradient: pb::Doubles::full([l[0][0], l[0][1], l[0][2], l[1][0], l[1][1], l[1][2], l[2][0], l[2][1], l[2][2]]),
-        steps: w.steps,
-        dt_ps: w.dt_ps,
-        energy_to_add_ev: w.energy_to_add_ev,
-        stress_sampling: sampling_to_pb(w.stress_sampling),
+/// One step message of `work` (column-oriented: one packed column per quantity).
+pub fn batch_to_pb(session: u64, step: u64, work: &[BoxWork]) -> pb::StepBatch {
+    pb::StepBatch {
+        session,
+        step,
+        point_id: work.iter().map(|w| w.id).collect(),
+        velocity_gradient: work.iter().flat_map(|w| w.velocity_gradient.into_iter().flatten()).collect(),
+        steps: work.iter().map(|w| w.steps).collect(),
+        dt_ps: work.iter().map(|w| w.dt_ps).collect(),
+        energy_to_add_ev: work.iter().map(|w| w.energy_to_add_ev).collect(),
+        stress_sampling: work.iter().map(|w| sampling_to_pb(w.stress_sampling)).collect(),
     }
 }
 
-pub fn work_from_pb(p: &pb::WorkItem) -> Result<BoxWork, MdError> {
-    let id = p.point_id;
-    if p.velocity_gradient.len != 9 {
-        return Err(invalid(id, "velocity_gradient", format!("{} values; expected 9 (row major, 1/ps)", p.velocity_gradient.len)));
+/// Refuses a message whose column `name` does not hold `per_box` values for each of `boxes`.
+fn column(name: &str, len: usize, boxes: usize, per_box: usize) -> Result<(), MdError> {
+    if len == boxes * per_box {
+        return Ok(());
     }
-    let mut l = [[0.0; 3]; 3];
-    for (k, v) in p.velocity_gradient.values.iter().enumerate() {
-        l[k / 3][k % 3] = finite(id, "velocity_gradient", *v)?;
-    }
-    if p.steps > MAX_STEPS_PER_CALL {
-        return Err(invalid(id, "steps", format!("{} exceeds {MAX_STEPS_PER_CALL}", p.steps)));
-    }
-    if !(p.dt_ps.is_finite() && p.dt_ps > 0.0 && p.dt_ps <= 0.01) {
-        return Err(invalid(id, "dt_ps", format!("{} ps; expected (0, 0.01]", p.dt_ps)));
-    }
-    Ok(BoxWork {
-        id,
-        velocity_gradient: l,
-        steps: p.steps,
-        dt_ps: p.dt_ps,
-        energy_to_add_ev: finite(id, "energy_to_add_ev", p.energy_to_add_ev)?,
-        stress_sampling: sampling_from_pb(id, p.stress_sampling)?,
-    })
+    let what = if per_box == 1 { String::new() } else { format!(" ({per_box} per box)") };
+    Err(MdError::invalid(
+        format!("step message column `{name}`"),
+        format!("{len} values for {boxes} boxes; expected {}{what}", boxes * per_box),
+    ))
 }
 
-pub fn result_to_pb(r: &BoxResult) -> pb::ResultItem {
-    pb::ResultItem {
-        point_id: r.id,
-        stress_gpa: pb::Doubles::full(r.stress_gpa),
-        potential_energy_ev: r.potential_energy_ev,
-        kinetic_energy_ev: r.kinetic_energy_ev,
-        temperature_k: r.temperature_k,
-        lengths: pb::Doubles::full(r.diagnostics.lengths_a),
-        neighbor_rebuilds: r.diagnostics.neighbor_rebuilds,
-        energy_shortfall_ev: r.diagnostics.energy_shortfall_ev,
-        total_steps: r.diagnostics.total_steps,
-        wraps: r.diagnostics.wraps,
-        stress_sampling: sampling_to_pb(r.stress_sampling),
+/// The work of a step message, every value checked (a bad one is refused naming the point
+/// and the field, a column of the wrong length naming the column).
+pub fn batch_from_pb(p: &pb::StepBatch) -> Result<Vec<BoxWork>, MdError> {
+    let n = p.point_id.len();
+    column("velocity_gradient", p.velocity_gradient.len(), n, 9)?;
+    column("steps", p.steps.len(), n, 1)?;
+    column("dt_ps", p.dt_ps.len(), n, 1)?;
+    column("energy_to_add_ev", p.energy_to_add_ev.len(), n, 1)?;
+    column("stress_sampling", p.stress_sampling.len(), n, 1)?;
+    (0..n)
+        .map(|k| {
+            let id = p.point_id[k];
+            let mut l = [[0.0; 3]; 3];
+            for (j, v) in p.velocity_gradient[9 * k..9 * k + 9].iter().enumerate() {
+                l[j / 3][j % 3] = finite(id, "velocity_gradient", *v)?;
+            }
+            let (steps, dt_ps) = (p.steps[k], p.dt_ps[k]);
+            if steps > MAX_STEPS_PER_CALL {
+                return Err(invalid(id, "steps", format!("{steps} exceeds {MAX_STEPS_PER_CALL}")));
+            }
+            if !(dt_ps.is_finite() && dt_ps > 0.0 && dt_ps <= 0.01) {
+                return Err(invalid(id, "dt_ps", format!("{dt_ps} ps; expected (0, 0.01]")));
+            }
+            Ok(BoxWork {
+                id,
+                velocity_gradient: l,
+                steps,
+                dt_ps,
+                energy_to_add_ev: finite(id, "energy_to_add_ev", p.energy_to_add_ev[k])?,
+                stress_sampling: sampling_from_pb(id, p.stress_sampling[k])?,
+            })
+        })
+        .collect()
+}
+
+/// The reply to one step message (column-oriented, as [`batch_to_pb`]).
+pub fn results_to_pb(step: u64, results: &[BoxResult], compute_seconds: f64) -> pb::StepResults {
+    pb::StepResults {
+        step,
+        compute_seconds,
+        point_id: results.iter().map(|r| r.id).collect(),
+        stress_gpa: results.iter().flat_map(|r| r.stress_gpa).collect(),
+        potential_energy_ev: results.iter().map(|r| r.potential_energy_ev).collect(),
+        kinetic_energy_ev: results.iter().map(|r| r.kinetic_energy_ev).collect(),
+        temperature_k: results.iter().map(|r| r.temperature_k).collect(),
+        lengths: results.iter().flat_map(|r| r.diagnostics.lengths_a).collect(),
+        neighbor_rebuilds: results.iter().map(|r| r.diagnostics.neighbor_rebuilds).collect(),
+        energy_shortfall_ev: results.iter().map(|r| r.diagnostics.energy_shortfall_ev).collect(),
+        total_steps: results.iter().map(|r| r.diagnostics.total_steps).collect(),
+        wraps: results.iter().map(|r| r.diagnostics.wraps).collect(),
+        stress_sampling: results.iter().map(|r| sampling_to_pb(r.stress_sampling)).collect(),
     }
 }
 
-pub fn result_from_pb(p: &pb::ResultItem) -> Result<BoxResult, MdError> {
-    let id = p.point_id;
-    if p.stress_gpa.len != 6 || p.lengths.len != 3 {
-        return Err(invalid(
-            id,
-            "stress_gpa",
-            format!("{} stress and {} length values; expected 6 and 3", p.stress_gpa.len, p.lengths.len),
-        ));
-    }
-    Ok(BoxResult {
-        id,
-        stress_gpa: p.stress_gpa.values,
-        potential_energy_ev: p.potential_energy_ev,
-        kinetic_energy_ev: p.kinetic_energy_ev,
-        temperature_k: p.temperature_k,
-        stress_sampling: sampling_from_pb(id, p.stress_sampling)?,
-        diagnostics: Diagnostics {
-            total_steps: p.total_steps,
-            lengths_a: p.lengths.values,
-            energy_shortfall_ev: p.energy_shortfall_ev,
-            neighbor_rebuilds: p.neighbor_rebuilds,
-            wraps: p.wraps,
-        },
-    })
+/// The results of a reply (a column of the wrong length is refused naming the column; the
+/// values are checked by [`check_result`], which names the worker).
+pub fn results_from_pb(p: &pb::StepResults) -> Result<Vec<BoxResult>, MdError> {
+    let n = p.point_id.len();
+    column("stress_gpa", p.stress_gpa.len(), n, 6)?;
+    column("potential_energy_ev", p.potential_energy_ev.len(), n, 1)?;
+    column("kinetic_energy_ev", p.kinetic_energy_ev.len(), n, 1)?;
+    column("temperature_k", p.temperature_k.len(), n, 1)?;
+    column("lengths", p.lengths.len(), n, 3)?;
+    column("neighbor_rebuilds", p.neighbor_rebuilds.len(), n, 1)?;
+    column("energy_shortfall_ev", p.energy_shortfall_ev.len(), n, 1)?;
+    column("total_steps", p.total_steps.len(), n, 1)?;
+    column("wraps", p.wraps.len(), n, 1)?;
+    column("stress_sampling", p.stress_sampling.len(), n, 1)?;
+    (0..n)
+        .map(|k| {
+            let id = p.point_id[k];
+            Ok(BoxResult {
+                id,
+                stress_gpa: std::array::from_fn(|j| p.stress_gpa[6 * k + j]),
+                potential_energy_ev: p.potential_energy_ev[k],
+                kinetic_energy_ev: p.kinetic_energy_ev[k],
+                temperature_k: p.temperature_k[k],
+                stress_sampling: sampling_from_pb(id, p.stress_sampling[k])?,
+                diagnostics: Diagnostics {
+                    total_steps: p.total_steps[k],
+                    lengths_a: std::array::from_fn(|j| p.lengths[3 * k + j]),
+                    energy_shortfall_ev: p.energy_shortfall_ev[k],
+                    neighbor_rebuilds: p.neighbor_rebuilds[k],
+                    wraps: p.wraps[k],
+                },
+            })
+        })
+        .collect()
 }
 
 /// Refuses a result with a non-finite value, naming the worker, the point and the field.
@@ -283,6 +320,54 @@ mod tests {
         hot.energy_to_add_ev = 1e5;
         let e = remote.step(2, &[BoxWork::new(3, [[0.0; 3]; 3], 10, 0.001), hot]).unwrap_err().to_string();
         assert!(e.contains("Internal") && e.contains("point 5: MD diverged: at step 1") && e.contains("kinetic energy"), "{e}");
+    }
+
+    #[test]
+    fn step_messages_round_trip_and_refuse_a_column_of_the_wrong_length() {
+        use prost::Message;
+        let mut work: Vec<BoxWork> =
+            (0..3).map(|i| BoxWork::new(10 + i, [[0.1 * i as f64, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, -9.0]], 5 + i, 0.002)).collect();
+        work[1].energy_to_add_ev = -0.25;
+        work[2].stress_sampling = StressSampling::Average;
+        let bytes = batch_to_pb(4, 17, &work).encode_to_vec();
+        let back = pb::StepBatch::decode(&bytes[..]).unwrap();
+        assert_eq!((back.session, back.step), (4, 17));
+        assert_eq!(batch_from_pb(&back).unwrap(), work);
+        let mut short = back.clone();
+        short.velocity_gradient.pop();
+        let e = batch_from_pb(&short).unwrap_err().to_string();
+        assert!(e.contains("column `velocity_gradient`") && e.contains("26 values for 3 boxes; expected 27 (9 per box)"), "{e}");
+        let mut nan = back;
+        nan.velocity_gradient[9 + 4] = f64::NAN;
+        let e = batch_from_pb(&nan).unwrap_err().to_string();
+        assert!(e.contains("point 11 field `velocity_gradient`") && e.contains("NaN"), "{e}");
+
+        let results: Vec<BoxResult> = work
+            .iter()
+            .map(|w| BoxResult {
+                id: w.id,
+                stress_gpa: std::array::from_fn(|k| w.id as f64 - k as f64),
+                potential_energy_ev: -3.5,
+                kinetic_energy_ev: 0.04 * w.id as f64,
+                temperature_k: 300.0,
+                stress_sampling: w.stress_sampling,
+                diagnostics: Diagnostics {
+                    total_steps: w.steps,
+                    lengths_a: [18.0, 18.5, w.id as f64],
+                    energy_shortfall_ev: 0.0,
+                    neighbor_rebuilds: 2,
+                    wraps: 1,
+                },
+            })
+            .collect();
+        let bytes = results_to_pb(17, &results, 0.5).encode_to_vec();
+        let back = pb::StepResults::decode(&bytes[..]).unwrap();
+        assert_eq!((back.step, back.compute_seconds), (17, 0.5));
+        assert_eq!(results_from_pb(&back).unwrap(), results);
+        let mut long = back;
+        long.wraps.push(0);
+        let e = results_from_pb(&long).unwrap_err().to_string();
+        assert!(e.contains("column `wraps`") && e.contains("4 values for 3 boxes; expected 3"), "{e}");
     }
 
     #[test]

@@ -6,13 +6,8 @@
 pub mod coupling {
     pub mod v1 {
         tonic::include_proto!("mscale.coupling.v1");
-        // The messages of `Step`, with hand-written codecs of the same wire format.
-        pub use crate::fast::{Doubles, ResultItem, StepBatch, StepResults, WorkItem};
     }
 }
-
-/// Hand-written codecs of the `Step` messages (the coupling's hot path).
-pub mod fast;
 
 /// The gRPC server set-up both servers share.
 pub mod server;
@@ -25,7 +20,7 @@ pub mod orchestrator {
 }
 
 /// Version of `mscale.coupling.v1` this build speaks; checked on `Open`.
-pub const COUPLING_PROTOCOL_VERSION: u32 = 1;
+pub const COUPLING_PROTOCOL_VERSION: u32 = 2;
 
 /// Encoded file descriptor set of every service (for gRPC reflection).
 pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("mscale_descriptor");
