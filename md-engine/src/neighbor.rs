@@ -21,6 +21,10 @@ pub struct NeighborList {
     pub code: Vec<u16>,
     /// Image vectors n (in box lengths) by code.
     pub images: Vec<[i32; 3]>,
+    /// Which build this is (unique in the process; 0: never built): the threaded kernel keys
+    /// its column index on it ([`crate::intra`]). Not saved.
+    #[serde(skip)]
+    pub generation: u64,
 }
 
 impl NeighborList {
@@ -60,6 +64,8 @@ pub fn min_box_side(rs: f64) -> f64 {
 /// If a box is so small against `rs` that more than 65536 images would be needed
 /// (a box side below ~rs / 19, far from any physical box).
 pub fn build(x: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rs: f64, list: &mut NeighborList) {
+    static BUILDS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+    list.generation = BUILDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let n = x.len();
     let mut nc = [1usize; 3];
     let mut reach = [1i32; 3];
