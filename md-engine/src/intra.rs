@@ -30,7 +30,7 @@ thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
 }
 
-/// Run `f` with [`crate::kernel::compute_forces`] on this thread threaded inside the box over
+/// Run `f` with `kernel::compute_forces` on this thread threaded inside the box over
 /// rayon's current pool (restored after, also on panic). Results are bitwise the same for any
 /// pool size (see the module doc).
 pub fn with_box_threads<R>(f: impl FnOnce() -> R) -> R {
@@ -54,7 +54,7 @@ pub fn on_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> Resu
     Ok(pool.install(|| with_box_threads(f)))
 }
 
-/// Whether [`crate::kernel::compute_forces`] threads inside the box on this thread.
+/// Whether `kernel::compute_forces` threads inside the box on this thread.
 pub fn enabled() -> bool {
     ON.with(|c| c.get())
 }

@@ -148,7 +148,7 @@ pub(crate) struct Scratch {
     r: Vec<f64>,
     i: Vec<i32>,
     j: Vec<i32>,
-    /// List entry of each pair (only filled for the threaded kernel, [`crate::intra`]).
+    /// List entry of each pair (only filled for the threaded kernel, `intra.rs`).
     k: Vec<i32>,
     /// End of row i's pairs.
     row_end: Vec<u32>,
@@ -395,7 +395,7 @@ pub(crate) fn eam_forces_one(
     (pe, w)
 }
 
-/// What the blocks of the threaded kernel ([`crate::intra`]) share for one force evaluation.
+/// What the blocks of the threaded kernel (`intra.rs`) share for one force evaluation.
 pub(crate) struct Shared<'a> {
     path: SimdPath,
     tab: Tab,
