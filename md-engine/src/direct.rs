@@ -402,11 +402,19 @@ pub struct DirectArgs {
     /// CSV output (time_ps, slab_center_nm, sxx, syy, szz in GPa, tension positive).
     #[arg(long)]
     pub out: std::path::PathBuf,
+    /// Threads inside the bar (0: one per CPU); results are bitwise the same for any count.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
 }
 
-/// Run `md-worker direct`.
+/// Run `md-worker direct` (forces threaded inside the bar, [`crate::intra`]).
 #[cfg(feature = "cli")]
 pub fn run_cli(a: &DirectArgs) -> Result<(), MdError> {
+    crate::intra::on_threads(a.threads, || run_cli_on(a))?
+}
+
+#[cfg(feature = "cli")]
+fn run_cli_on(a: &DirectArgs) -> Result<(), MdError> {
     let kind: LatticeKind = a.lattice.parse()?;
     if a.cells.len() != 3 || !(a.dt > 0.0 && a.dt.is_finite()) || a.every == 0 {
         return Err(MdError::invalid("direct", "needs --cells NX,NY,NZ, --dt > 0 and --every >= 1"));

@@ -297,6 +297,9 @@ pub fn compute_forces(pot: &Potential, b: &mut BoxView, rho: &mut Vec<f64>, fp: 
             *f = [0.0; 3];
         }
         let (pe, w) = match pot {
+            Potential::Eam(t) if t.masses.len() == 1 && crate::intra::enabled() => {
+                crate::intra::eam_forces(simd_path(), t, b.list, &s.xu, &s.shift, l, b.f, rho, fp)
+            }
             Potential::Eam(t) if t.masses.len() == 1 => match simd_path() {
                 SimdPath::Scalar => eam_forces::<true>(t, b, s, rho, fp),
                 path => crate::simd::eam_forces_one(path, t, b.types, b.list, &s.xu, &s.shift, l, b.f, rho, fp, &mut s.simd),

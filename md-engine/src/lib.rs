@@ -20,6 +20,7 @@ pub mod data;
 pub mod device;
 pub mod direct;
 pub mod error;
+pub mod intra;
 pub mod kernel;
 pub mod lattice;
 pub mod neighbor;

@@ -21,6 +21,10 @@ pub struct NeighborList {
     pub code: Vec<u16>,
     /// Image vectors n (in box lengths) by code.
     pub images: Vec<[i32; 3]>,
+    /// Which build this is (unique in the process; 0: never built): the threaded kernel keys
+    /// its column index on it (`intra.rs`). Not saved.
+    #[serde(skip)]
+    pub generation: u64,
 }
 
 impl NeighborList {
@@ -60,6 +64,8 @@ pub fn min_box_side(rs: f64) -> f64 {
 /// If a box is so small against `rs` that more than 65536 images would be needed
 /// (a box side below ~rs / 19, far from any physical box).
 pub fn build(x: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rs: f64, list: &mut NeighborList) {
+    static BUILDS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+    list.generation = BUILDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let n = x.len();
     let mut nc = [1usize; 3];
     let mut reach = [1i32; 3];
@@ -116,7 +122,9 @@ pub fn build(x: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rs: f64, list: &mut Neig
     list.start.reserve(n + 1);
     list.start.push(0);
     let mut stencil: [Vec<(usize, i32)>; 3] = Default::default();
-    let mut row: Vec<(f64, u32, u16)> = Vec::new();
+    // A row entry packed as (r^2 bits, j, code): r^2 >= +0, so its bits order as the value
+    // and one integer sort gives the (r^2, j, image) order.
+    let mut row: Vec<u128> = Vec::new();
     for i in 0..n {
         row.clear();
         let ci = cells[i];
@@ -146,7 +154,7 @@ pub fn build(x: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rs: f64, list: &mut Neig
                         let (dx, dy, dz) = (p[0] + sx, p[1] + sy, p[2] + sz);
                         let r2 = dx * dx + dy * dy + dz * dz;
                         if r2 < rs2 {
-                            row.push((r2, j, code_of(img)));
+                            row.push(((r2.to_bits() as u128) << 64) | ((j as u128) << 16) | code_of(img) as u128);
                         }
                     }
                 }
@@ -154,11 +162,65 @@ pub fn build(x: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rs: f64, list: &mut Neig
         }
         // Nearest first: the kernel's cut-off test then mostly goes one way per row, and
         // spline rows are read in increasing order. Ties broken by (j, image): a total order.
-        row.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
-        for &(_, j, c) in &row {
-            list.j.push(j);
-            list.code.push(c);
+        row.sort_unstable();
+        for &e in &row {
+            list.j.push((e >> 16) as u32);
+            list.code.push(e as u16);
         }
         list.start.push(list.j.len() as u32);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The rows [`build`] must give: every (j, image) within `rs` by brute force over images,
+    /// half by (j > i, or j == i with image > 0), sorted by (r^2, j, code).
+    fn brute(x: &[[f64; 3]], l: [f64; 3], rs: f64, list: &NeighborList) -> Vec<Vec<(u32, u16)>> {
+        let code_of = |img: [i32; 3]| list.images.iter().position(|n| *n == img).map(|c| c as u16);
+        // One image beyond the table on every axis: a pair in range there fails the test.
+        let h = list.images[0].map(|c| 1 - c);
+        (0..x.len())
+            .map(|i| {
+                let mut row: Vec<(f64, u32, u16)> = Vec::new();
+                for j in i..x.len() {
+                    for a in -h[0]..=h[0] {
+                        for b in -h[1]..=h[1] {
+                            for c in -h[2]..=h[2] {
+                                let img = [a, b, c];
+                                if j == i && img <= [0, 0, 0] {
+                                    continue;
+                                }
+                                let d: [f64; 3] = std::array::from_fn(|k| x[j][k] + (img[k] as f64 * l[k] - x[i][k]));
+                                let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                                if r2 < rs * rs {
+                                    row.push((r2, j as u32, code_of(img).unwrap_or(u16::MAX)));
+                                }
+                            }
+                        }
+                    }
+                }
+                row.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+                row.into_iter().map(|(_, j, c)| (j, c)).collect()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn rows_are_every_pair_in_range_in_distance_order() {
+        // A small cube (several images per axis) and a longer box, atoms scattered.
+        for (l, n) in [([7.0, 7.0, 7.0], 20), ([14.0, 9.0, 11.0], 90)] {
+            let x: Vec<[f64; 3]> =
+                (0..n).map(|k| std::array::from_fn(|d| ((k * 7 + d * 3) as f64 * 0.618_033_988_75).fract() * l[d])).collect();
+            let mut list = NeighborList::default();
+            build(&x, [0.0; 3], l, 6.5, &mut list);
+            let want = brute(&x, l, 6.5, &list);
+            for i in 0..n {
+                let r = list.start[i] as usize..list.start[i + 1] as usize;
+                let got: Vec<(u32, u16)> = list.j[r.clone()].iter().copied().zip(list.code[r].iter().copied()).collect();
+                assert_eq!(got, want[i], "row {i} of a {l:?} box");
+            }
+        }
     }
 }

@@ -148,6 +148,8 @@ pub(crate) struct Scratch {
     r: Vec<f64>,
     i: Vec<i32>,
     j: Vec<i32>,
+    /// List entry of each pair (only filled for the threaded kernel, `intra.rs`).
+    k: Vec<i32>,
     /// End of row i's pairs.
     row_end: Vec<u32>,
     /// A block's per-pair results.
@@ -274,12 +276,12 @@ pub(crate) fn eam_forces_one(
                 match path {
                     #[cfg(target_arch = "x86_64")]
                     SimdPath::Avx512 => match &images {
-                        Some(img) => avx512::geometry4(xu[i1], js, codes, x4, img, n, tab.cut2, s, i1, np),
+                        Some(img) => avx512::geometry4::<false>(xu[i1], js, codes, x4, img, n, tab.cut2, s, i1, np, 0),
                         None => avx512::geometry(xu[i1], js, codes, xp, sp, tab.cut2, s, i1, np),
                     },
                     #[cfg(target_arch = "x86_64")]
                     SimdPath::Avx2 => match &images {
-                        Some(img) => avx2::geometry4(xu[i1], js, codes, x4, img, n, tab.cut2, s, i1, np),
+                        Some(img) => avx2::geometry4::<false>(xu[i1], js, codes, x4, img, n, tab.cut2, s, i1, np, 0),
                         None => avx2::geometry(xu[i1], js, codes, xp, sp, tab.cut2, s, i1, np),
                     },
                     _ => unreachable!("checked above"),
@@ -393,6 +395,252 @@ pub(crate) fn eam_forces_one(
     (pe, w)
 }
 
+/// What the blocks of the threaded kernel (`intra.rs`) share for one force evaluation.
+pub(crate) struct Shared<'a> {
+    path: SimdPath,
+    tab: Tab,
+    t: &'a EamTables,
+    list: &'a NeighborList,
+    xu: &'a [[f64; 3]],
+    shift: &'a [[f64; 3]],
+    /// Positions padded to 4 f64 per atom (empty when `images` is None).
+    x4: Vec<f64>,
+    images: Option<Images>,
+}
+
+// SAFETY: `Tab`'s pointers address the potential's tables, borrowed for 'a and only read.
+unsafe impl Sync for Shared<'_> {}
+
+impl<'a> Shared<'a> {
+    /// The shared state of one evaluation on `path` (any path, `Scalar` included).
+    pub(crate) fn new(
+        path: SimdPath,
+        t: &'a EamTables,
+        list: &'a NeighborList,
+        xu: &'a [[f64; 3]],
+        shift: &'a [[f64; 3]],
+        l: [f64; 3],
+    ) -> Shared<'a> {
+        assert!(path.is_supported(), "simd path {path} not runnable here");
+        assert!(t.masses.len() == 1 && t.nr >= 2 && xu.len() + 1 == list.start.len());
+        assert!(t.rhor[t.type2rhor[0][0]].len() > t.nr && t.z2r[t.type2z2r[0][0]].len() > t.nr);
+        let n = xu.len();
+        let tab = Tab {
+            dens: t.rhor[t.type2rhor[0][0]].as_ptr() as *const f64,
+            z2: t.z2r[t.type2z2r[0][0]].as_ptr() as *const f64,
+            rdr: t.rdr,
+            nr1: (t.nr - 1) as i32,
+            cut2: t.cutforcesq,
+        };
+        // The scalar geometry (and the vector paths without a decodable image table) index
+        // xu and shift directly: check the list once here.
+        let images = if path == SimdPath::Scalar { None } else { Images::of(list, l) };
+        if images.is_none() {
+            assert!(list.j.iter().all(|&j| (j as usize) < n) && list.code.iter().all(|&c| (c as usize) < shift.len()));
+        }
+        let x4 = if images.is_some() { xu.iter().flat_map(|p| [p[0], p[1], p[2], 0.0]).collect() } else { Vec::new() };
+        Shared { path, tab, t, list, xu, shift, x4, images }
+    }
+}
+
+/// Spline row and fraction of r, as `kernel::eam_forces`'s `index` (r below the cut-off).
+#[inline(always)]
+fn spline_index(r: f64, rdr: f64, nr: usize) -> (usize, f64) {
+    let p = r * rdr + 1.0;
+    // SAFETY: p is finite and 1 <= p < 2^31 (r below the cut-off, rdr = 1/dr).
+    let m = (unsafe { p.to_int_unchecked::<i32>() } as usize).min(nr - 1);
+    (m, (p - m as f64).min(1.0))
+}
+
+/// Threaded kernel, first pass of one block of rows: the pairs within the cut-off of rows
+/// `rows` into `s` (kept for [`block_force`]), each pair's density value into `vcol` at its
+/// list entry (`vcol` covers the rows' entries; entries outside the cut-off get 0.0), and
+/// each row's own sum, in list order, into `rho_row`. The same operations in the same order
+/// as the serial kernels, on every path.
+pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut Scratch, vcol: &mut [f64], rho_row: &mut [f64]) {
+    let list = sh.list;
+    let kb0 = list.start[rows.start] as usize;
+    let ne = list.start[rows.end] as usize - kb0;
+    assert!(vcol.len() == ne && rho_row.len() == rows.len());
+    let cap = ne + PAD;
+    for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r] {
+        if v.len() < cap {
+            v.resize(cap, 0.0);
+        }
+    }
+    for v in [&mut s.i, &mut s.j, &mut s.k] {
+        if v.len() < cap {
+            v.resize(cap, 0);
+        }
+    }
+    s.row_end.clear();
+    let n = sh.xu.len();
+    let mut np = 0usize;
+    for i in rows.clone() {
+        let row = list.start[i] as usize..list.start[i + 1] as usize;
+        let kb = row.start;
+        let (js, codes) = (&list.j[row.clone()], &list.code[row]);
+        match (&sh.images, sh.path) {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: the path is supported (asserted in `Shared::new`); atoms and codes are
+            // checked as they load; the buffers hold ne + PAD entries and np + js.len() <= ne.
+            (Some(img), SimdPath::Avx512) => {
+                np = unsafe { avx512::geometry4::<true>(sh.xu[i], js, codes, sh.x4.as_ptr(), img, n, sh.tab.cut2, s, i, np, kb - kb0) }
+            }
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: as above.
+            (Some(img), SimdPath::Avx2) => {
+                np = unsafe { avx2::geometry4::<true>(sh.xu[i], js, codes, sh.x4.as_ptr(), img, n, sh.tab.cut2, s, i, np, kb - kb0) }
+            }
+            _ => {
+                // The scalar kernel's geometry (atoms and codes checked in `Shared::new`).
+                let xi = sh.xu[i];
+                for (e, (&j, &c)) in js.iter().zip(codes).enumerate() {
+                    let (xj, sf) = (sh.xu[j as usize], sh.shift[c as usize]);
+                    let d = [xi[0] - xj[0] - sf[0], xi[1] - xj[1] - sf[1], xi[2] - xj[2] - sf[2]];
+                    let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                    if r2 < sh.tab.cut2 {
+                        (s.dx[np], s.dy[np], s.dz[np], s.r[np]) = (d[0], d[1], d[2], r2);
+                        (s.i[np], s.j[np], s.k[np]) = (i as i32, j as i32, (kb - kb0 + e) as i32);
+                        np += 1;
+                    }
+                }
+            }
+        }
+        s.row_end.push(np as u32);
+    }
+    // Harmless lanes after the last pair (the vector passes read up to a full width).
+    for q in np..np + 8 {
+        (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.i[q], s.j[q], s.k[q]) = (0.0, 0.0, 0.0, 1.0, 0, 0, 0);
+    }
+    if s.blk.len() < np + 8 {
+        s.blk.resize(np + 8, 0.0);
+    }
+    match sh.path {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: r[0..np + 8) are valid distances, blk holds np + 8; spline rows exist.
+        SimdPath::Avx512 => unsafe { avx512::density(&sh.tab, s, 0, np) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: as above.
+        SimdPath::Avx2 => unsafe { avx2::density(&sh.tab, s, 0, np) },
+        _ => {
+            let dens = &sh.t.rhor[sh.t.type2rhor[0][0]];
+            for q in 0..np {
+                let r = s.r[q].sqrt();
+                s.r[q] = r;
+                let (m, p) = spline_index(r, sh.t.rdr, sh.t.nr);
+                let c = &dens[m];
+                s.blk[q] = ((c[3] * p + c[4]) * p + c[5]) * p + c[6];
+            }
+        }
+    }
+    vcol.fill(0.0);
+    let mut q = 0;
+    for (ri, &end) in s.row_end.iter().enumerate() {
+        let mut rho_i = 0.0;
+        while q < end as usize {
+            let v = s.blk[q];
+            rho_i += v;
+            vcol[s.k[q] as usize] = v;
+            q += 1;
+        }
+        rho_row[ri] = rho_i;
+    }
+}
+
+/// Threaded kernel, second pass of one block (after [`block_density`] on the same `s` and
+/// `rows`, and the embedding pass of every atom: `fp`): each pair's force `d * fpair` into
+/// `fcol` at its list entry (0.0 outside the cut-off), each row's own force sum in list order
+/// into `fi_row`; returns the block's pair energy and virial, summed in pair order.
+pub(crate) fn block_force(
+    sh: &Shared,
+    rows: std::ops::Range<usize>,
+    s: &mut Scratch,
+    fp: &[f64],
+    fcol: &mut [[f64; 3]],
+    fi_row: &mut [[f64; 3]],
+) -> (f64, [f64; 6]) {
+    let list = sh.list;
+    let kb0 = list.start[rows.start] as usize;
+    assert!(fcol.len() == list.start[rows.end] as usize - kb0 && fi_row.len() == rows.len() && s.row_end.len() == rows.len());
+    assert!(fp.len() == sh.xu.len());
+    let np = s.row_end.last().map_or(0, |e| *e as usize);
+    fcol.fill([0.0; 3]);
+    let (mut pe, mut w) = (0.0, [0.0f64; 6]);
+    let mut row = 0usize;
+    let mut fi = [0.0f64; 3];
+    let dens = &sh.t.rhor[sh.t.type2rhor[0][0]];
+    let z2 = &sh.t.z2r[sh.t.type2z2r[0][0]];
+    let mut q0 = 0;
+    loop {
+        let len = (np - q0).min(BLOCK);
+        let bl = len + 8;
+        if s.blk.len() < TERMS * bl {
+            s.blk.resize(TERMS * bl, 0.0);
+        }
+        match sh.path {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: pairs q0..q0 + len + 8 are valid (real or padding), i and j index fp,
+            // blk holds TERMS * bl.
+            SimdPath::Avx512 => unsafe { avx512::force(&sh.tab, s, fp.as_ptr(), q0, len, bl) },
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: as above.
+            SimdPath::Avx2 => unsafe { avx2::force(&sh.tab, s, fp.as_ptr(), q0, len, bl) },
+            _ => {
+                // `kernel::eam_forces::<true>`'s per-pair arithmetic.
+                for k in 0..len {
+                    let q = q0 + k;
+                    let (d, r) = ([s.dx[q], s.dy[q], s.dz[q]], s.r[q]);
+                    let (i, j) = (s.i[q] as usize, s.j[q] as usize);
+                    let (m, p) = spline_index(r, sh.t.rdr, sh.t.nr);
+                    let (cd, c) = (&dens[m], &z2[m]);
+                    let rho_p = (cd[0] * p + cd[1]) * p + cd[2];
+                    let z2p = (c[0] * p + c[1]) * p + c[2];
+                    let z2v = ((c[3] * p + c[4]) * p + c[5]) * p + c[6];
+                    let recip = 1.0 / r;
+                    let phi = z2v * recip;
+                    let phip = z2p * recip - phi * recip;
+                    let psip = fp[i] * rho_p + fp[j] * rho_p + phip;
+                    let fpair = -psip * recip;
+                    let fd = [d[0] * fpair, d[1] * fpair, d[2] * fpair];
+                    let t = [fd[0], fd[1], fd[2], phi, d[0] * fd[0], d[1] * fd[1], d[2] * fd[2], d[0] * fd[1], d[0] * fd[2], d[1] * fd[2]];
+                    for (c, v) in t.into_iter().enumerate() {
+                        s.blk[c * bl + k] = v;
+                    }
+                }
+            }
+        }
+        for k in 0..len {
+            let q = q0 + k;
+            while q >= s.row_end[row] as usize {
+                fi_row[row] = fi;
+                fi = [0.0; 3];
+                row += 1;
+            }
+            let at = |t: usize| s.blk[t * bl + k];
+            let fd = [at(0), at(1), at(2)];
+            pe += at(3);
+            fi[0] += fd[0];
+            fi[1] += fd[1];
+            fi[2] += fd[2];
+            fcol[s.k[q] as usize] = fd;
+            for c in 0..6 {
+                w[c] += at(4 + c);
+            }
+        }
+        q0 += len;
+        if q0 >= np {
+            break;
+        }
+    }
+    while row < rows.len() {
+        fi_row[row] = fi;
+        fi = [0.0; 3];
+        row += 1;
+    }
+    (pe, w)
+}
+
 #[cfg(target_arch = "x86_64")]
 mod avx512 {
     use super::{Scratch, Tab};
@@ -497,7 +745,7 @@ mod avx512 {
     /// `x4`: positions padded to 4 f64 per atom; `img`: image decoding of the list's codes.
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
-    pub(super) unsafe fn geometry4(
+    pub(super) unsafe fn geometry4<const KEEP: bool>(
         xi: [f64; 3],
         js: &[u32],
         codes: &[u16],
@@ -508,6 +756,7 @@ mod avx512 {
         s: &mut Scratch,
         i: usize,
         mut np: usize,
+        kb: usize,
     ) -> usize {
         let (x0, x1, x2) = (_mm512_set1_pd(xi[0]), _mm512_set1_pd(xi[1]), _mm512_set1_pd(xi[2]));
         let cut = _mm512_set1_pd(cut2);
@@ -559,6 +808,11 @@ mod avx512 {
                 _mm512_storeu_pd(s.r.as_mut_ptr().add(np), _mm512_maskz_compress_pd(m, r2));
                 _mm256_storeu_si256(s.j.as_mut_ptr().add(np) as *mut __m256i, _mm256_maskz_compress_epi32(m, jv));
                 _mm256_storeu_si256(s.i.as_mut_ptr().add(np) as *mut __m256i, iv);
+                if KEEP {
+                    // The pairs' list entries (kb + k + lane), for the threaded kernel.
+                    let kv = _mm256_add_epi32(_mm256_set1_epi32((kb + k) as i32), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+                    _mm256_storeu_si256(s.k.as_mut_ptr().add(np) as *mut __m256i, _mm256_maskz_compress_epi32(m, kv));
+                }
                 np += m.count_ones() as usize;
             }
             k += 8;
@@ -747,7 +1001,7 @@ mod avx2 {
     /// As `avx512::geometry4`, 4 lanes.
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn geometry4(
+    pub(super) unsafe fn geometry4<const KEEP: bool>(
         xi: [f64; 3],
         js: &[u32],
         codes: &[u16],
@@ -758,6 +1012,7 @@ mod avx2 {
         s: &mut Scratch,
         i: usize,
         mut np: usize,
+        kb: usize,
     ) -> usize {
         let (x0, x1, x2) = (_mm256_set1_pd(xi[0]), _mm256_set1_pd(xi[1]), _mm256_set1_pd(xi[2]));
         let cut = _mm256_set1_pd(cut2);
@@ -807,6 +1062,9 @@ mod avx2 {
                         *s.r.get_unchecked_mut(np) = ar[l];
                         *s.j.get_unchecked_mut(np) = jb[l];
                         *s.i.get_unchecked_mut(np) = i as i32;
+                        if KEEP {
+                            *s.k.get_unchecked_mut(np) = (kb + k + l) as i32;
+                        }
                         np += 1;
                         m &= m - 1;
                     }

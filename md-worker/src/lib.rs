@@ -24,7 +24,7 @@ pub mod wire;
 
 #[cfg(feature = "cuda")]
 pub use md_engine::cuda;
-pub use md_engine::{backend, data, direct, error, kernel, lattice, neighbor, potential, simd, units};
+pub use md_engine::{backend, data, direct, error, intra, kernel, lattice, neighbor, potential, simd, units};
 
 pub use md_engine::{
     BoxResult, BoxSpec, BoxState, BoxWork, CpuBackend, DeformMode, Diagnostics, EamFormat, InitialAtoms, LatticeKind, LjCut, MdBackend,

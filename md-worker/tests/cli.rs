@@ -318,3 +318,43 @@ fn eval_of_two_atoms_at_one_place_is_refused() {
     assert!(err.contains("point 0") && err.contains("atoms overlap"), "{err}");
     assert!(out.stdout.is_empty());
 }
+
+#[test]
+fn direct_gives_the_same_bytes_for_any_thread_count() {
+    let dir = tempfile::tempdir().unwrap();
+    // 16 x 3 x 3 cells (576 atoms, 9 blocks of the threaded kernel), hot, pre-compressed.
+    let run = |threads: &str| {
+        let csv = dir.path().join(format!("bar-{threads}.csv"));
+        let out = md_worker(&[
+            "direct",
+            "--potential",
+            "potentials/Cu_mishin1.eam.alloy",
+            "--a0",
+            "3.615",
+            "--cells",
+            "16,3,3",
+            "--region",
+            "0:28.92:-0.03",
+            "--temperature",
+            "300",
+            "--steps",
+            "40",
+            "--every",
+            "20",
+            "--slab",
+            "7.23",
+            "--threads",
+            threads,
+            "--out",
+            csv.to_str().unwrap(),
+        ]);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        (std::fs::read(&csv).unwrap(), out.stderr)
+    };
+    let one = run("1");
+    assert!(one.0.len() > 200, "{}", String::from_utf8_lossy(&one.0));
+    for t in ["2", "3"] {
+        let got = run(t);
+        assert!(got == one, "--threads {t} differs from --threads 1");
+    }
+}
