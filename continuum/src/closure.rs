@@ -30,6 +30,10 @@ pub struct ClosureBatch<'a> {
     /// Equivalent plastic strain, in and out (plastic laws); empty when no law of the scene is
     /// plastic.
     pub plastic_strain: &'a mut [f64],
+    /// Artificial viscous stress of the previous step (Pa, tension positive; the solver
+    /// computes this step's after the closures), for closures that take the viscous work as
+    /// heat; empty where the integrator has none.
+    pub visc_stress: &'a [Mat3],
 }
 
 /// One point of a batch, as a pointwise law reads it.

@@ -335,6 +335,7 @@ impl<const D: usize> Frozen<'_, D> {
                 // (No scalar field or plastic state: the implicit integrator takes elastic laws.)
                 scalar_rate: &[],
                 plastic_strain: &mut [],
+                visc_stress: &[],
             };
             closures[b].advance(batch, dt).map_err(|source| SolverError::Closure { step: self.step, source })?;
         }

@@ -152,6 +152,7 @@ impl<const D: usize> Particles<D> {
             volume: &self.volume[range.clone()],
             scalar_rate: if self.scalar_rate.is_empty() { &[] } else { &self.scalar_rate[range.clone()] },
             plastic_strain: if self.plastic_strain.is_empty() { &mut [] } else { &mut self.plastic_strain[range.clone()] },
+            visc_stress: if self.visc_stress.is_empty() { &[] } else { &self.visc_stress[range.clone()] },
             stress: &mut self.stress[range],
         }
     }

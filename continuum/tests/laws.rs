@@ -129,6 +129,7 @@ impl Points {
             stress: &mut self.stress,
             scalar_rate: &[],
             plastic_strain: &mut [],
+            visc_stress: &[],
         }
     }
 

@@ -176,6 +176,11 @@ pub struct MdSettings {
     /// Stress at the last MD step of a continuum step, or averaged over its MD steps.
     pub stress_sampling: StressSampling,
     pub reuse: Reuse,
+    /// Add the artificial viscosity's work on the point, q : D per unit volume (of the
+    /// previous step's q), to its box as heat: the dissipation of a smeared shock, without
+    /// which the boxes follow a quasi-isentrope instead of the Hugoniot (too cold and too soft
+    /// behind a strong shock; see coupling/README.md).
+    pub viscous_heating: bool,
 }
 
 /// What a point does this step: an MD call (its work's index) or a skip (tolerance mode) with
@@ -183,7 +188,7 @@ pub struct MdSettings {
 #[derive(Debug, Clone, Copy)]
 enum Plan {
     Call(usize),
-    Skip { change: [f64; 6], strain: [f64; 6] },
+    Skip { change: [f64; 6], strain: [f64; 6], heat_ev: f64 },
 }
 
 /// The MD closure of one body. The closures of all md bodies of a run share one [`MdShared`]:
@@ -252,12 +257,23 @@ impl MdClosure {
             let id = (b.first + k) as u64;
             let state = shared.points[b.first + k].as_ref();
             let l = to_md_rate(&b.vel_grad[k]);
+            // The viscous work of this step on the box (eV): the previous step's q, this step's
+            // rate, the box's volume now.
+            let heat_ev = match (state, b.visc_stress.get(k)) {
+                (Some(p), Some(q)) if self.settings.viscous_heating && steps > 0 => {
+                    let volume: f64 = p.last.diagnostics.lengths_a.iter().product();
+                    let q_gpa = [q[0][0], q[1][1], q[2][2], q[0][1], q[0][2], q[1][2]].map(|v| v / PA_PER_GPA);
+                    stress_work_ev(&q_gpa, &tensor::sym(&l), volume, steps as f64 * dt_md).max(0.0)
+                }
+                _ => 0.0,
+            };
             let mut w = BoxWork {
                 id,
                 velocity_gradient: l,
                 steps,
                 dt_ps: dt_md,
-                energy_to_add_ev: if self.settings.energy_consistency && steps > 0 { state.map_or(0.0, |p| p.pending_ev) } else { 0.0 },
+                energy_to_add_ev: if self.settings.energy_consistency && steps > 0 { state.map_or(0.0, |p| p.pending_ev) } else { 0.0 }
+                    + heat_ev,
                 stress_sampling: self.settings.stress_sampling,
             };
             if let (Reuse::Tolerance { tolerance_gpa, max_interval }, Some(p)) = (self.settings.reuse, state)
@@ -267,9 +283,11 @@ impl MdClosure {
                 let strain: [f64; 6] = std::array::from_fn(|c| p.skip.strain[c] + inc[c]);
                 let (change, bound) = p.skip.predict(&strain, self.settings.c11_gpa);
                 if bound < tolerance_gpa && p.skip.skipped < max_interval {
-                    plan.push(Plan::Skip { change, strain });
+                    plan.push(Plan::Skip { change, strain, heat_ev });
                     continue;
                 }
+                // The skipped steps' heat goes in with the catch-up.
+                w.energy_to_add_ev += p.skip.heat_ev;
                 if p.skip.skipped > 0 {
                     // The catch-up: the deformation of every skipped step and this one's, in this
                     // step's MD steps (the box's clock stays behind by the skipped time).
@@ -357,7 +375,7 @@ impl MdClosure {
             let step_ps = steps as f64 * dt_md;
             let volume: f64 = state.last.diagnostics.lengths_a.iter().product();
             let w = match *item {
-                Plan::Skip { change, strain } => {
+                Plan::Skip { change, strain, heat_ev } => {
                     let reported: [f64; 6] = std::array::from_fn(|c| state.last.stress_gpa[c] + change[c]);
                     let sigma = from_md_stress(&reported);
                     if !tensor::is_finite(&sigma) {
@@ -367,6 +385,7 @@ impl MdClosure {
                     let over_step: [f64; 6] = std::array::from_fn(|c| 0.5 * (state.skip.reported_gpa[c] + reported[c]));
                     let skip = &mut state.skip;
                     skip.work_ev += stress_work_ev(&over_step, &d, volume, step_ps);
+                    skip.heat_ev += heat_ev;
                     skip.skipped += 1;
                     for i in 0..3 {
                         for j in 0..3 {

@@ -129,6 +129,9 @@ pub struct Skip {
     pub secant: Option<([f64; 6], [f64; 6])>,
     /// Continuum work on the box over the skipped steps (eV), with the predicted stresses.
     pub work_ev: f64,
+    /// Viscous heat of the skipped steps (eV), added at the catch-up.
+    #[serde(default)]
+    pub heat_ev: f64,
 }
 
 /// Strain increment (Voigt order, tensor shear) of a velocity gradient `l` (1/ps) over `t` ps.

@@ -13,15 +13,35 @@ use std::path::Path;
 /// as `md-worker direct --slab` writes it (`time_ps,slab_center_nm,sxx_gpa,...`, tension
 /// positive).
 ///
-/// This is the 1D form. The 2D form of eq. 7.12 (Eulerian x-y bins with atom counts, scored in
-/// the current configuration over the bins holding most of a bulk bin's atoms) is not
-/// implemented yet: it would add a frame type sampled at (x, y) and a mask, and feed the same
-/// [`eq_7_12_sum`].
+/// The 2D form (`md-worker direct --dimension 2`: `time_ps,bin_x_nm,bin_y_nm,atoms,...`) holds
+/// Eulerian x-y bins with their atom counts; it is scored in the current configuration over the
+/// particles in bins holding at least [`BULK_FRACTION`] of a bulk bin's atoms ([`eq_7_12_2d`]).
+/// Lines starting with `#` (the command that made the file) are skipped.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DirectProfile {
-    /// (time (s), slabs sorted by X: (X (m), stress (Pa))).
+    /// 1D: (time (s), slabs sorted by X: (X (m), stress (Pa))); empty in 2D.
     pub frames: Vec<(f64, Vec<(f64, f64)>)>,
+    /// 2D: (time (s), bins); empty in 1D.
+    pub bins: Vec<(f64, BinFrame)>,
 }
+
+/// The Eulerian x-y bins of a 2D direct MD at one time: square bins of side `bin` from the
+/// origin, `nx` along x (x fastest), `ny` along y.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BinFrame {
+    /// Bin side (m).
+    pub bin: f64,
+    pub nx: usize,
+    pub ny: usize,
+    /// Atoms per bin.
+    pub atoms: Vec<usize>,
+    /// The stress component per bin (Pa).
+    pub stress: Vec<f64>,
+}
+
+/// A 2D bin is scored when it holds at least this fraction of a bulk bin's atoms (the issue's
+/// 80 %): free surfaces, the notch's faces and the jet's edge fall out.
+pub const BULK_FRACTION: f64 = 0.8;
 
 /// Material points closer than this to either end of the reference bar are not scored: the
 /// direct MD freezes 10 A end layers as walls, the continuum has reflective walls there.
@@ -50,7 +70,7 @@ impl DirectProfile {
 
     pub fn parse_component(text: &str, component: &str) -> Result<DirectProfile> {
         let column = format!("{component}_gpa");
-        let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
+        let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'));
         let (_, header) = lines.next().ok_or_else(|| {
             anyhow::anyhow!("is empty; expected a header time_ps,slab_center_nm,sxx_gpa,... (`md-worker direct --slab` output)")
         })?;
@@ -60,6 +80,9 @@ impl DirectProfile {
                 anyhow::anyhow!("line 1: no column `{name}` (found {}); expected `md-worker direct --slab` output", cols.join(","))
             })
         };
+        if cols.contains(&"bin_x_nm") {
+            return Self::parse_bins(lines, &cols, &column);
+        }
         let (ct, cx, cs) = (col("time_ps")?, col("slab_center_nm")?, col(&column)?);
         let mut frames: Vec<(f64, Vec<(f64, f64)>)> = Vec::new();
         for (k, line) in lines {
@@ -86,7 +109,95 @@ impl DirectProfile {
                 anyhow::bail!("t = {} ps: needs at least two slabs with distinct centres, found {}", *t * 1e12, rows.len());
             }
         }
-        Ok(DirectProfile { frames })
+        Ok(DirectProfile { frames, bins: Vec::new() })
+    }
+
+    /// The rows after the header of a 2D profile: every bin of every frame, x fastest.
+    fn parse_bins<'a>(lines: impl Iterator<Item = (usize, &'a str)>, cols: &[&str], column: &str) -> Result<DirectProfile> {
+        let col = |name: &str| {
+            cols.iter().position(|c| *c == name).ok_or_else(|| {
+                anyhow::anyhow!("line 1: no column `{name}` (found {}); expected `md-worker direct --dimension 2` output", cols.join(","))
+            })
+        };
+        let (ct, cx, cy, ca, cs) = (col("time_ps")?, col("bin_x_nm")?, col("bin_y_nm")?, col("atoms")?, col(column)?);
+        // (time, rows (x, y, atoms, stress)).
+        let mut raw: Vec<(f64, Vec<(f64, f64, usize, f64)>)> = Vec::new();
+        for (k, line) in lines {
+            let f: Vec<&str> = line.split(',').map(str::trim).collect();
+            let num = |c: usize, name: &str| -> Result<f64> {
+                let v = f.get(c).ok_or_else(|| anyhow::anyhow!("line {}: missing column `{name}`", k + 1))?;
+                v.parse::<f64>()
+                    .ok()
+                    .filter(|x| x.is_finite())
+                    .ok_or_else(|| anyhow::anyhow!("line {}: `{name}` = {v:?} is not a finite number", k + 1))
+            };
+            let t = num(ct, "time_ps")? * 1e-12;
+            let a = num(ca, "atoms")?;
+            anyhow::ensure!(a >= 0.0 && a.fract() == 0.0, "line {}: `atoms` = {a} is not a count", k + 1);
+            let row = (num(cx, "bin_x_nm")? * 1e-9, num(cy, "bin_y_nm")? * 1e-9, a as usize, num(cs, column)? * 1e9);
+            match raw.iter_mut().find(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S) {
+                Some((_, rows)) => rows.push(row),
+                None => raw.push((t, vec![row])),
+            }
+        }
+        anyhow::ensure!(!raw.is_empty(), "has a header but no rows");
+        let mut bins = Vec::new();
+        for (t, rows) in raw {
+            let ps = t * 1e12;
+            let (x0, y0) = (rows[0].0, rows[0].1);
+            anyhow::ensure!(
+                x0 > 0.0 && (y0 - x0).abs() <= 1e-9 * x0,
+                "t = {ps} ps: the first bin's centre ({x0}, {y0}) m is not (b/2, b/2) of square bins from the origin"
+            );
+            let bin = 2.0 * x0;
+            let nx = rows.iter().take_while(|r| (r.1 - y0).abs() <= 1e-6 * bin).count();
+            anyhow::ensure!(rows.len() % nx == 0, "t = {ps} ps: {} bins is not a whole number of rows of {nx}", rows.len());
+            let ny = rows.len() / nx;
+            for (k, r) in rows.iter().enumerate() {
+                let (kx, ky) = (k % nx, k / nx);
+                let want = ((kx as f64 + 0.5) * bin, (ky as f64 + 0.5) * bin);
+                anyhow::ensure!(
+                    (r.0 - want.0).abs() <= 1e-6 * bin && (r.1 - want.1).abs() <= 1e-6 * bin,
+                    "t = {ps} ps: bin {k} has its centre at ({:e}, {:e}) m, expected ({:e}, {:e}) (x fastest, side {bin:e} m from the origin)",
+                    r.0,
+                    r.1,
+                    want.0,
+                    want.1
+                );
+            }
+            let frame = BinFrame { bin, nx, ny, atoms: rows.iter().map(|r| r.2).collect(), stress: rows.iter().map(|r| r.3).collect() };
+            bins.push((t, frame));
+        }
+        Ok(DirectProfile { frames: Vec::new(), bins })
+    }
+
+    /// Whether this is a 2D (Eulerian bin) profile.
+    pub fn is_2d(&self) -> bool {
+        !self.bins.is_empty()
+    }
+
+    /// Atoms of a bulk bin: the most common count among the occupied bins of the first frame
+    /// (the undeformed sample; ties to the larger count). 0 for a 1D profile.
+    pub fn bulk_atoms(&self) -> usize {
+        let Some((_, f)) = self.bins.iter().min_by(|a, b| a.0.total_cmp(&b.0)) else { return 0 };
+        let mut counts: std::collections::BTreeMap<usize, usize> = std::collections::BTreeMap::new();
+        for &a in f.atoms.iter().filter(|a| **a > 0) {
+            *counts.entry(a).or_default() += 1;
+        }
+        counts.iter().max_by(|a, b| a.1.cmp(b.1).then(a.0.cmp(b.0))).map_or(0, |(a, _)| *a)
+    }
+
+    /// The 2D bins at time `t` (s), if the reference has that time.
+    pub fn bins_at(&self, t: f64) -> Option<&BinFrame> {
+        self.bins
+            .iter()
+            .filter(|(ft, _)| (ft - t).abs() <= TIME_TOLERANCE_S)
+            .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+            .map(|(_, f)| f)
+    }
+
+    fn times(&self) -> Vec<f64> {
+        self.frames.iter().map(|f| f.0).chain(self.bins.iter().map(|f| f.0)).collect()
     }
 
     /// The slabs at time `t` (s), if the reference has that time.
@@ -98,15 +209,20 @@ impl DirectProfile {
             .map(|(_, r)| r.as_slice())
     }
 
+    /// Whether the profile (1D or 2D) has a frame at `t` (s).
+    pub fn has_frame(&self, t: f64) -> bool {
+        self.at(t).is_some() || self.bins_at(t).is_some()
+    }
+
     /// First and last time of the profile (s).
     pub fn time_range(&self) -> (f64, f64) {
-        let t = self.frames.iter().map(|f| f.0);
-        (t.clone().fold(f64::INFINITY, f64::min), t.fold(f64::NEG_INFINITY, f64::max))
+        let t = self.times();
+        (t.iter().copied().fold(f64::INFINITY, f64::min), t.iter().copied().fold(f64::NEG_INFINITY, f64::max))
     }
 
     /// The profile's times (ps), for messages.
     pub fn times_ps(&self) -> String {
-        self.frames.iter().map(|(t, _)| format!("{}", (t * 1e15).round() / 1e3)).collect::<Vec<_>>().join(", ")
+        self.times().iter().map(|t| format!("{}", (t * 1e15).round() / 1e3)).collect::<Vec<_>>().join(", ")
     }
 }
 
@@ -165,6 +281,31 @@ pub fn eq_7_12(reference: &[(f64, f64)], points: &[(f64, f64)], wall: f64) -> Re
     eq_7_12_sum(pairs)
 }
 
+/// The seed's eq. 7.12 in 2D: over the particles `(x, y, s_MS)` (current position (m), stress
+/// (Pa)) that lie in a bin of `frame` holding at least `min_atoms` atoms, s_MD that bin's
+/// stress (the bins are the reference's own Eulerian resolution: no interpolation). x is taken
+/// periodic over the bins' width. Returns (eps, points scored, points left out).
+pub fn eq_7_12_2d(frame: &BinFrame, points: &[(f64, f64, f64)], min_atoms: f64) -> Result<(f64, usize, usize)> {
+    let width = frame.nx as f64 * frame.bin;
+    let bin_of = |x: f64, y: f64| -> Option<usize> {
+        let (fx, fy) = (x.rem_euclid(width) / frame.bin, y / frame.bin);
+        if !(fy >= 0.0 && fy < frame.ny as f64 && fx.is_finite()) {
+            return None;
+        }
+        Some((fy.floor() as usize) * frame.nx + (fx.floor() as usize).min(frame.nx - 1))
+    };
+    let pairs: Vec<(f64, f64)> = points
+        .iter()
+        .filter_map(|&(x, y, s)| bin_of(x, y).filter(|&k| frame.atoms[k] as f64 >= min_atoms).map(|k| (frame.stress[k], s)))
+        .collect();
+    let left_out = points.len() - pairs.len();
+    if pairs.is_empty() {
+        anyhow::bail!("no particle lies in a bin of the reference holding at least {min_atoms} atoms ({} particles)", points.len());
+    }
+    let (eps, n) = eq_7_12_sum(pairs)?;
+    Ok((eps, n, left_out))
+}
+
 /// One eq. 7.12 score of a run: at `time` (s), from the snapshot nearest to it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Score {
@@ -173,6 +314,8 @@ pub struct Score {
     pub snapshot_time: f64,
     pub error: f64,
     pub points: usize,
+    /// Material points not scored (1D: within the walls; 2D: outside the bulk-like bins).
+    pub excluded: usize,
 }
 
 /// The eq. 7.12 error of `component` of the run in `run_dir` against `profile` at each of
@@ -180,7 +323,16 @@ pub struct Score {
 /// the profile's frame at the time asked for). The one implementation of the score: `mscale
 /// run` calls it for a scene's `[reference] solution = "direct-md"`, `mscale report` reads it
 /// back from the runs' summary.json.
-pub fn score_run(profile: &DirectProfile, component: &str, times: &[f64], map: &ReferenceMap, run_dir: &Path) -> Result<Vec<Score>> {
+///
+/// A 2D profile scores the particles by their current (x, y) ([`eq_7_12_2d`]) and needs no
+/// `map`; a 1D one maps x0 with `map` (required).
+pub fn score_run(
+    profile: &DirectProfile,
+    component: &str,
+    times: &[f64],
+    map: Option<&ReferenceMap>,
+    run_dir: &Path,
+) -> Result<Vec<Score>> {
     let index_path = run_dir.join("snapshots/index.csv");
     let index = std::fs::read_to_string(&index_path).with_context(|| format!("cannot read {}", index_path.display()))?;
     let snaps: Vec<(u64, f64, String)> = index
@@ -197,6 +349,19 @@ pub fn score_run(profile: &DirectProfile, component: &str, times: &[f64], map: &
             anyhow::bail!("{} lists no snapshot", index_path.display());
         };
         let path = run_dir.join("snapshots").join(file);
+        if profile.is_2d() {
+            let frame = profile.bins_at(t).ok_or_else(|| {
+                anyhow::anyhow!("the direct-MD reference has no frame at t = {} ps (it has {} ps)", t * 1e12, profile.times_ps())
+            })?;
+            let points = read_columns(&path, &["x", "y", component])?;
+            let pts: Vec<(f64, f64, f64)> = points.iter().map(|p| (p[0], p[1], p[2])).collect();
+            let min_atoms = BULK_FRACTION * profile.bulk_atoms() as f64;
+            let (error, n, excluded) = eq_7_12_2d(frame, &pts, min_atoms)
+                .with_context(|| format!("eq. 7.12 of {component} of {} at t = {} ps", path.display(), t * 1e12))?;
+            out.push(Score { time: t, snapshot_step: *step, snapshot_time: *ts, error, points: n, excluded });
+            continue;
+        }
+        let map = map.ok_or_else(|| anyhow::anyhow!("a 1D direct-MD reference needs the map of the scene's bodies"))?;
         let points = read_x0_component(&path, component)?;
         let pts: Vec<(f64, f64)> = points.iter().map(|&(x0, s)| (map.x_ref(x0), s)).collect();
         let reference = profile.at(t).ok_or_else(|| {
@@ -204,7 +369,7 @@ pub fn score_run(profile: &DirectProfile, component: &str, times: &[f64], map: &
         })?;
         let (error, n) = eq_7_12(reference, &pts, REFERENCE_WALL_M)
             .with_context(|| format!("eq. 7.12 of {component} of {} at t = {} ps", path.display(), t * 1e12))?;
-        out.push(Score { time: t, snapshot_step: *step, snapshot_time: *ts, error, points: n });
+        out.push(Score { time: t, snapshot_step: *step, snapshot_time: *ts, error, points: n, excluded: pts.len() - n });
     }
     Ok(out)
 }
@@ -212,17 +377,22 @@ pub fn score_run(profile: &DirectProfile, component: &str, times: &[f64], map: &
 /// The summary.json `errors` of a run scored against a direct-MD reference: the eq. 7.12 error
 /// per time (with the snapshot it came from), and a flat `<component>_error_<t>ps` per time
 /// (the report's column names).
-pub fn direct_md_errors_json(profile: &Path, component: &str, scores: &[Score]) -> Value {
+pub fn direct_md_errors_json(profile: &Path, component: &str, scores: &[Score], two_d: bool) -> Value {
     let mut m = serde_json::Map::new();
     m.insert("reference".into(), "direct-md".into());
     m.insert("profile".into(), profile.display().to_string().into());
     m.insert("component".into(), component.into());
-    m.insert("measure".into(), "eq. 7.12: sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the material points in the reference coordinate, points within 1 nm of the bar's ends left out".into());
+    let measure = if two_d {
+        "eq. 7.12: sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the particles at their current (x, y), s_MD the stress of the direct MD's Eulerian bin holding the particle, bins with fewer than 80 % of a bulk bin's atoms (free surfaces, the jet's edge) left out (`excluded`)"
+    } else {
+        "eq. 7.12: sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2) over the material points in the reference coordinate, points within 1 nm of the bar's ends left out"
+    };
+    m.insert("measure".into(), measure.into());
     m.insert(
         "times".into(),
         scores
             .iter()
-            .map(|s| serde_json::json!({"time_ps": ps(s.time), "snapshot_step": s.snapshot_step, "snapshot_time_ps": ps(s.snapshot_time), "error": s.error, "points": s.points}))
+            .map(|s| serde_json::json!({"time_ps": ps(s.time), "snapshot_step": s.snapshot_step, "snapshot_time_ps": ps(s.snapshot_time), "error": s.error, "points": s.points, "excluded": s.excluded}))
             .collect::<Vec<_>>()
             .into(),
     );
@@ -255,7 +425,8 @@ pub fn direct_md_log_line(component: &str, scores: &[Score]) -> String {
             format!("{:.2} % at {} ps{at}", 100.0 * s.error, ps(s.time))
         })
         .collect();
-    format!("eq. 7.12 error of {component} against direct MD: {} ({} points)", parts.join(", "), scores.first().map_or(0, |s| s.points))
+    let (n, ex) = scores.first().map_or((0, 0), |s| (s.points, s.excluded));
+    format!("eq. 7.12 error of {component} against direct MD: {} ({n} points, {ex} left out)", parts.join(", "))
 }
 
 /// The scores a run wrote into its summary.json `errors`, one per time of `times` (s) in order;
@@ -310,6 +481,30 @@ impl ReferenceMap {
         let (lo, _, start, stretch) = self.bodies[k];
         start + (x0 - lo) / stretch
     }
+}
+
+/// The `names` columns of every material point in a particle CSV.
+fn read_columns(path: &Path, names: &[&str]) -> Result<Vec<Vec<f64>>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut lines = text.lines();
+    let cols: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let idx: Vec<usize> = names
+        .iter()
+        .map(|n| cols.iter().position(|c| c == n).ok_or_else(|| anyhow::anyhow!("{}: no column `{n}`", path.display())))
+        .collect::<Result<_>>()?;
+    lines
+        .enumerate()
+        .map(|(k, l)| {
+            let f: Vec<&str> = l.split(',').collect();
+            idx.iter()
+                .map(|&c| {
+                    f.get(c)
+                        .and_then(|v| v.parse::<f64>().ok())
+                        .ok_or_else(|| anyhow::anyhow!("{} line {}: unreadable {}", path.display(), k + 2, names.join(" or ")))
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// (x0, stress `component`) of every material point in a particle CSV.

@@ -9,7 +9,9 @@
 //! eps = sqrt(sum (s_MD - s_MS)^2 / sum s_MD^2), of one stress component (sigma_xx along the
 //! bar) over the material points in the reference coordinate (the bodies' initial strain undone,
 //! see [`ReferenceMap`]), in [`score_run`]: `mscale run` writes it into summary.json, the report
-//! reads it from there. 1D only: the 2D form is not implemented yet.
+//! reads it from there. A 2D scene with a 2D profile (`md-worker direct --dimension 2`: Eulerian
+//! x-y bins) is scored by the same code over the particles in the bulk-like bins
+//! ([`eq_7_12_2d`]); `--reference` gives 1D bars only.
 
 use crate::output;
 use crate::reference::error_column;
@@ -459,7 +461,7 @@ impl ReferenceSpec {
     /// eq. 7.12 error of sigma_xx of the run in `run_dir` at each reference time:
     /// (error, points scored) per time ([`score_run`]).
     pub fn score(&self, map: &ReferenceMap, run_dir: &Path) -> Result<Vec<(f64, usize)>> {
-        Ok(score_run(&self.profile, "sxx", &self.times, map, run_dir)?.into_iter().map(|s| (s.error, s.points)).collect())
+        Ok(score_run(&self.profile, "sxx", &self.times, Some(map), run_dir)?.into_iter().map(|s| (s.error, s.points)).collect())
     }
 
     /// The `--set` overrides that make a scene's runs score themselves against this reference.
@@ -576,6 +578,51 @@ mod tests {
         assert!(e.contains("line 3") && e.contains("sxx_gpa"), "{e}");
         let e = DirectProfile::parse("time_ps,slab_center_nm,sxx_gpa\n0,1,2\n").unwrap_err().to_string();
         assert!(e.contains("at least two slabs"), "{e}");
+    }
+
+    /// The 2D profile of `md-worker direct --dimension 2`: two frames of 2 x 2 bins of 2 nm
+    /// (a comment line first), the bulk bin's atoms from the first frame, the mask and the
+    /// periodic x of eq. 7.12 in 2D, and the files it refuses.
+    #[test]
+    fn direct_profile_2d_scores_the_particles_in_bulk_bins() {
+        let head =
+            "# md-worker direct --dimension 2 ...\ntime_ps,bin_x_nm,bin_y_nm,atoms,vx_km_s,vy_km_s,sxx_gpa,syy_gpa,szz_gpa,sxy_gpa\n";
+        let rows = "0,1,1,500,0,-2.5,0,-1,0,0\n0,3,1,500,0,-2.5,0,-1,0,0\n0,1,3,500,0,-2.5,0,-1,0,0\n0,3,3,20,0,-2.5,0,-1,0,0\n\
+                    5.000000000000004,1,1,750,0,0,0,-100,0,0\n5.000000000000004,3,1,700,0,0,0,-200,0,0\n5.000000000000004,1,3,399,0,0,0,-50,0,0\n5.000000000000004,3,3,0,0,0,0,0,0,0\n";
+        let p = DirectProfile::parse_component(&format!("{head}{rows}"), "syy").expect("parse");
+        assert!(p.is_2d() && p.frames.is_empty());
+        assert_eq!(p.bulk_atoms(), 500);
+        assert!(p.has_frame(5e-12) && !p.has_frame(1e-12));
+        let (t0, t1) = p.time_range();
+        assert!(t0 == 0.0 && (t1 - 5e-12).abs() < 1e-15, "{t0} {t1}");
+        let f = p.bins_at(5e-12).expect("t=5");
+        assert_eq!((f.nx, f.ny), (2, 2));
+        assert!((f.bin - 2e-9).abs() < 1e-24);
+        assert_eq!(f.atoms, vec![750, 700, 399, 0]);
+        // Bin (0,0) -100, (1,0) -200 (one particle given by a periodic image of x), bin (0,1)
+        // holds 399 < 400 atoms and bin (1,1) none: left out, as is a particle above the bins.
+        let pts = [
+            (0.5e-9, 0.5e-9, -90e9),
+            (4.0e-9 + 3.5e-9, 1.5e-9, -180e9),
+            (3.0e-9, 0.2e-9, -200e9),
+            (1e-9, 3e-9, -50e9),
+            (3e-9, 3e-9, 0.0),
+            (1e-9, 5e-9, 0.0),
+        ];
+        let (e, n, out) = eq_7_12_2d(f, &pts, 0.8 * 500.0).expect("score");
+        assert_eq!((n, out), (3, 3));
+        let want = ((10e9f64.powi(2) + 20e9f64.powi(2)) / (100e9f64.powi(2) + 2.0 * 200e9f64.powi(2))).sqrt();
+        assert!((e - want).abs() < 1e-14, "{e} vs {want}");
+        assert!(eq_7_12_2d(f, &pts[3..], 400.0).unwrap_err().to_string().contains("no particle"));
+        // Bins not from the origin, or rows that are not whole rows of x.
+        let e = DirectProfile::parse(&format!("{head}0,2,1,500,0,0,0,-1,0,0\n0,4,1,500,0,0,0,-1,0,0\n")).unwrap_err().to_string();
+        assert!(e.contains("not (b/2, b/2)"), "{e}");
+        let e = DirectProfile::parse(&format!("{head}0,1,1,500,0,0,0,-1,0,0\n0,3,1,500,0,0,0,-1,0,0\n0,1,3,5,0,0,0,-1,0,0\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("whole number of rows"), "{e}");
+        let e = DirectProfile::parse(&format!("{head}0,1,1,1.5,0,0,0,-1,0,0\n")).unwrap_err().to_string();
+        assert!(e.contains("not a count"), "{e}");
     }
 
     /// The elastic twin as these tests were written for (60 cells, 0.25 ps, the interface at

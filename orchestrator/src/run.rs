@@ -595,12 +595,18 @@ struct DirectScore {
 fn direct_md_errors(scene: &Scene, dir: &Path, reached: f64) -> Option<DirectScore> {
     let Some(Reference::DirectMd(r)) = &scene.reference else { return None };
     let times: Vec<f64> = r.times_ps.iter().map(|t| t * 1e-12).filter(|t| *t <= reached).collect();
+    // A 2D profile scores particles where they are; a 1D one maps them to the reference bar.
     let scored = crate::reference::DirectProfile::read_component(&r.profile, r.component.as_str())
-        .and_then(|profile| Ok((profile, crate::reference::ReferenceMap::of(scene)?)))
-        .and_then(|(profile, map)| crate::reference::score_run(&profile, r.component.as_str(), &times, &map, dir));
+        .and_then(|profile| {
+            let map = if profile.is_2d() { None } else { Some(crate::reference::ReferenceMap::of(scene)?) };
+            Ok((profile, map))
+        })
+        .and_then(|(profile, map)| {
+            Ok((crate::reference::score_run(&profile, r.component.as_str(), &times, map.as_ref(), dir)?, profile.is_2d()))
+        });
     Some(match scored {
-        Ok(scores) => {
-            let mut json = crate::reference::direct_md_errors_json(&r.profile, r.component.as_str(), &scores);
+        Ok((scores, two_d)) => {
+            let mut json = crate::reference::direct_md_errors_json(&r.profile, r.component.as_str(), &scores, two_d);
             if times.len() < r.times_ps.len() {
                 json["not_reached_ps"] = json!(r.times_ps.iter().filter(|t| **t * 1e-12 > reached).collect::<Vec<_>>());
             }

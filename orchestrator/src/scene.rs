@@ -329,6 +329,12 @@ pub struct MdMaterial {
     /// Add the continuum work missing from the box as kinetic energy (Ch. 7.2).
     #[serde(default = "default_true")]
     pub energy_consistency: bool,
+    /// Give the artificial viscosity's work (q : D) to the boxes as heat: a shock's dissipation.
+    /// Off by default (the shipped scenes' digests); on in `cu-notch-jet-2d-half`, where
+    /// without it the boxes behind the ~170 GPa shock stay ~3000 K too cold and sigma_yy ~13 %
+    /// too soft (coupling/README.md).
+    #[serde(default)]
+    pub viscous_heating: bool,
     /// `double` or `mixed`.
     #[serde(default = "default_precision", with = "names::named")]
     pub precision: MdPrecision,

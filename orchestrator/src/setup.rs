@@ -57,6 +57,7 @@ fn closure(body: &ResolvedBody, points: std::ops::Range<usize>, md: Option<&Arc<
                 c11_gpa: m.lattice_properties.c11_gpa,
                 stress_sampling: m.stress_sampling,
                 reuse: m.reuse,
+                viscous_heating: m.viscous_heating,
             };
             Box::new(
                 MdClosure::open(shared.clone(), settings, &specs).map_err(|source| SetupError::Md { body: body.name.clone(), source })?,

@@ -103,6 +103,7 @@ pub struct ResolvedMd {
     pub timestep_fs: f64,
     pub stress_sampling: StressSampling,
     pub energy_consistency: bool,
+    pub viscous_heating: bool,
     pub seed: u64,
     pub relax_steps: usize,
     pub relax_box: bool,

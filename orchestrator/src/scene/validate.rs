@@ -115,6 +115,7 @@ impl Scene {
                             timestep_fs: m.timestep_fs,
                             stress_sampling: m.stress_sampling,
                             energy_consistency: m.energy_consistency,
+                            viscous_heating: m.viscous_heating,
                             seed: m.seed,
                             relax_steps: m.relax_steps,
                             relax_box: m.relax_box,
@@ -690,21 +691,33 @@ impl Scene {
     /// within the profile's range and the run), a 1D scene whose bodies map onto one bar, and
     /// particle snapshots to score. Returns the profile's absolute path.
     fn validate_direct_md(&self, loc: &Locator<'_>, r: &DirectMdReference, base: &Path) -> Result<PathBuf, SceneError> {
-        if self.domain.dimension != 1 {
-            return Err(loc.err(
-                "reference.solution",
-                "\"direct-md\"",
-                format!("scores 1D scenes only (the slabs of a 1D `md-worker direct --slab` run); this scene has dimension {}: the 2D form (Eulerian bins) is not implemented yet", self.domain.dimension),
-            ));
-        }
         let file = base.join(&r.profile);
         let profile = crate::reference::DirectProfile::read_component(&file, r.component.as_str()).map_err(|e| {
             loc.err(
                 "reference.profile",
                 format!("{:?}", r.profile),
-                format!("{e:#}; the profile is the CSV of `md-worker direct --slab`, its path relative to the scene file"),
+                format!("{e:#}; the profile is the CSV of `md-worker direct` (1D slabs or 2D bins), its path relative to the scene file"),
             )
         })?;
+        let profile_dim = if profile.is_2d() { 2 } else { 1 };
+        if self.domain.dimension != profile_dim {
+            return Err(loc.err(
+                "reference.profile",
+                format!("{:?}", r.profile),
+                format!(
+                    "is a {profile_dim}D profile ({}); this scene has dimension {}: a 1D scene needs the slabs of `md-worker direct`, a 2D one the bins of `md-worker direct --dimension 2`",
+                    if profile_dim == 2 { "Eulerian x-y bins" } else { "slabs" },
+                    self.domain.dimension
+                ),
+            ));
+        }
+        if profile.is_2d() && profile.bulk_atoms() == 0 {
+            return Err(loc.err(
+                "reference.profile",
+                format!("{:?}", r.profile),
+                "its first frame has no occupied bin: no bulk bin to scale the 80 % mask",
+            ));
+        }
         if r.times_ps.is_empty() {
             return Err(loc.err("reference.times_ps", "[]", "give at least one time (ps) to score at, e.g. [5.0, 10.0]"));
         }
@@ -726,7 +739,7 @@ impl Scene {
                     ),
                 ));
             }
-            if profile.at(t * 1e-12).is_none() {
+            if !profile.has_frame(t * 1e-12) {
                 return Err(loc.err(&key, t, format!("the profile has no frame at t = {t} ps (it has {} ps)", profile.times_ps())));
             }
             if t * 1e-12 > self.scheme.end_time * (1.0 + 1e-9) {
@@ -740,7 +753,9 @@ impl Scene {
                 "a direct-md reference scores the particle snapshots: needs output.particles = true",
             ));
         }
-        if let Err(e) = crate::reference::ReferenceMap::of(self) {
+        if !profile.is_2d()
+            && let Err(e) = crate::reference::ReferenceMap::of(self)
+        {
             return Err(loc.err("reference.solution", "\"direct-md\"", format!("{e:#}")));
         }
         Ok(file.canonicalize().unwrap_or(file))
