@@ -465,8 +465,15 @@ impl MdPool {
             self.load[e].1 +=
                 slot[e].iter().map(|&k| work[k].steps as f64 * self.atoms.get(&work[k].id).copied().unwrap_or(0) as f64).sum::<f64>();
             let name = self.endpoints[e].name();
-            for (k, r) in check_results(&name, &slot[e], work, res)? {
-                out[k] = r;
+            match check_results(&name, &slot[e], work, res) {
+                Ok(checked) => {
+                    for (k, r) in checked {
+                        out[k] = r;
+                    }
+                }
+                // A worker that answers garbage (a non-finite value, other boxes than asked)
+                // is faulty: it is dropped as a lost one is, and its boxes rebuilt elsewhere.
+                Err(err) => failed.push((e, format!("declared faulty: {err}"))),
             }
         }
         if !failed.is_empty() {
@@ -584,11 +591,14 @@ impl MdPool {
             let mut again = Vec::new();
             for (e, r) in results.into_iter().enumerate() {
                 match r {
-                    Ok(res) => {
-                        for (k, r) in check_results(&self.endpoints[e].name(), &expect[e], work, res)? {
-                            out[k] = r;
+                    Ok(res) => match check_results(&self.endpoints[e].name(), &expect[e], work, res) {
+                        Ok(checked) => {
+                            for (k, r) in checked {
+                                out[k] = r;
+                            }
                         }
-                    }
+                        Err(err) => again.push((e, format!("declared faulty: {err}"))),
+                    },
                     Err(err) if self.endpoints[e].lost() => again.push((e, err.to_string())),
                     Err(err) => return Err(lost(&*self.endpoints[e], &format!("the replay of lost boxes at continuum step {step}"), err)),
                 }
@@ -1148,12 +1158,97 @@ mod tests {
         }
     }
 
+    /// An endpoint that answers garbage at its call `at`: a NaN stress (`nan`) or the result
+    /// of another box (otherwise), as a broken worker or a corrupted reply would.
+    struct Garbage {
+        inner: InProcess,
+        calls: u64,
+        at: u64,
+        nan: bool,
+    }
+
+    impl Endpoint for Garbage {
+        fn name(&self) -> String {
+            format!("garbage-{}", self.at)
+        }
+        fn open(&mut self, p: &PotentialSource, specs: &[BoxSpec]) -> Result<(), MdError> {
+            self.inner.open(p, specs)
+        }
+        fn step(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
+            self.calls += 1;
+            let mut r = self.inner.step(step, work)?;
+            if self.calls >= self.at {
+                if self.nan {
+                    r[0].stress_gpa[1] = f64::NAN;
+                } else {
+                    r[0].id += 1000;
+                }
+            }
+            Ok(r)
+        }
+        fn snapshot(&mut self, ids: &[PointId]) -> Result<Vec<BoxState>, MdError> {
+            self.inner.snapshot(ids)
+        }
+        fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
+            self.inner.restore(states)
+        }
+        fn kind(&self) -> String {
+            self.inner.kind()
+        }
+    }
+
+    #[test]
+    fn a_worker_answering_nan_or_other_boxes_is_declared_faulty_and_its_boxes_recovered() {
+        let (straight, _, _) = run(&[0, 0, 0], None);
+        let straight = straight.unwrap();
+        for nan in [true, false] {
+            let (mut eps, _): (Vec<_>, Vec<_>) = [u64::MAX, u64::MAX].iter().map(|&f| flaky(f)).unzip();
+            eps.insert(1, Box::new(Garbage { inner: InProcess::new("reference", None), calls: 0, at: 4, nan }));
+            let mut pool = MdPool::new(eps).unwrap();
+            let pot =
+                PotentialSource::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/potentials/Cu_u3.eam"))).unwrap();
+            let specs: Vec<BoxSpec> = (0..6)
+                .map(|id| {
+                    let mut s = BoxSpec::lattice(id, crate::LatticeKind::Fcc, 3.615, [2, 2, 2]);
+                    s.temperature_k = 50.0 + id as f64;
+                    s.seed = 7;
+                    s
+                })
+                .collect();
+            pool.open(&pot, &specs).unwrap();
+            let mut out = Vec::new();
+            for step in 1..=STEPS {
+                out.push(format!("{:?}", pool.step(step, &work_of(step)).unwrap()));
+            }
+            let states = pool.snapshot(&pool.box_ids()).unwrap();
+            assert_eq!((out, serde_json::to_string(&states).unwrap()), straight, "nan = {nan}");
+            let rec = pool.recoveries();
+            assert_eq!(rec.len(), 1, "{rec:?}");
+            assert_eq!((rec[0].worker.as_str(), rec[0].step, rec[0].boxes.clone()), ("garbage-4", 4, vec![2, 3]), "{rec:?}");
+            let why = if nan { "returned a non-finite `stress_gpa` for point 2" } else { "answered point 1002 for point 2" };
+            assert!(rec[0].why.starts_with("declared faulty") && rec[0].why.contains(why), "{rec:?}");
+            assert_eq!(pool.endpoint_load().iter().map(|l| l.boxes).collect::<Vec<_>>(), vec![3, 0, 3]);
+        }
+    }
+
     fn flaky(fail_at: u64) -> (Box<dyn Endpoint>, Arc<AtomicU64>) {
         let c = Arc::new(AtomicU64::new(0));
         (Box::new(Flaky { inner: InProcess::new("reference", None), calls: 0, fail_at, gone: false, box_calls: c.clone() }), c)
     }
 
     const STEPS: u64 = 6;
+
+    /// The work of call `step` of [`run`].
+    fn work_of(step: u64) -> Vec<BoxWork> {
+        (0..6)
+            .map(|id| {
+                let mut w = BoxWork::new(id, [[1e-3 * step as f64, 0.0, 0.0], [0.0, -5e-4, 0.0], [0.0; 3]], 3, 0.001);
+                w.energy_to_add_ev = 1e-3 * id as f64;
+                w.stress_sampling = if id % 2 == 0 { crate::StressSampling::Average } else { crate::StressSampling::Last };
+                w
+            })
+            .collect()
+    }
 
     /// Runs 6 boxes for 6 calls (a checkpoint after call `checkpoint`, if any) on endpoints
     /// lost at their call `fail_at` (0: never); returns every result and the final states.
@@ -1173,15 +1268,7 @@ mod tests {
         let mut out = Vec::new();
         let r = (|| {
             for step in 1..=STEPS {
-                let work: Vec<BoxWork> = (0..6)
-                    .map(|id| {
-                        let mut w = BoxWork::new(id, [[1e-3 * step as f64, 0.0, 0.0], [0.0, -5e-4, 0.0], [0.0; 3]], 3, 0.001);
-                        w.energy_to_add_ev = 1e-3 * id as f64;
-                        w.stress_sampling = if id % 2 == 0 { crate::StressSampling::Average } else { crate::StressSampling::Last };
-                        w
-                    })
-                    .collect();
-                out.push(format!("{:?}", pool.step(step, &work)?));
+                out.push(format!("{:?}", pool.step(step, &work_of(step))?));
                 if checkpoint == Some(step) {
                     let saved = pool.snapshot(&pool.box_ids())?;
                     pool.mark_checkpoint(

@@ -99,6 +99,28 @@ pub fn check_text(loaded: &LoadedCell) -> String {
     )
 }
 
+/// Refuses a restart point that does not belong to this model and run: a time outside
+/// [0, end time] (a time of -9e18 s made the integrator run for ever), a state of another
+/// length or with a non-finite value, an unusable first step, more outputs done than exist.
+fn check_restart(r: &Restart, model: &Model, settings: &Settings, y_init: &[f64]) -> Result<()> {
+    let end = settings.end_time;
+    anyhow::ensure!(r.t.is_finite() && r.t >= 0.0 && r.t <= end, "its time {:e} s lies outside the run's [0, {end:e}] s", r.t);
+    anyhow::ensure!(r.y.len() == y_init.len(), "its state has {} values, the scene's model {}", r.y.len(), y_init.len());
+    if let Some(k) = r.y.iter().position(|v| !v.is_finite()) {
+        anyhow::bail!("its state holds the non-finite value {} at index {k}", r.y[k]);
+    }
+    let open = model.initial_open(y_init).len();
+    anyhow::ensure!(r.open.len() == open, "it has {} interface states, the scene's model {open}", r.open.len());
+    anyhow::ensure!(r.h0.is_finite() && r.h0 > 0.0, "its first step {:e} is not a positive number", r.h0);
+    anyhow::ensure!(
+        r.outputs_done <= settings.output_times.len(),
+        "it has {} outputs done of the scene's {}",
+        r.outputs_done,
+        settings.output_times.len()
+    );
+    Ok(())
+}
+
 fn finite_or_null(v: f64) -> Value {
     if v.is_finite() { json!(v) } else { Value::Null }
 }
@@ -192,6 +214,9 @@ pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
         linear_solver: scene.scheme.linear_solver,
     };
     let y_init = model.initial_state();
+    if let Some(r) = &settings.start {
+        check_restart(r, &model, &settings, &y_init).with_context(|| format!("cannot resume from the checkpoint in {}", out.display()))?;
+    }
     let end = settings.end_time;
     let bar = crate::run::progress_bar(opts.progress_bar, 1000, end);
     let mut last_log = Instant::now();

@@ -362,6 +362,13 @@ fn main() -> ExitCode {
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
+    // A file-size limit (`ulimit -f`) or quota reached while writing a checkpoint or a snapshot
+    // fails that write with EFBIG and the run ends with a message naming the file, instead of
+    // SIGXFSZ killing the process silently.
+    // SAFETY: setting a signal's disposition to SIG_IGN at start, before any thread exists.
+    unsafe {
+        libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+    }
     // No panic reaches the user as a backtrace: report it as an internal error.
     std::panic::set_hook(Box::new(|info| {
         eprintln!("mscale: internal error (this is a bug, please report it): {info}");

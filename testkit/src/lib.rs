@@ -18,6 +18,8 @@
 //! such file (cargo writes none then) and is taken as it is: build it with that command, or
 //! run `cargo test --workspace`, which rebuilds whatever is stale before any test runs.
 
+pub mod fuzz;
+
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};

@@ -437,7 +437,11 @@ fn attempt(
             if let Err(e) = reg.declare_lost(
                 &mut lock(&core4.store),
                 w.epoch,
-                &format!("stopped answering during step {} of job {id4}: {}", r.step, r.why),
+                &if r.why.starts_with("declared faulty") {
+                    format!("answered garbage during step {} of job {id4}: {}", r.step, r.why)
+                } else {
+                    format!("stopped answering during step {} of job {id4}: {}", r.step, r.why)
+                },
             ) {
                 tracing::error!("cannot record worker {} as lost: {e:#}", w.id);
             }
