@@ -17,7 +17,7 @@
 //!
 //! Velocities and positions both belong to t^n (no stagger), and step 8's forces are the next
 //! step's step 1 (not reused here: each step assembles twice). Linear analysis
-//! ([`crate::stability`]): [[1 - r s/2, r (1 - s/4)], [-s, 1 - s/2]] on (v, dt a), det
+//! (the stability module): [[1 - r s/2, r (1 - s/4)], [-s, 1 - s/2]] on (v, dt a), det
 //! 1 - s (1 - r)/2, stable for s <= 4: c dt / h <= 1 for MPM at any number of points per cell.
 //! FLIP only (no PIC/FLIP blend).
 
