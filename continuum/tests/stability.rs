@@ -30,8 +30,9 @@ fn bar(layout: Layout, integrator: TimeIntegrator, flip: f64, cfl: f64, v: impl 
         }
     }
     let law = LinearPiola { youngs_modulus: 1.0, poisson_ratio: 0.0, density0: 1.0 };
-    let mut sim =
-        Simulation::new(grid, pts, layout.scheme, vec![Box::new(law)], Viscosity::None, cfl).unwrap().with_sub_points(layout.sub_points);
+    let mut sim = Simulation::new(grid, pts, layout.scheme, vec![Box::new(law)], Viscosity::None, cfl)
+        .expect("builds")
+        .with_sub_points(layout.sub_points);
     sim.integrator = integrator;
     sim.flip_fraction = flip;
     sim
