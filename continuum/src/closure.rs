@@ -372,3 +372,144 @@ impl Closure for NeoHookean {
         Some(t)
     }
 }
+
+/// Linear elasticity in the displacement gradient, written for the first Piola-Kirchhoff
+/// stress: P = lambda tr(F - I) I + mu ((F - I) + (F - I)^T), sigma = P F^T / J. In 1D
+/// (uniaxial strain, J = F) sigma = P = (lambda + 2 mu)(F - 1): with nu = 0 this is the battery
+/// thesis's bar law sigma = P = E (F - 1) (B 4.93, rate E l F of (4.95)) and Gong's linearised
+/// model (7.4). It is not frame-indifferent (a rigid rotation stresses it): meant for the
+/// small-strain reference problems (the vibrating bar, the stability bound), not for general
+/// scenes.
+#[derive(Debug, Clone)]
+pub struct LinearPiola {
+    pub youngs_modulus: f64,
+    pub poisson_ratio: f64,
+    pub density0: f64,
+}
+
+impl LinearPiola {
+    /// The first Piola-Kirchhoff stress of F (Pa).
+    pub fn piola(&self, f: &Mat3) -> Mat3 {
+        let (lambda, mu) = lame(self.youngs_modulus, self.poisson_ratio);
+        let e = tensor::add_scaled(f, &IDENTITY, -1.0);
+        let mut p = tensor::add_scaled(&tensor::add_scaled(&tensor::ZERO, &e, mu), &tensor::transpose(&e), mu);
+        let tr = tensor::trace(&e);
+        for (i, row) in p.iter_mut().enumerate() {
+            row[i] += lambda * tr;
+        }
+        p
+    }
+}
+
+impl Closure for LinearPiola {
+    fn name(&self) -> &'static str {
+        "linear-piola"
+    }
+    /// The Lagrangian speed sqrt((lambda + 2 mu) / rho0) (dP/dF is constant) times the largest
+    /// stretch J of the points (the Eulerian speed of a 1D wave is F c_L).
+    fn wave_speed(&self, mass: &[f64], volume: &[f64]) -> f64 {
+        let (lambda, mu) = lame(self.youngs_modulus, self.poisson_ratio);
+        let j_max = mass.iter().zip(volume).map(|(m, v)| self.density0 * v / m).fold(1.0, f64::max);
+        ((lambda + 2.0 * mu) / self.density0).sqrt() * j_max
+    }
+    fn advance(&mut self, b: ClosureBatch<'_>, _dt: f64) -> Result<(), ClosureError> {
+        let law = self.name();
+        b.for_each_point(|p, out| {
+            let f = p.def_grad;
+            let j = tensor::det(f);
+            if !(j > 0.0) {
+                return Err(ClosureError::Inverted { point: p.id, law, jacobian: j });
+            }
+            let s = tensor::mul(&self.piola(f), &tensor::transpose(f));
+            *out = tensor::add_scaled(&tensor::ZERO, &s, 1.0 / j);
+            Ok(())
+        })
+    }
+    fn repeatable(&self) -> bool {
+        true
+    }
+    fn has_tangent(&self) -> bool {
+        true
+    }
+    /// With F = (I + H) F_n and sigma = P F^T / J: d sigma_ij / d H_kl =
+    /// [lambda (F_n)_lk F_ji + mu (delta_ik (F F_n^T)_jl + (F_n)_li F_jk)
+    ///  + delta_jk (P F_n^T)_il] / J - sigma_ij (I + H)^-1_lk.
+    fn tangent(&self, p: &TangentIn<'_>) -> Option<Tangent> {
+        let (lambda, mu) = lame(self.youngs_modulus, self.poisson_ratio);
+        let (f, fnn) = (p.def_grad, p.start_def_grad);
+        let j = tensor::det(f);
+        if !(j > 0.0) {
+            return None;
+        }
+        let fi = rel_inverse(p);
+        let sigma = tensor::add_scaled(&tensor::ZERO, &tensor::mul(&self.piola(f), &tensor::transpose(f)), 1.0 / j);
+        let ffn = tensor::mul(f, &tensor::transpose(fnn));
+        let pfn = tensor::mul(&self.piola(f), &tensor::transpose(fnn));
+        let d = |a: usize, c: usize| if a == c { 1.0 } else { 0.0 };
+        let mut t = [[[[0.0; 3]; 3]; 3]; 3];
+        for (i, ti) in t.iter_mut().enumerate() {
+            for (jj, tj) in ti.iter_mut().enumerate() {
+                for (k, tk) in tj.iter_mut().enumerate() {
+                    for (l, v) in tk.iter_mut().enumerate() {
+                        let dp = lambda * fnn[l][k] * f[jj][i] + mu * (d(i, k) * ffn[jj][l] + fnn[l][i] * f[jj][k]);
+                        *v = (dp + d(jj, k) * pfn[i][l]) / j - sigma[i][jj] * fi[l][k];
+                    }
+                }
+            }
+        }
+        Some(t)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn stress_of(law: &LinearPiola, f: &Mat3) -> Mat3 {
+        let mut p = law.piola(f);
+        p = tensor::mul(&p, &tensor::transpose(f));
+        tensor::add_scaled(&tensor::ZERO, &p, 1.0 / tensor::det(f))
+    }
+
+    #[test]
+    fn linear_piola_is_the_bar_law_in_1d_and_its_tangent_matches_a_difference() {
+        let law = LinearPiola { youngs_modulus: 1e3, poisson_ratio: 0.0, density0: 1.0 };
+        let mut f = IDENTITY;
+        f[0][0] = 1.02;
+        // sigma = P = E (F - 1) along the bar (B 4.93).
+        assert!((stress_of(&law, &f)[0][0] - 1e3 * 0.02).abs() < 1e-12);
+        let law = LinearPiola { youngs_modulus: 2e3, poisson_ratio: 0.3, density0: 1.0 };
+        let fnn = [[1.03, 0.02, -0.01], [0.01, 0.98, 0.03], [-0.02, 0.01, 1.01]];
+        let h = [[0.01, -0.004, 0.002], [0.003, -0.006, 0.001], [0.002, 0.005, 0.004]];
+        let f = tensor::mul(&tensor::add_scaled(&IDENTITY, &h, 1.0), &fnn);
+        let s = stress_of(&law, &f);
+        let t = law
+            .tangent(&TangentIn {
+                start_stress: &tensor::ZERO,
+                start_def_grad: &fnn,
+                increment: &h,
+                def_grad: &f,
+                stress: &s,
+                mass: 1.0,
+                volume: tensor::det(&f),
+            })
+            .unwrap();
+        let eps = 1e-6;
+        for k in 0..3 {
+            for l in 0..3 {
+                let mut hp = h;
+                hp[k][l] += eps;
+                let mut hm = h;
+                hm[k][l] -= eps;
+                let sp = stress_of(&law, &tensor::mul(&tensor::add_scaled(&IDENTITY, &hp, 1.0), &fnn));
+                let sm = stress_of(&law, &tensor::mul(&tensor::add_scaled(&IDENTITY, &hm, 1.0), &fnn));
+                for i in 0..3 {
+                    for j in 0..3 {
+                        let fd = (sp[i][j] - sm[i][j]) / (2.0 * eps);
+                        assert!((t[i][j][k][l] - fd).abs() < 1e-5 * 2e3, "[{i}][{j}][{k}][{l}]: {} vs {fd}", t[i][j][k][l]);
+                    }
+                }
+            }
+        }
+    }
+}

@@ -259,6 +259,74 @@ pub fn thin_film_stress(law: &crate::silicon::ChemoPlastic, dc: f64) -> (f64, f6
     (-sigma * dc.signum(), eps)
 }
 
+/// The battery thesis's vibrating bar (B 4.7.1, notes A.9 T5), 1D on [0, 1] with fixed (or
+/// periodic) ends: u = A sin(2 pi X) sin(c pi t), c = sqrt(M / rho0), for the linear law
+/// sigma = P = M (F - 1) of [`crate::closure::LinearPiola`] (M = lambda + 2 mu, = E at nu = 0 as
+/// in the thesis). It is a forced standing mode: the bar's own frequency for this shape is
+/// 2 pi c, the solution's c pi, and the body force makes up the difference. Re-derived from
+/// rho0 u_tt = M u_XX + rho0 b: b = (4 pi^2 c^2 - c^2 pi^2) u = 3 (c pi)^2 u per unit mass (the
+/// print's 3 A (c pi)^2 u has an extra A, erratum (4.98)).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VibratingBar {
+    /// A (m); the thesis uses 3e-3 (strain 2 pi A = 1.9 %).
+    pub amplitude: f64,
+    /// The 1D modulus M = lambda + 2 mu (Pa).
+    pub modulus: f64,
+    pub density0: f64,
+}
+
+impl VibratingBar {
+    /// c = sqrt(M / rho0) (m/s).
+    pub fn speed(&self) -> f64 {
+        (self.modulus / self.density0).sqrt()
+    }
+
+    /// u at X (m).
+    pub fn displacement(&self, x0: f64, t: f64) -> f64 {
+        self.amplitude * (2.0 * PI * x0).sin() * (self.speed() * PI * t).sin()
+    }
+
+    /// du/dt at X (m/s).
+    pub fn velocity(&self, x0: f64, t: f64) -> f64 {
+        let c = self.speed();
+        self.amplitude * c * PI * (2.0 * PI * x0).sin() * (c * PI * t).cos()
+    }
+
+    /// F = 1 + du/dX.
+    pub fn stretch(&self, x0: f64, t: f64) -> f64 {
+        1.0 + 2.0 * PI * self.amplitude * (2.0 * PI * x0).cos() * (self.speed() * PI * t).sin()
+    }
+
+    /// sigma = P = M (F - 1) (Pa).
+    pub fn stress(&self, x0: f64, t: f64) -> f64 {
+        self.modulus * (self.stretch(x0, t) - 1.0)
+    }
+
+    /// The largest particle speed A c pi (m/s).
+    pub fn max_speed(&self) -> f64 {
+        self.amplitude.abs() * self.speed() * PI
+    }
+
+    /// b = 3 (c pi)^2 u (m/s^2) along the bar.
+    pub fn body_force<const D: usize>(&self, x0: &[f64; D], t: f64) -> [f64; D] {
+        let cp = self.speed() * PI;
+        std::array::from_fn(|a| if a == 0 { 3.0 * cp * cp * self.displacement(x0[0], t) } else { 0.0 })
+    }
+
+    /// The L2 errors of [`Manufactured::errors`] (Gong 4.40's measure; sigma_xx only) at `t`,
+    /// velocities at `t_velocity`.
+    pub fn errors<const D: usize>(&self, pts: &Particles<D>, t: f64, t_velocity: f64) -> ManufacturedErrors {
+        let (mut eu, mut ev, mut es) = (0.0, 0.0, 0.0);
+        for k in 0..pts.len() {
+            let (x0, v0) = (pts.x0[k][0], pts.volume0[k]);
+            eu += v0 * (pts.x[k][0] - x0 - self.displacement(x0, t)).powi(2);
+            ev += v0 * (pts.v[k][0] - self.velocity(x0, t_velocity)).powi(2);
+            es += v0 * (pts.stress[k][0][0] - self.stress(x0, t)).powi(2);
+        }
+        ManufacturedErrors { displacement_l2: eu.sqrt(), velocity_l2: ev.sqrt(), stress_l2: es.sqrt() }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -329,6 +397,22 @@ mod tests {
         let s = |x: f64| m.stress(&[x], t)[0][0];
         let dp = (s(0.3 + 1e-6) - s(0.3 - 1e-6)) / 2e-6;
         assert!((m.density0 * (-c * c * PI * PI * m.displacement(0.3, t)) - dp - m.density0 * b1).abs() < 1e-3);
+    }
+
+    /// rho0 u_tt = dsigma/dX + rho0 b for the vibrating bar (a central difference of sigma).
+    #[test]
+    fn the_vibrating_bar_body_force_balances_momentum() {
+        let m = VibratingBar { amplitude: 3e-3, modulus: 1e3, density0: 1.0 };
+        let (t, c) = (0.0123, m.speed());
+        for x in [0.1, 0.37, 0.8] {
+            let d = 1e-6;
+            let ds = (m.stress(x + d, t) - m.stress(x - d, t)) / (2.0 * d);
+            let acc = -(c * PI) * (c * PI) * m.displacement(x, t);
+            let r = m.density0 * acc - ds - m.density0 * m.body_force(&[x], t)[0];
+            assert!(r.abs() < 1e-6 * (m.density0 * acc).abs().max(1e-3), "X = {x}: {r:e}");
+            let dv = (m.displacement(x, t + 1e-7) - m.displacement(x, t - 1e-7)) / 2e-7;
+            assert!((dv - m.velocity(x, t)).abs() < 1e-6 * m.max_speed());
+        }
     }
 
     #[test]

@@ -24,6 +24,7 @@ pub mod particles;
 pub mod shape;
 pub mod silicon;
 pub mod solver;
+pub mod stability;
 pub mod tensor;
 
 pub use closure::{Closure, ClosureBatch, ClosureError};

@@ -33,6 +33,10 @@ pub enum SchemeKind {
     /// the cell centres, one-point quadrature per cell; hat functions move the points (see
     /// `solver/impm.rs`).
     Impm,
+    /// Gong's improved CPDI (6.6): CPDI mass and forces with the MLS velocity map of IMPM
+    /// (linear basis, cubic B-spline) at the nodes. 1D: the 1D CPDI; 2D/3D: cpdi2 (tracked
+    /// corners) with the same map [proposed extension; Gong gives 1D only].
+    CpdiImproved,
 }
 
 impl SchemeKind {
@@ -47,6 +51,7 @@ impl SchemeKind {
         ("ddmp", SchemeKind::Ddmp),
         ("ddmp-subpoints", SchemeKind::DdmpSubpoints),
         ("impm", SchemeKind::Impm),
+        ("cpdi-improved", SchemeKind::CpdiImproved),
     ];
 
     pub fn from_name(name: &str) -> Option<SchemeKind> {
@@ -68,7 +73,7 @@ impl SchemeKind {
 
     /// Whether the scheme moves the points' domain corners with the grid every step.
     pub fn tracks_corners(self) -> bool {
-        matches!(self, SchemeKind::Cpdi | SchemeKind::Cpdi2)
+        matches!(self, SchemeKind::Cpdi | SchemeKind::Cpdi2 | SchemeKind::CpdiImproved)
     }
 
     /// Whether the scheme uses the modified gradient of DDMP.

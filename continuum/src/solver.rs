@@ -17,6 +17,7 @@ use rayon::prelude::*;
 #[path = "implicit.rs"]
 pub mod implicit;
 mod impm;
+mod verlet;
 
 /// Artificial viscosity added to the closure's stress in compression.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -89,6 +90,10 @@ pub enum TimeIntegrator {
     Leapfrog,
     Usl,
     Usf,
+    /// Stormer-Verlet (battery thesis Table 5.1; see `solver/verlet.rs`): half kick, drift,
+    /// the linear-implicit F update solved, forces at the new positions, second half kick.
+    /// Second order, velocities and positions at t^n; FLIP only.
+    StormerVerlet,
     /// Guilkey-Weiss trapezoidal rule (Newmark beta = 1/4, gamma = 1/2) solved by Newton on
     /// the nodal displacements with the stencil frozen over the step; see [`implicit`].
     ImplicitTrapezoidal,
@@ -297,6 +302,9 @@ impl<const D: usize> Simulation<D> {
         if self.integrator == TimeIntegrator::ImplicitTrapezoidal {
             return self.implicit_step();
         }
+        if self.integrator == TimeIntegrator::StormerVerlet {
+            return self.verlet_step();
+        }
         let step = self.step + 1;
         let dt = self.dt;
         self.build_stencil()
@@ -309,7 +317,7 @@ impl<const D: usize> Simulation<D> {
             self.advance_scalar(step)?;
             self.deform_and_stress(step, c)?;
         } else if self.integrator == TimeIntegrator::Usf {
-            self.map_to_grid();
+            self.map_velocities(step)?;
             // Update stress first: strain rate from the mapped v^n, then forces from the new stress.
             self.velocity_gradients();
             self.advance_scalar(step)?;
@@ -317,7 +325,7 @@ impl<const D: usize> Simulation<D> {
             self.nodal_forces();
             self.lagrangian_update(step, c)?;
         } else {
-            self.map_to_grid();
+            self.map_velocities(step)?;
             self.nodal_forces();
             self.lagrangian_update(step, c)?;
             self.velocity_gradients();
@@ -360,6 +368,7 @@ impl<const D: usize> Simulation<D> {
                         // IMPM moves its points with the hat functions at x_p^s (Gong 5.3 steps 5-6).
                         SchemeKind::Impm => shape::gimp_row(SchemeKind::Mpm, grid, pts, p, part)?,
                         SchemeKind::Cpdi | SchemeKind::Cpdi1 | SchemeKind::Cpdi2 => shape::cpdi_row(scheme, grid, pts, p, block, part)?,
+                        SchemeKind::CpdiImproved => shape::cpdi_row(impm::improved_cpdi_base::<D>(), grid, pts, p, block, part)?,
                         SchemeKind::Ddmp | SchemeKind::DdmpSubpoints => {
                             ddmp::ddmp_row(grid, pts, p, &subs[p * ns..(p + 1) * ns], field, block, part)?
                         }
@@ -779,7 +788,7 @@ impl<const D: usize> Simulation<D> {
     fn old_velocity_weight(&self) -> f64 {
         match self.integrator {
             TimeIntegrator::Dhakal => 0.5,
-            TimeIntegrator::Leapfrog | TimeIntegrator::Usl | TimeIntegrator::Usf => 0.0,
+            TimeIntegrator::Leapfrog | TimeIntegrator::Usl | TimeIntegrator::Usf | TimeIntegrator::StormerVerlet => 0.0,
             TimeIntegrator::ImplicitTrapezoidal => 0.5,
         }
     }

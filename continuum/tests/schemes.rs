@@ -1,5 +1,6 @@
 //! The transfers and integrators of issue 17 (notes A.6, A.7) on Gong's manufactured solution
-//! in 1D ([`continuum::exact::Manufactured`]): the PIC/FLIP blend and the USL / USF updates.
+//! in 1D ([`continuum::exact::Manufactured`]): the PIC/FLIP blend, the USL / USF / Stormer-Verlet
+//! updates and the convergence study (with `impm` and `cpdi-improved`).
 
 use continuum::closure::NeoHookean;
 use continuum::exact::{Manufactured, ManufacturedErrors};
@@ -53,7 +54,8 @@ fn position_gap(a: &Simulation<1>, b: &Simulation<1>) -> f64 {
 
 /// At a fixed mesh, the time order of each integrator from runs at dt, dt / 2 and dt / 4
 /// (differences of successive runs): the leapfrog is second order (measured 2.58: the
-/// difference is still pre-asymptotic at h = 1/16), USF first order (measured 1.04). The USL is
+/// difference is still pre-asymptotic at h = 1/16), USF first order (measured 1.04),
+/// Stormer-Verlet second order. The USL is
 /// the leapfrog without its half first step; here the initial acceleration is zero (no stress,
 /// and the body force vanishes at t = 0), so the two give bitwise the same run (asserted).
 #[test]
@@ -62,7 +64,12 @@ fn usf_is_first_order_in_time_and_the_leapfrog_and_usl_second() {
     let usl = mms_1d(SchemeKind::Cpdi, 16, g, TimeIntegrator::Usl, 0.4, 1.0).expect("runs");
     let leapfrog = mms_1d(SchemeKind::Cpdi, 16, g, TimeIntegrator::Leapfrog, 0.4, 1.0).expect("runs");
     assert_eq!(usl.points.x, leapfrog.points.x);
-    for (integrator, lo, hi) in [(TimeIntegrator::Leapfrog, 1.8, 3.5), (TimeIntegrator::Usl, 1.8, 3.5), (TimeIntegrator::Usf, 0.8, 1.3)] {
+    for (integrator, lo, hi) in [
+        (TimeIntegrator::Leapfrog, 1.8, 3.5),
+        (TimeIntegrator::Usl, 1.8, 3.5),
+        (TimeIntegrator::Usf, 0.8, 1.3),
+        (TimeIntegrator::StormerVerlet, 1.8, 3.5),
+    ] {
         let run = |c: f64| mms_1d(SchemeKind::Cpdi, 16, g, integrator, c, 1.0).expect("runs");
         let (a, b, c) = (run(0.4), run(0.2), run(0.1));
         let (e1, e2) = (position_gap(&a, &b), position_gap(&b, &c));
@@ -107,7 +114,8 @@ fn the_pic_flip_blend_runs_from_flip_to_pic() {
 #[test]
 fn manufactured_solution_convergence_study_1d() {
     let cells = [8, 16, 32, 64];
-    let schemes = [SchemeKind::Mpm, SchemeKind::Cpdi, SchemeKind::Ddmp, SchemeKind::DdmpSubpoints, SchemeKind::Impm];
+    let schemes =
+        [SchemeKind::Mpm, SchemeKind::Cpdi, SchemeKind::Ddmp, SchemeKind::DdmpSubpoints, SchemeKind::Impm, SchemeKind::CpdiImproved];
     for g in [0.1, 1e-4] {
         println!("G = {g}: displacement L2 error (velocity L2, stress L2) at h = 1/8, 1/16, 1/32, 1/64; orders");
         for scheme in schemes {
@@ -131,7 +139,7 @@ fn manufactured_solution_convergence_study_1d() {
                 _ => None,
             };
             match (scheme, g) {
-                (SchemeKind::Impm | SchemeKind::Cpdi, _) => {
+                (SchemeKind::Impm | SchemeKind::Cpdi | SchemeKind::CpdiImproved, _) => {
                     assert!(overall.is_some_and(|o| o >= 1.8), "{scheme:?} at G = {g}: order {overall:?} ({du:?})")
                 }
                 (SchemeKind::Mpm, 0.1) => assert!(overall.is_none_or(|o| o < 0.5), "mpm at G = 0.1 converges: {overall:?}"),

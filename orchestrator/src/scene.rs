@@ -218,6 +218,9 @@ pub enum Material {
     LinearElastic(Elastic),
     /// Compressible neo-Hookean.
     NeoHookean(Elastic),
+    /// P = lambda tr(F - I) I + mu (F - I + (F - I)^T): linear in the displacement gradient,
+    /// sigma = M (F - 1) in 1D (the vibrating bar's law; not frame-indifferent).
+    LinearPiola(Elastic),
     /// A periodic MD box per material point.
     Md(MdMaterial),
     /// Hypoelastic-plastic law in the unrotated frame with a chemical strain rate eta c_dot I
@@ -231,6 +234,7 @@ impl Material {
             Material::IdealGasIsothermal(_) => "ideal-gas-isothermal",
             Material::LinearElastic(_) => "linear-elastic",
             Material::NeoHookean(_) => "neo-hookean",
+            Material::LinearPiola(_) => "linear-piola",
             Material::Md(_) => "md",
             Material::HypoelasticPlastic(_) => "hypoelastic-plastic",
         }
@@ -551,6 +555,10 @@ pub enum Reference {
     /// The Fourier series of 1D diffusion between two Dirichlet faces from a uniform initial
     /// value (B 6.95), scored by the RMS over the points (B 6.97 with its square).
     HeatSeries(HeatSeriesReference),
+    /// The battery thesis's vibrating bar (B 4.7.1): u = A sin(2 pi X) sin(c pi t) with its
+    /// body force, for one `linear-piola` body filling [0, 1] (see
+    /// [`continuum::exact::VibratingBar`]); summary.json `errors` as for `manufactured`.
+    VibratingBar(ManufacturedReference),
 }
 
 /// `solution = "heat-series"`: a 1D scene with `[diffusion]` values on both faces and every
@@ -763,6 +771,46 @@ end_time = 1e-12
             let l = parse("mms-2d.toml", &text, &sets, &base, "mms-2d").unwrap();
             assert_eq!((l.resolved.integrator, l.resolved.flip_fraction), (want, 0.25));
         }
+    }
+
+    #[test]
+    fn the_vibrating_bar_resolves_and_the_derived_cfl_bounds_are_enforced() {
+        let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+        let text = std::fs::read_to_string(base.join("vibrating-bar-1d.toml")).unwrap();
+        let parse_with = |sets: &[&str]| {
+            let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+            parse("vibrating-bar-1d.toml", &text, &sets, &base, "vibrating-bar-1d")
+        };
+        let l = parse_with(&[]).unwrap();
+        let m = l.resolved.vibrating_bar.expect("vibrating bar");
+        assert_eq!((m.amplitude, m.modulus, m.density0), (3e-3, 1e3, 1.0));
+        assert_eq!((l.dt, l.steps), (1e-5, 20_000));
+        assert!(l.resolved.manufactured.is_none());
+        let err = |sets: &[&str]| parse_with(sets).map(|_| ()).unwrap_err().to_string();
+        assert!(err(&["reference.amplitude=0.2"]).contains("`reference.amplitude` = 0.2: the amplitude A (m) must be"));
+        assert!(err(&["boundary.x_max=\"roller\""]).contains("`boundary.x_max`"));
+        assert!(
+            err(&["bodies.bar.material={ law = \"neo-hookean\", youngs_modulus = 1e3, poisson_ratio = 0.0 }"]).contains("linear-piola")
+        );
+        assert!(parse_with(&["boundary.x_min=\"periodic\"", "boundary.x_max=\"periodic\""]).is_ok());
+        // The derived bounds (continuum::stability): usl and leapfrog MPM at 1 point per cell
+        // stop at 0.7071, usf and stormer-verlet do not (their bounds pass CFL_LIMIT = 1).
+        let e = err(&["scheme.particles_per_cell=1", "scheme.timestep=2.3e-4"]);
+        assert!(
+            e.contains(
+                "`scheme.timestep` = 0.00023: exceeds the linear stability bound c dt / h <= 0.7071 of `mpm` with integrator \"usl\""
+            ),
+            "{e}"
+        );
+        let e = err(&["scheme.particles_per_cell=1", "scheme.integrator=leapfrog", "scheme.timestep=2.3e-4"]);
+        assert!(e.contains("bound c dt / h <= 0.7071 of `mpm` with integrator \"leapfrog\""), "{e}");
+        for ok in ["usf", "stormer-verlet"] {
+            let i = format!("scheme.integrator={ok}");
+            assert!(parse_with(&["scheme.particles_per_cell=1", &i, "scheme.timestep=2.3e-4"]).is_ok(), "{ok}");
+        }
+        assert!(parse_with(&["scheme.particles_per_cell=1", "scheme.timestep=2.2e-4"]).is_ok());
+        let e = err(&["scheme.integrator=stormer-verlet", "scheme.flip_fraction=0.5"]);
+        assert!(e.contains("`scheme.flip_fraction` = 0.5: the Stormer-Verlet step updates the point velocities by FLIP only"), "{e}");
     }
 
     #[test]

@@ -3,7 +3,7 @@
 //! consumes only the [`ResolvedScene`]: every value is typed and measured there.
 
 use crate::scene::{Law, ResolvedBody, ResolvedScene};
-use continuum::closure::{IdealGasIsothermal, LinearElastic, NeoHookean};
+use continuum::closure::{IdealGasIsothermal, LinearElastic, LinearPiola, NeoHookean};
 use continuum::silicon::ChemoPlasticClosure;
 use continuum::tensor::IDENTITY;
 use continuum::{Closure, Grid, Particles, Simulation};
@@ -44,6 +44,9 @@ fn closure(body: &ResolvedBody, points: std::ops::Range<usize>, md: Option<&Arc<
         }
         Law::NeoHookean { youngs_modulus, poisson_ratio } => {
             Box::new(NeoHookean { youngs_modulus: *youngs_modulus, poisson_ratio: *poisson_ratio, density0: body.density })
+        }
+        Law::LinearPiola { youngs_modulus, poisson_ratio } => {
+            Box::new(LinearPiola { youngs_modulus: *youngs_modulus, poisson_ratio: *poisson_ratio, density0: body.density })
         }
         Law::HypoelasticPlastic(law) => Box::new(ChemoPlasticClosure { law: *law }),
         Law::Md(m) => {
@@ -114,6 +117,12 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
             *v = std::array::from_fn(|a| m.velocity(x0[a], 0.0));
         }
     }
+    if let Some(m) = scene.vibrating_bar {
+        // The bar's initial velocity A c pi sin(2 pi X).
+        for (v, x0) in points.v.iter_mut().zip(&points.x0) {
+            v[0] = m.velocity(x0[0], 0.0);
+        }
+    }
     let ranges = points.body_ranges();
     let closures = scene.bodies.iter().zip(ranges).map(|(b, r)| closure(b, r, md)).collect::<Result<Vec<_>, _>>()?;
     let mut sim = Simulation::new(grid, points, scene.scheme, closures, scene.viscosity, scene.dt)?
@@ -122,6 +131,9 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
     sim.integrator = scene.integrator;
     sim.flip_fraction = scene.flip_fraction;
     if let Some(m) = scene.manufactured {
+        sim.body_force = Some(Arc::new(move |x0: &[f64; D], t: f64| m.body_force(x0, t)));
+    }
+    if let Some(m) = scene.vibrating_bar {
         sim.body_force = Some(Arc::new(move |x0: &[f64; D], t: f64| m.body_force(x0, t)));
     }
     if let Some(d) = &scene.diffusion {

@@ -25,7 +25,7 @@
 //! differs from sum_p M_p N_i(x_p) (notes A.2).
 
 use super::*;
-use crate::mls::{Basis, Empty, Mls, SingularMoment, Weight};
+use crate::mls::{Basis, Empty, Mls, ShapeTable, SingularMoment, Weight};
 
 impl<const D: usize> Simulation<D> {
     /// Steps 1-3 of IMPM: fills `node_v`, `node_mass` and `node_force` (1D).
@@ -36,21 +36,9 @@ impl<const D: usize> Simulation<D> {
             what: e.to_string(),
             cause: "too few distinct particles near that node or cell centre (use more particles per cell)",
         };
+        let velocity = self.mls_velocity_table(step)?;
         let (grid, pts) = (&self.grid, &self.points);
         let (h, x0, cells) = (grid.h[0], grid.origin[0], grid.cells[0]);
-        // The velocity is needed at the nodes of the cells that hold points (the hat stencil
-        // that moves them); a node farther out may see a single point and has no velocity.
-        let mut needed = vec![false; grid.node_count()];
-        for x in &pts.x {
-            let c = (((x[0] - x0) / h).floor().max(0.0) as usize).min(cells.saturating_sub(1));
-            needed[c] = true;
-            needed[c + 1] = true;
-        }
-        let active: Vec<usize> = (0..grid.node_count()).filter(|&i| needed[i]).collect();
-        let nodes: Vec<[f64; D]> = active.iter().map(|&i| grid.node_position(grid.unlinear(i))).collect();
-        let velocity = Mls::new(Basis::Linear, Weight::CubicBSpline, grid.h)
-            .table(&nodes, &pts.x, Empty::Refuse, "node", |k| active[k])
-            .map_err(singular)?;
         // Omega_c: the covered length of each cell.
         let mut spans: Vec<(f64, f64)> =
             (0..pts.len()).map(|p| (pts.x[p][0] - 0.5 * pts.volume[p], pts.x[p][0] + 0.5 * pts.volume[p])).collect();
@@ -99,14 +87,72 @@ impl<const D: usize> Simulation<D> {
                 self.node_force[i][0] += -grad * sigma_c * w + 0.5 * rho_c * b_c * w;
             }
         }
-        let vx: Vec<f64> = pts.v.iter().map(|v| v[0]).collect();
+        self.apply_velocity_table(&velocity);
+        Ok(())
+    }
+
+    /// The MLS velocity map of IMPM and `cpdi-improved` (Gong 5.3 step 1, 6.6): the nodes of
+    /// every cell holding a point (the stencil that moves them; a node farther out may see a
+    /// single point and gets none), linear basis, cubic B-spline, in D dimensions. Returns the
+    /// table with the active nodes' linear indices.
+    pub(super) fn mls_velocity_table(&self, step: u64) -> Result<(Vec<usize>, ShapeTable), SolverError> {
+        let (grid, pts) = (&self.grid, &self.points);
+        if let Some(a) = (0..D).find(|&a| grid.periodic(a)) {
+            return Err(SolverError::Diverged {
+                step,
+                what: format!("axis {a} is periodic"),
+                cause: "the MLS velocity map (impm, cpdi-improved) does not wrap around a periodic axis in this build",
+            });
+        }
+        let mut needed = vec![false; grid.node_count()];
+        for x in &pts.x {
+            let cell: [usize; D] = std::array::from_fn(|a| {
+                (((x[a] - grid.origin[a]) / grid.h[a]).floor().max(0.0) as usize).min(grid.cells[a].saturating_sub(1))
+            });
+            for corner in 0..(1usize << D) {
+                needed[grid.linear(std::array::from_fn(|a| cell[a] + (corner >> a & 1)))] = true;
+            }
+        }
+        let active: Vec<usize> = (0..grid.node_count()).filter(|&i| needed[i]).collect();
+        let nodes: Vec<[f64; D]> = active.iter().map(|&i| grid.node_position(grid.unlinear(i))).collect();
+        let table = Mls::new(Basis::Linear, Weight::CubicBSpline, grid.h)
+            .table(&nodes, &pts.x, Empty::Refuse, "node", |k| active[k])
+            .map_err(|e: SingularMoment| SolverError::Diverged {
+                step,
+                what: e.to_string(),
+                cause: "too few distinct particles near that node (use more particles per cell)",
+            })?;
+        Ok((active, table))
+    }
+
+    /// node_v = sum_p Phi_p(x_i) v_p at the active nodes (zero elsewhere), then the velocity
+    /// boundary conditions.
+    pub(super) fn apply_velocity_table(&mut self, velocity: &(Vec<usize>, ShapeTable)) {
+        let (active, table) = velocity;
+        let pts = &self.points;
         self.node_v.iter_mut().for_each(|v| *v = [0.0; D]);
+        let comps: Vec<Vec<f64>> = (0..D).map(|a| pts.v.iter().map(|v| v[a]).collect()).collect();
         for (k, &i) in active.iter().enumerate() {
-            self.node_v[i] = std::array::from_fn(|_| velocity.apply(k, &vx));
+            self.node_v[i] = std::array::from_fn(|a| table.apply(k, &comps[a]));
         }
         let mass = std::mem::take(&mut self.node_mass);
         self.grid.apply_boundaries(&mass, &mut self.node_v);
         self.node_mass = mass;
+    }
+
+    /// Steps 3-4 of the cycle: the lumped mass and mapped velocity; `cpdi-improved` then
+    /// replaces the velocity by the MLS map (Gong 6.6), keeping the CPDI mass.
+    pub(super) fn map_velocities(&mut self, step: u64) -> Result<(), SolverError> {
+        self.map_to_grid();
+        if self.scheme == SchemeKind::CpdiImproved {
+            let table = self.mls_velocity_table(step)?;
+            self.apply_velocity_table(&table);
+        }
         Ok(())
     }
+}
+
+/// The CPDI whose mass and forces `cpdi-improved` keeps: the 1D CPDI, or cpdi2 in 2D/3D.
+pub(super) fn improved_cpdi_base<const D: usize>() -> SchemeKind {
+    if D == 1 { SchemeKind::Cpdi } else { SchemeKind::Cpdi2 }
 }

@@ -91,10 +91,11 @@ impl SceneName for continuum::solver::TimeIntegrator {
         ("leapfrog", continuum::solver::TimeIntegrator::Leapfrog),
         ("usl", continuum::solver::TimeIntegrator::Usl),
         ("usf", continuum::solver::TimeIntegrator::Usf),
+        ("stormer-verlet", continuum::solver::TimeIntegrator::StormerVerlet),
         ("implicit-trapezoidal", continuum::solver::TimeIntegrator::ImplicitTrapezoidal),
     ];
     fn allowed() -> String {
-        "allowed: \"dhakal\" (Ch. 3.1 cycle), \"leapfrog\", \"usl\" (symplectic Euler), \"usf\" (update stress first), \"implicit-trapezoidal\"".into()
+        "allowed: \"dhakal\" (Ch. 3.1 cycle), \"leapfrog\", \"usl\" (symplectic Euler), \"usf\" (update stress first), \"stormer-verlet\", \"implicit-trapezoidal\"".into()
     }
 }
 

@@ -40,6 +40,8 @@ pub struct ResolvedScene {
     /// `[reference] solution = "manufactured"`: the solution whose body force and initial
     /// velocity setup applies.
     pub manufactured: Option<continuum::exact::Manufactured>,
+    /// `[reference] solution = "vibrating-bar"`: likewise.
+    pub vibrating_bar: Option<continuum::exact::VibratingBar>,
     /// The scalar field's diffusion, if the scene has one.
     pub diffusion: Option<ResolvedDiffusion>,
 }
@@ -86,6 +88,7 @@ pub enum Law {
     IdealGasIsothermal { sound_speed: f64 },
     LinearElastic { youngs_modulus: f64, poisson_ratio: f64 },
     NeoHookean { youngs_modulus: f64, poisson_ratio: f64 },
+    LinearPiola { youngs_modulus: f64, poisson_ratio: f64 },
     Md(Box<ResolvedMd>),
     HypoelasticPlastic(continuum::silicon::ChemoPlastic),
 }

@@ -63,11 +63,48 @@ impl Scene {
         }
         let diffusion = self.validate_diffusion(loc, dt, max_speed)?;
         files.extend(self.validate_reference(loc, base)?);
+        self.validate_linear_bound(loc, user_timestep)?;
         let counts = self.point_counts();
         self.validate_dump_points(loc, &counts)?;
         let mut resolved = self.resolved(dt, steps, &counts, measured);
         resolved.diffusion = diffusion;
         Ok((resolved, files))
+    }
+
+    /// The linear CFL bound derived for the scheme, integrator and PIC/FLIP blend
+    /// ([`continuum::stability`]): a time step above it is refused where it is tighter than
+    /// `CFL_LIMIT` (usl and leapfrog re-map the velocity from the points, so the sawtooth grid
+    /// mode limits MPM to 0.7071 at 1 point per cell). The 1D analysis bounds 2D and 3D scenes
+    /// too (a plane wave along an axis is the 1D problem; cpdi1/cpdi2 are analysed as the 1D
+    /// cpdi); it is necessary there, not shown sufficient.
+    fn validate_linear_bound(&self, loc: &Locator<'_>, user_timestep: bool) -> Result<(), SceneError> {
+        let s = &self.scheme;
+        let Some(cfl) = s.cfl else { return Ok(()) };
+        let scheme = match s.method {
+            SchemeKind::Cpdi1 | SchemeKind::Cpdi2 => SchemeKind::Cpdi,
+            k => k,
+        };
+        let layout = continuum::stability::Layout { scheme, particles_per_cell: s.particles_per_cell, sub_points: s.sub_points };
+        let Ok(Some(bound)) = continuum::stability::cfl_bound(layout, s.integrator, s.flip_fraction) else { return Ok(()) };
+        if bound >= CFL_LIMIT || cfl <= bound {
+            return Ok(());
+        }
+        let why = format!(
+            "exceeds the linear stability bound c dt / h <= {bound:.4} of `{}` with integrator \"{}\", {} points per cell and flip_fraction {} (derived in continuum::stability; cfl here {cfl:.4})",
+            s.method.name(),
+            s.integrator.scene_name(),
+            s.particles_per_cell,
+            s.flip_fraction
+        );
+        Err(if user_timestep {
+            loc.err(
+                "scheme.timestep",
+                s.timestep.unwrap_or_default(),
+                format!("{why}; use dt <= {:.6e} s", s.timestep.unwrap_or_default() * bound / cfl),
+            )
+        } else {
+            loc.err("scheme.cfl", cfl, format!("{why}; use cfl <= {:.4}", (bound * 1e4).floor() / 1e4))
+        })
     }
 
     /// Material points per body (name order), counted without building them.
@@ -103,6 +140,7 @@ impl Scene {
                     Material::IdealGasIsothermal(g) => Law::IdealGasIsothermal { sound_speed: g.sound_speed },
                     Material::LinearElastic(e) => Law::LinearElastic { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio },
                     Material::NeoHookean(e) => Law::NeoHookean { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio },
+                    Material::LinearPiola(e) => Law::LinearPiola { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio },
                     Material::HypoelasticPlastic(m) => Law::HypoelasticPlastic(m.law(body.density)),
                     Material::Md(m) => {
                         let (lattice_properties, atoms_per_box) = measured.remove(name).expect("every md body is measured by validation");
@@ -167,6 +205,7 @@ impl Scene {
             steps,
             bodies,
             manufactured: self.manufactured(),
+            vibrating_bar: self.vibrating_bar(),
             diffusion: None,
         }
     }
@@ -385,7 +424,7 @@ impl Scene {
                 finite_positive(loc, &k("material.sound_speed"), g.sound_speed, "the sound speed (m/s)")?;
                 Ok((g.sound_speed, None, None))
             }
-            Material::LinearElastic(e) | Material::NeoHookean(e) => {
+            Material::LinearElastic(e) | Material::NeoHookean(e) | Material::LinearPiola(e) => {
                 finite_positive(loc, &k("material.youngs_modulus"), e.youngs_modulus, "Young's modulus (Pa)")?;
                 if !(e.poisson_ratio > -1.0 && e.poisson_ratio < 0.5) {
                     return Err(loc.err(&k("material.poisson_ratio"), e.poisson_ratio, "Poisson's ratio must lie in (-1, 0.5)"));
@@ -567,6 +606,15 @@ impl Scene {
                 ));
             }
         }
+        if kind == SchemeKind::CpdiImproved
+            && let Some((face, _)) = self.boundary.faces().into_iter().find(|(_, f)| matches!(f, FaceSpec::Named(FaceName::Periodic)))
+        {
+            return Err(loc.err(
+                &format!("boundary.{face}"),
+                "\"periodic\"",
+                "cpdi-improved's MLS velocity map does not wrap around a periodic axis in this build",
+            ));
+        }
         if !(1..=64).contains(&s.particles_per_cell) {
             return Err(loc.err("scheme.particles_per_cell", s.particles_per_cell, "allowed: 1 to 64 per axis"));
         }
@@ -591,6 +639,13 @@ impl Scene {
         }
         if !(s.flip_fraction.is_finite() && (0.0..=1.0).contains(&s.flip_fraction)) {
             return Err(loc.err("scheme.flip_fraction", s.flip_fraction, "the PIC/FLIP blend must lie in [0, 1] (1: FLIP, 0: PIC)"));
+        }
+        if s.integrator == continuum::solver::TimeIntegrator::StormerVerlet && s.flip_fraction != 1.0 {
+            return Err(loc.err(
+                "scheme.flip_fraction",
+                s.flip_fraction,
+                "the Stormer-Verlet step updates the point velocities by FLIP only (its two half kicks): leave flip_fraction at 1",
+            ));
         }
         if !(s.small_mass_fraction.is_finite() && (0.0..1.0).contains(&s.small_mass_fraction)) {
             return Err(loc.err("scheme.small_mass_fraction", s.small_mass_fraction, "must lie in [0, 1)"));
@@ -663,6 +718,7 @@ impl Scene {
             None => Ok(None),
             Some(Reference::IsothermalRiemann(r)) => self.validate_riemann(loc, &r).map(|_| None),
             Some(Reference::Manufactured(r)) => self.validate_manufactured(loc, &r).map(|_| None),
+            Some(Reference::VibratingBar(r)) => self.validate_vibrating_bar(loc, &r).map(|_| None),
             Some(Reference::ThinFilmLithiation(r)) => self.validate_thin_film(loc, &r).map(|_| None),
             Some(Reference::HeatSeries(_)) => {
                 let ok = self.domain.dimension == 1
@@ -772,6 +828,99 @@ impl Scene {
             poisson_ratio: e.poisson_ratio,
             density0: body.density,
         })
+    }
+
+    /// The vibrating bar of a validated scene's `[reference]`, if it names one.
+    fn vibrating_bar(&self) -> Option<continuum::exact::VibratingBar> {
+        let Some(Reference::VibratingBar(r)) = &self.reference else { return None };
+        let body = self.bodies.values().next()?;
+        let Material::LinearPiola(e) = &body.material else { return None };
+        let (lambda, mu) = continuum::closure::lame(e.youngs_modulus, e.poisson_ratio);
+        Some(continuum::exact::VibratingBar { amplitude: r.amplitude, modulus: lambda + 2.0 * mu, density0: body.density })
+    }
+
+    /// The vibrating bar holds for one `linear-piola` body filling [0, 1] in 1D, at rest and
+    /// unstrained as given (the reference sets the velocity), with fixed or periodic ends (u = 0
+    /// at X = 0 and 1, and the mode is periodic); |2 pi A| < 1 keeps F positive; the time step
+    /// stays within the explicit bound with the particle speed A c pi added.
+    fn validate_vibrating_bar(&self, loc: &Locator<'_>, r: &ManufacturedReference) -> Result<(), SceneError> {
+        let a = r.amplitude;
+        if !(a.is_finite() && a != 0.0 && 2.0 * std::f64::consts::PI * a.abs() < 1.0) {
+            return Err(loc.err(
+                "reference.amplitude",
+                a,
+                "the amplitude A (m) must be finite, nonzero and below 1/(2 pi) = 0.159 (the stretch 1 + 2 pi A cos(2 pi X) sin(c pi t) must stay positive)",
+            ));
+        }
+        if self.domain.dimension != 1 {
+            return Err(loc.err(
+                "reference.solution",
+                "\"vibrating-bar\"",
+                format!("the vibrating bar is 1D; this scene has dimension {}", self.domain.dimension),
+            ));
+        }
+        if self.domain.min[0].abs() > 1e-12 || (self.domain.max[0] - 1.0).abs() > 1e-12 {
+            return Err(loc.err(
+                "domain.max",
+                vec_str(&self.domain.max),
+                "the vibrating bar is defined on [0, 1]: domain.min = [0.0], domain.max = [1.0]",
+            ));
+        }
+        let mut names = self.bodies.keys();
+        let (Some(name), None) = (names.next(), names.next()) else {
+            return Err(loc.err(
+                "bodies",
+                self.bodies.keys().cloned().collect::<Vec<_>>().join(", "),
+                "the vibrating bar needs exactly one body (linear-piola, filling [0, 1])",
+            ));
+        };
+        let b = &self.bodies[name];
+        let k = |f: &str| format!("bodies.{name}.{f}");
+        let Material::LinearPiola(_) = &b.material else {
+            return Err(loc.err(
+                &k("material.law"),
+                format!("{:?}", b.material.law()),
+                "the vibrating bar's body force is that of the linear law sigma = M (F - 1): law = \"linear-piola\"",
+            ));
+        };
+        if b.min[0].abs() > 1e-12 || (b.max[0] - 1.0).abs() > 1e-12 {
+            return Err(loc.err(&k("max"), format!("min {:?} max {:?}", b.min, b.max), "the body must fill [0, 1]"));
+        }
+        if b.velocity.iter().any(|v| *v != 0.0) {
+            return Err(loc.err(
+                &k("velocity"),
+                vec_str(&b.velocity),
+                "the reference sets the initial velocity A c pi sin(2 pi X): leave `velocity` out",
+            ));
+        }
+        if b.initial_strain.iter().any(|e| *e != 0.0) {
+            return Err(loc.err(&k("initial_strain"), vec_str(&b.initial_strain), "the vibrating bar starts unstrained: leave it out"));
+        }
+        for (face, spec) in self.boundary.faces().into_iter().take(2) {
+            if !matches!(spec, FaceSpec::Named(FaceName::Fixed | FaceName::Periodic)) {
+                return Err(loc.err(
+                    &format!("boundary.{face}"),
+                    face_debug(spec),
+                    "the vibrating bar has u = 0 at X = 0 and 1: \"fixed\" (or \"periodic\" on both ends)",
+                ));
+            }
+        }
+        if let (Some(dt), Some(m)) = (self.scheme.timestep, self.vibrating_bar()) {
+            let h = self.domain.cell_size[0];
+            let speed = m.speed() + m.max_speed();
+            if dt * speed / h > CFL_LIMIT {
+                return Err(loc.err(
+                    "scheme.timestep",
+                    dt,
+                    format!(
+                        "with the bar's particle speed A c pi = {:e} m/s, dt exceeds the bound h / (c + |v|) = {:e} s",
+                        m.max_speed(),
+                        h / speed
+                    ),
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Gong's manufactured solution holds for one neo-Hookean body filling the unit domain,
