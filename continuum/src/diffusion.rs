@@ -65,11 +65,47 @@ pub enum Configuration {
     Reference,
 }
 
+/// How the diffusivity of a point depends on its state: K times [`DiffusivityLaw::factor`].
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum DiffusivityLaw {
+    /// K everywhere.
+    #[default]
+    Constant,
+    /// K exp(alpha c - beta p) with the pressure p = -tr(sigma)/3 (Pa) clamped to
+    /// [-p_max, p_max] (battery thesis Ch. 7.3: alpha 6, beta 0.5 /GPa, p_max 3 GPa; the clamp
+    /// on both sides is this code's choice: it bounds the factor, and so the explicit step).
+    Pressure { alpha: f64, beta: f64, p_max: f64 },
+    /// K (1 - c)^3 with c clamped to [0, 1] (the thesis's alternative: diffusion stops at
+    /// saturation).
+    Cubic,
+}
+
+impl DiffusivityLaw {
+    /// The factor on K at concentration `c` and pressure `p` (Pa).
+    pub fn factor(&self, c: f64, p: f64) -> f64 {
+        match *self {
+            DiffusivityLaw::Constant => 1.0,
+            DiffusivityLaw::Pressure { alpha, beta, p_max } => (alpha * c - beta * p.clamp(-p_max, p_max)).exp(),
+            DiffusivityLaw::Cubic => (1.0 - c.clamp(0.0, 1.0)).powi(3),
+        }
+    }
+
+    /// The largest factor over c in [0, 1] and any pressure (for the explicit bound).
+    pub fn max_factor(&self) -> f64 {
+        match *self {
+            DiffusivityLaw::Constant | DiffusivityLaw::Cubic => 1.0,
+            DiffusivityLaw::Pressure { alpha, beta, p_max } => (alpha.max(0.0) + beta.abs() * p_max).exp(),
+        }
+    }
+}
+
 /// The diffusion of one scalar field over every point of a simulation.
 #[derive(Debug, Clone)]
 pub struct Diffusion<const D: usize> {
     /// Diffusivity K (m^2/s): k / (rho0 C) for heat, D for a concentration.
     pub diffusivity: f64,
+    /// How the diffusivity depends on the point's concentration and pressure.
+    pub law: DiffusivityLaw,
     /// (min face, max face) per axis.
     pub faces: [(Option<FaceCondition>, Option<FaceCondition>); D],
     pub dirichlet: DirichletMode,
@@ -96,6 +132,7 @@ impl<const D: usize> Diffusion<D> {
     pub fn new(diffusivity: f64, faces: [(Option<FaceCondition>, Option<FaceCondition>); D]) -> Self {
         Diffusion {
             diffusivity,
+            law: DiffusivityLaw::Constant,
             faces,
             dirichlet: DirichletMode::Rate,
             flip: 1.0,
@@ -211,11 +248,15 @@ impl<const D: usize> Diffusion<D> {
                     g[a] += gi[a] * self.node_value[i];
                 }
             }
+            let k = match self.law {
+                DiffusivityLaw::Constant => self.diffusivity,
+                law => self.diffusivity * law.factor(pts.scalar[p], pts.pressure(p)),
+            };
             let q: [f64; D] = if reference {
-                let k0 = reference_conductivity(&pts.def_grad[p], self.diffusivity);
+                let k0 = reference_conductivity(&pts.def_grad[p], k);
                 std::array::from_fn(|a| -(0..D).map(|b| k0[a][b] * g[b]).sum::<f64>())
             } else {
-                std::array::from_fn(|a| -self.diffusivity * g[a])
+                std::array::from_fn(|a| -k * g[a])
             };
             let vol = if reference { pts.volume0[p] } else { pts.volume[p] };
             for (&i, gi) in nodes.iter().zip(grads) {

@@ -161,6 +161,8 @@ pub struct Adaptive {
     pub dt_max: f64,
     /// Rejected attempts of one step before the run stops.
     pub max_rejections: usize,
+    /// The end of the run (s): a step that would pass it is shortened to land on it.
+    pub end_time: f64,
 }
 
 impl Adaptive {
@@ -177,6 +179,7 @@ impl Adaptive {
             dt_min: 0.0,
             dt_max: f64::INFINITY,
             max_rejections: 10,
+            end_time: f64::INFINITY,
         }
     }
 }
@@ -189,6 +192,8 @@ struct Trial {
     f: Vec<Mat3>,
     vol: Vec<f64>,
     stress: Vec<Mat3>,
+    /// Equivalent plastic strain of the trial (empty when the points carry none).
+    plastic: Vec<f64>,
 }
 
 /// The frozen data of one step.
@@ -316,6 +321,10 @@ impl<const D: usize> Frozen<'_, D> {
                     if j > 0.0 && j.is_finite() { None } else { Some((p, j)) }
                 })
                 .min_by_key(|b| b.0);
+        // Every residual starts from the start-of-step plastic strain (the closure returns
+        // the trial's, which the commit keeps).
+        t.plastic.clear();
+        t.plastic.extend_from_slice(&pts.plastic_strain);
         if let Some((p, j)) = bad {
             return Err(SolverError::Diverged {
                 step: self.step,
@@ -332,9 +341,10 @@ impl<const D: usize> Frozen<'_, D> {
                 mass: &pts.mass[r.clone()],
                 volume: &t.vol[r.clone()],
                 stress: &mut t.stress[r.clone()],
-                // (No scalar field or plastic state: the implicit integrator takes elastic laws.)
-                scalar_rate: &[],
-                plastic_strain: &mut [],
+                // The step's scalar rate (prescribed plus diffusion, advanced explicitly on
+                // the frozen stencil before Newton) and the plastic state.
+                scalar_rate: if pts.scalar_rate.is_empty() { &[] } else { &pts.scalar_rate[r.clone()] },
+                plastic_strain: if t.plastic.is_empty() { &mut [] } else { &mut t.plastic[r.clone()] },
                 visc_stress: &[],
             };
             closures[b].advance(batch, dt).map_err(|source| SolverError::Closure { step: self.step, source })?;
@@ -443,6 +453,10 @@ impl<const D: usize> Simulation<D> {
         }
         // (The implicit integrator refuses ddmp: only cpdi1 is suggested.)
         self.build_stencil().map_err(|o| stencil_error(step, &o, "time step too large or a domain sheared past its limit (use cpdi1)"))?;
+        // The scalar field (concentration) is advanced explicitly over the step on the frozen
+        // stencil (prescribed rate plus diffusion, the diffusion step bounded by its explicit
+        // limit); the closures read its rate in every residual.
+        self.advance_scalar(step)?;
         // No small-mass velocity averaging (7.7): the nodal momentum is exactly that of the points.
         let eps = std::mem::replace(&mut self.small_mass, 0.0);
         self.map_to_grid();
@@ -650,7 +664,23 @@ impl<const D: usize> Simulation<D> {
     pub(super) fn implicit_step(&mut self) -> Result<StepReport, SolverError> {
         let mut rejections = 0;
         loop {
+            // A rejected attempt must leave the scalar field and the diffusion as they were.
+            let saved = (self.implicit.options.adaptive.is_some() && !self.points.scalar.is_empty())
+                .then(|| (self.points.scalar.clone(), self.diffusion.clone()));
+            if let Some(ad) = &self.implicit.options.adaptive {
+                // Land on the end time: the last step is shortened, the proposal kept.
+                let left = ad.end_time - self.time;
+                if left > 0.0 && self.dt > left {
+                    self.dt = left;
+                }
+            }
             let attempt = self.implicit_attempt()?;
+            if !matches!(attempt, Attempt::Accepted { .. })
+                && let Some((scalar, diffusion)) = saved
+            {
+                self.points.scalar = scalar;
+                self.diffusion = diffusion;
+            }
             let Some(ad) = self.implicit.options.adaptive.clone() else {
                 return match attempt {
                     Attempt::Accepted { report, .. } => Ok(report),
@@ -957,6 +987,9 @@ impl<const D: usize> Simulation<D> {
             let work = pts.volume[p] * 0.5 * tensor::ddot(&mid, &trial.h[p]);
             pts.internal_energy[p] += work;
             total += work;
+            if !trial.plastic.is_empty() {
+                pts.plastic_strain[p] = trial.plastic[p];
+            }
             pts.def_grad[p] = trial.f[p];
             pts.volume[p] = trial.vol[p];
             pts.stress[p] = trial.stress[p];

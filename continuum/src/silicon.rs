@@ -202,6 +202,12 @@ impl Closure for ChemoPlasticClosure {
     fn advance(&mut self, batch: ClosureBatch<'_>, dt: f64) -> Result<(), ClosureError> {
         self.run(batch, dt, false)
     }
+    /// The step is a pure function of the start stress, the batch's plastic strain (in and
+    /// out), its F, L and concentration rate: Newton may call it per residual. No analytic
+    /// tangent (radial return): the implicit integrator uses the finite-difference Jacobian.
+    fn repeatable(&self) -> bool {
+        true
+    }
 }
 
 #[cfg(test)]

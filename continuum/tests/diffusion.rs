@@ -3,7 +3,7 @@
 //! and the corrected explicit bound on pre-strained bars.
 
 use continuum::closure::LinearElastic;
-use continuum::diffusion::{Configuration, Diffusion, DirichletMode, FaceCondition, explicit_bound, heat_series};
+use continuum::diffusion::{Configuration, Diffusion, DiffusivityLaw, DirichletMode, FaceCondition, explicit_bound, heat_series};
 use continuum::shape::Stencil;
 use continuum::solver::Viscosity;
 use continuum::tensor::IDENTITY;
@@ -229,4 +229,46 @@ fn a_prestrained_bar_is_stable_below_the_corrected_bound_and_not_above() {
             }
         }
     }
+}
+
+/// Issue 19: D(c, p) = D0 exp(alpha c - beta p) with p clamped to [-p_max, p_max], and
+/// D0 (1 - c)^3. The factors at the thesis's silicon values, and a heat run under a uniform
+/// pressure p0 (alpha = 0) that follows the series of K exp(-beta p0), not that of K.
+#[test]
+fn pressure_dependent_and_cubic_diffusivities() {
+    let si = DiffusivityLaw::Pressure { alpha: 6.0, beta: 0.5e-9, p_max: 3e9 };
+    assert!((si.factor(0.5, 1e9) - (3.0f64 - 0.5).exp()).abs() < 1e-12);
+    assert_eq!(si.factor(0.2, 5e9), si.factor(0.2, 3e9), "clamped in compression");
+    assert_eq!(si.factor(0.2, -5e9), si.factor(0.2, -3e9), "clamped in tension");
+    assert!((si.max_factor() - 7.5f64.exp()).abs() < 1e-9);
+    let cubic = DiffusivityLaw::Cubic;
+    assert_eq!((cubic.factor(0.5, 0.0), cubic.factor(1.2, 0.0), cubic.factor(-0.1, 0.0)), (0.125, 0.0, 1.0));
+
+    let (beta, p0) = (0.5, 1.0);
+    let t_end = 0.02;
+    let dt = 1e-5;
+    let mut sim = heat_sim(
+        SchemeKind::Ugimp,
+        20,
+        2,
+        dt,
+        (Some(FaceCondition::Dirichlet(1.0)), Some(FaceCondition::Dirichlet(0.0))),
+        DirichletMode::Rate,
+        1.0,
+    );
+    // Fixed ends: the uniform stress then puts no force on a free node, nothing moves.
+    sim.grid.faces = [(Face::Fixed, Face::Fixed)];
+    sim.diffusion.as_mut().expect("diffusion").law = DiffusivityLaw::Pressure { alpha: 0.0, beta, p_max: 10.0 };
+    let steps = (t_end / dt).round() as usize;
+    for _ in 0..steps {
+        for s in sim.points.stress.iter_mut() {
+            *s = [[-p0, 0.0, 0.0], [0.0, -p0, 0.0], [0.0, 0.0, -p0]];
+        }
+        sim.step().expect("steps");
+    }
+    let k_eff = (-beta * p0).exp();
+    let with = rms(&sim, |x| heat_series(x, sim.time, 1.0, k_eff, (0.0, 1.0, 0.0), 4000));
+    let without = rms(&sim, |x| heat_series(x, sim.time, 1.0, 1.0, (0.0, 1.0, 0.0), 4000));
+    eprintln!("pressure-dependent K: RMS against K exp(-beta p) {with:.4e}, against K {without:.4e}");
+    assert!(with < 0.5 * without, "{with} vs {without}");
 }

@@ -259,8 +259,10 @@ impl Checkpoint {
     /// boxes, opened from the same specs, into `md`).
     pub fn restore_into<const D: usize>(&self, sim: &mut Simulation<D>, md: Option<&mut MdShared>) -> Result<()> {
         ensure!(self.dimension == D, "the checkpoint is of a {}D run, the scene is {D}D", self.dimension);
+        // Adaptive implicit steps carry their current dt in the checkpoint.
+        let adaptive = sim.implicit.options.adaptive.is_some();
         ensure!(
-            self.dt.to_bits() == sim.dt.to_bits(),
+            adaptive || self.dt.to_bits() == sim.dt.to_bits(),
             "the checkpoint's time step {:e} s differs from the scene's {:e} s",
             self.dt,
             sim.dt
@@ -303,6 +305,9 @@ impl Checkpoint {
         sim.points = points;
         sim.time = self.time;
         sim.step = self.step;
+        if adaptive {
+            sim.dt = self.dt;
+        }
         sim.closure_evaluations = self.closure_evaluations;
         sim.integration_point_updates = self.integration_point_updates;
         sim.wall_impulse = wall_impulse;

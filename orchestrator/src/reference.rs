@@ -633,3 +633,87 @@ impl ThinFilmError {
         )
     }
 }
+
+/// The quasi-static check of a density-scaled (or lithiated) run (summary.json
+/// `quasi_static`): the kinetic energy of the points against their elastic energy
+/// sum_p V_p (p^2 / (2 K) + s:s / (4 G)) (isotropic, from the stress: K, G per body), and the
+/// acoustic transit time of the largest body at the scaled density against the process time.
+#[derive(Debug, Clone)]
+pub struct QuasiStatic {
+    pub density_scaling: f64,
+    /// (K, G) per body index (None: a law with no elastic energy of this form; skipped).
+    pub moduli: Vec<Option<(f64, f64)>>,
+    /// Acoustic transit time of the largest body at the scaled density (s).
+    pub transit_s: f64,
+    /// The time of the process the run follows (s): the lithiation's run time, or L^2 / D.
+    pub process_s: f64,
+    /// Steps before this time are not scored (the start-up transient: 10 transits).
+    pub score_after_s: f64,
+    max_ratio: f64,
+    max_ratio_at: f64,
+    final_ratio: f64,
+    max_kinetic: f64,
+    final_elastic: f64,
+}
+
+impl QuasiStatic {
+    pub fn new(density_scaling: f64, moduli: Vec<Option<(f64, f64)>>, transit_s: f64, process_s: f64) -> Self {
+        QuasiStatic {
+            density_scaling,
+            moduli,
+            transit_s,
+            process_s,
+            score_after_s: 10.0 * transit_s,
+            max_ratio: 0.0,
+            max_ratio_at: f64::NAN,
+            final_ratio: f64::NAN,
+            max_kinetic: 0.0,
+            final_elastic: 0.0,
+        }
+    }
+
+    /// Scores the state after a step.
+    pub fn observe<const D: usize>(&mut self, sim: &continuum::Simulation<D>) {
+        let pts = &sim.points;
+        let (mut kinetic, mut elastic) = (0.0, 0.0);
+        for p in 0..pts.len() {
+            let Some(Some((k, g))) = self.moduli.get(pts.body[p] as usize) else { continue };
+            kinetic += 0.5 * pts.mass[p] * pts.v[p].iter().map(|v| v * v).sum::<f64>();
+            let s = &pts.stress[p];
+            let pr = -(s[0][0] + s[1][1] + s[2][2]) / 3.0;
+            let mut dev2 = 0.0;
+            for (i, row) in s.iter().enumerate() {
+                for (j, v) in row.iter().enumerate() {
+                    let d = v + if i == j { pr } else { 0.0 };
+                    dev2 += d * d;
+                }
+            }
+            elastic += pts.volume[p] * (pr * pr / (2.0 * k) + dev2 / (4.0 * g));
+        }
+        let ratio = if elastic > 0.0 { kinetic / elastic } else { f64::INFINITY };
+        self.max_kinetic = self.max_kinetic.max(kinetic);
+        self.final_elastic = elastic;
+        self.final_ratio = ratio;
+        if sim.time >= self.score_after_s && (ratio > self.max_ratio || self.max_ratio_at.is_nan()) {
+            (self.max_ratio, self.max_ratio_at) = (ratio, sim.time);
+        }
+    }
+
+    /// summary.json `quasi_static`.
+    pub fn json(&self) -> Value {
+        let num = |v: f64| if v.is_finite() { serde_json::json!(v) } else { Value::Null };
+        serde_json::json!({
+            "density_scaling": self.density_scaling,
+            "measure": "kinetic / elastic energy of the points (elastic = sum V (p^2/(2K) + s:s/(4G))), max over the steps after 10 acoustic transits",
+            "max_kinetic_over_elastic": num(self.max_ratio),
+            "max_at_s": num(self.max_ratio_at),
+            "final_kinetic_over_elastic": num(self.final_ratio),
+            "final_elastic_energy_j": num(self.final_elastic),
+            "max_kinetic_energy_j": num(self.max_kinetic),
+            "acoustic_transit_s": num(self.transit_s),
+            "process_time_s": num(self.process_s),
+            "transit_over_process_time": num(self.transit_s / self.process_s),
+            "quasi_static": self.max_ratio < 1e-3 && self.transit_s < 1e-2 * self.process_s,
+        })
+    }
+}

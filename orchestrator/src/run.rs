@@ -179,6 +179,43 @@ fn thin_film<const D: usize>(loaded: &LoadedScene, sim: &Simulation<D>) -> Optio
     Some(crate::reference::ThinFilmError::new(*law, points, body.lithiation.map_or(0.0, |l| l.0)))
 }
 
+/// The quasi-static check of a run with a scaled density or a lithiated body (None otherwise).
+fn quasi_static(loaded: &LoadedScene) -> Option<crate::reference::QuasiStatic> {
+    let r = &loaded.resolved;
+    let lithiated = r.bodies.iter().any(|b| b.lithiation.is_some()) || r.diffusion.is_some();
+    if r.density_scaling == 1.0 && !lithiated {
+        return None;
+    }
+    use crate::scene::Law;
+    let iso = |e: f64, nu: f64| (e / (3.0 * (1.0 - 2.0 * nu)), e / (2.0 * (1.0 + nu)));
+    let moduli: Vec<Option<(f64, f64)>> = r
+        .bodies
+        .iter()
+        .map(|b| match &b.law {
+            Law::LinearElastic { youngs_modulus, poisson_ratio } | Law::NeoHookean { youngs_modulus, poisson_ratio } => {
+                Some(iso(*youngs_modulus, *poisson_ratio))
+            }
+            Law::HypoelasticPlastic(m) => Some((m.bulk_modulus, m.shear_modulus)),
+            _ => None,
+        })
+        .collect();
+    // The transit of the largest body at the scaled density, and the process time: the run's
+    // (a prescribed lithiation), or L^2 / D of the diffusion if that is longer.
+    let mut transit: f64 = 0.0;
+    let mut length: f64 = 0.0;
+    for (b, m) in r.bodies.iter().zip(&moduli) {
+        let Some((k, g)) = m else { continue };
+        let l = b.min.iter().zip(&b.max).map(|(lo, hi)| hi - lo).fold(0.0, f64::max);
+        length = length.max(l);
+        transit = transit.max(l / ((k + 4.0 * g / 3.0) / b.density).sqrt());
+    }
+    let mut process = loaded.scene.scheme.end_time;
+    if let Some(d) = &r.diffusion {
+        process = process.max(length * length / d.diffusivity);
+    }
+    Some(crate::reference::QuasiStatic::new(r.density_scaling, moduli, transit, process))
+}
+
 /// summary.json `errors` of a `heat-series` reference: the RMS of the points' values against
 /// the series at the end (B 6.95, 6.97), and the same at the nodes of the last step.
 fn heat_series_errors<const D: usize>(loaded: &LoadedScene, sim: &Simulation<D>) -> Option<Value> {
@@ -385,7 +422,15 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         Ok(path)
     };
     let mut film = thin_film(loaded, &sim);
-    while sim.step < loaded.steps {
+    let mut quasi = quasi_static(loaded);
+    // Adaptive implicit steps run to the end time (the step count is only the estimate of the
+    // first dt); snapshots fall on the first step past each of the evenly spaced times.
+    let adaptive = sim.implicit.options.adaptive.is_some();
+    let end_time = scene.scheme.end_time;
+    let snapshot_dt = end_time / scene.output.snapshots.max(1) as f64;
+    let mut next_snapshot = (sim.time / snapshot_dt).floor() + 1.0;
+    let running = |sim: &Simulation<D>| if adaptive { sim.time < end_time * (1.0 - 1e-12) } else { sim.step < loaded.steps };
+    while running(&sim) {
         if cancelled() {
             if let Some(b) = &bar {
                 b.abandon();
@@ -405,10 +450,22 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         if let Some(f) = film.as_mut() {
             f.observe(&sim);
         }
+        if let Some(q) = quasi.as_mut() {
+            q.observe(&sim);
+        }
         let totals = sim.totals();
         max_kinetic = max_kinetic.max(totals.kinetic);
         max_abs_momentum = max_abs_momentum.max(momentum_scale(&sim));
-        if (sim.step % every == 0 || reference_steps.contains(&sim.step)) && sim.step < loaded.steps {
+        let snapshot_due = if adaptive {
+            let due = sim.time >= next_snapshot * snapshot_dt * (1.0 - 1e-12) && running(&sim);
+            if due {
+                next_snapshot = (sim.time / snapshot_dt * (1.0 + 1e-12)).floor() + 1.0;
+            }
+            due
+        } else {
+            (sim.step % every == 0 || reference_steps.contains(&sim.step)) && sim.step < loaded.steps
+        };
+        if snapshot_due {
             let t = Instant::now();
             write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
             output_s += t.elapsed().as_secs_f64();
@@ -421,11 +478,22 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, false);
         match &bar {
             Some(b) => {
+                if adaptive && sim.time > 0.0 {
+                    // The length is the step count the run is heading for at the current pace.
+                    b.set_length(sim.step.max((sim.step as f64 * end_time / sim.time).ceil() as u64));
+                }
                 b.set_position(sim.step);
                 b.set_message(match sim.integrator {
                     continuum::solver::TimeIntegrator::ImplicitTrapezoidal => {
                         let st = &sim.implicit.stats;
-                        format!("t = {:.4e} s  Newton {} it/step", sim.time, st.last_residual_history.len().saturating_sub(1))
+                        format!(
+                            "t = {:.4e} s  dt = {:.3e} s  Newton {} it/step  accepted {} rejected {}",
+                            sim.time,
+                            st.last_dt,
+                            st.last_residual_history.len().saturating_sub(1),
+                            st.accepted_steps,
+                            st.rejected_steps
+                        )
                     }
                     _ => format!("t = {:.4e} s", sim.time),
                 });
@@ -433,10 +501,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
             None if last_log.elapsed() > Duration::from_secs(5) || sim.step == loaded.steps => {
                 last_log = Instant::now();
                 tracing::info!(
-                    "step {}/{} ({:.0} %), t = {:.4e} s",
+                    "step {}/{} ({:.0} % of the end time), t = {:.4e} s",
                     sim.step,
                     loaded.steps,
-                    100.0 * sim.step as f64 / loaded.steps as f64,
+                    100.0 * sim.time / end_time,
                     sim.time
                 );
             }
@@ -476,7 +544,11 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     if let Some(f) = &film {
         tracing::info!("{}", f.log_line());
     }
-    let summary = summary(loaded, opts, &sim, times, max_kinetic, max_abs_momentum, errors, direct_json, failure.as_deref(), md.as_ref())?;
+    let mut summary =
+        summary(loaded, opts, &sim, times, max_kinetic, max_abs_momentum, errors, direct_json, failure.as_deref(), md.as_ref())?;
+    if let Some(q) = &quasi {
+        summary["quasi_static"] = q.json();
+    }
     output::write_atomic(&dir.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
     report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, true);
     if let Some(done) = summary["md"]["atom_steps_done"].as_f64() {

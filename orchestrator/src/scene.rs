@@ -83,6 +83,11 @@ pub struct DiffusionSpec {
     /// reproduces B Table 6.1) or `value` (on the nodal value only).
     #[serde(default)]
     pub dirichlet: DirichletSpec,
+    /// How the diffusivity depends on the point: `{ kind = "pressure", alpha, beta, p_max }`
+    /// (K exp(alpha c - beta p), p clamped to [-p_max, p_max], beta per Pa, p_max in Pa) or
+    /// `{ kind = "cubic" }` (K (1 - c)^3); absent: constant.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub law: Option<DiffusivityLawSpec>,
     /// Face conditions: `{ value = c }` (Dirichlet) or `{ flux = j }` (into the body, per unit
     /// area per second); a face not given has no flux.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -97,6 +102,15 @@ pub struct DiffusionSpec {
     pub z_min: Option<FaceBc>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub z_max: Option<FaceBc>,
+}
+
+/// `diffusion.law`.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum DiffusivityLawSpec {
+    Constant,
+    Pressure { alpha: f64, beta: f64, p_max: f64 },
+    Cubic,
 }
 
 fn default_flip() -> f64 {
@@ -436,6 +450,68 @@ pub struct Scheme {
     /// or `finite-difference` (coloured forward differences). Written only when not analytic.
     #[serde(default, with = "names::named", skip_serializing_if = "is_analytic")]
     pub jacobian: continuum::solver::implicit::JacobianKind,
+    /// Adaptive steps of `implicit-trapezoidal` (absent: the fixed `cfl`/`timestep`, which
+    /// is then the first step).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adaptive: Option<AdaptiveSpec>,
+    /// Every body's density is multiplied by this (mass scaling: the acoustic step grows by its
+    /// square root); summary.json `quasi_static` reports whether the run stayed quasi-static.
+    #[serde(default = "default_scaling", skip_serializing_if = "is_one")]
+    pub density_scaling: f64,
+}
+
+/// `scheme.adaptive`: the local-error controlled step of the implicit integrator
+/// (continuum/docs/implicit.md, "Adaptive step").
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct AdaptiveSpec {
+    /// Relative tolerance of the WRMS error norm of le_u and le_v.
+    pub rtol: f64,
+    /// Absolute tolerance of the nodal displacement (m).
+    pub atol_displacement: f64,
+    /// Absolute tolerance of the nodal velocity (m/s).
+    pub atol_velocity: f64,
+    /// dt_new = dt min(max_growth, max(min_shrink, safety err^-1/3)).
+    #[serde(default = "default_safety")]
+    pub safety: f64,
+    #[serde(default = "default_max_growth")]
+    pub max_growth: f64,
+    #[serde(default = "default_min_shrink")]
+    pub min_shrink: f64,
+    /// Smallest and largest step (s); the run stops when a step would need less than dt_min.
+    #[serde(default)]
+    pub dt_min: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dt_max: Option<f64>,
+    /// Rejected attempts of one step before the run stops.
+    #[serde(default = "default_max_rejections")]
+    pub max_rejections: usize,
+    /// No point moves more than this many cells in one step (at most 0.5: the stencil is
+    /// frozen over the step); the next step is capped at 0.9 of it.
+    #[serde(default = "default_motion_cells")]
+    pub max_motion_cells: f64,
+}
+
+fn default_safety() -> f64 {
+    0.9
+}
+fn default_max_growth() -> f64 {
+    2.0
+}
+fn default_min_shrink() -> f64 {
+    0.2
+}
+fn default_max_rejections() -> usize {
+    10
+}
+fn default_motion_cells() -> f64 {
+    0.5
+}
+fn default_scaling() -> f64 {
+    1.0
+}
+fn is_one(v: &f64) -> bool {
+    *v == 1.0
 }
 
 fn default_flip_fraction() -> f64 {
@@ -910,5 +986,40 @@ x_max = "fixed"
         assert!(e.contains("body `bar` is an md body"), "{e}");
         let e = err(BAR, &["scheme.jacobian=\"exact\""]);
         assert!(e.contains("`scheme.jacobian` = \"exact\": allowed: \"analytic\", \"finite-difference\""), "{e}");
+    }
+
+    /// `scheme.adaptive` (issue 18) and `scheme.density_scaling` (issue 19): resolved into the
+    /// integrator's options and the bodies' densities, every bad value named.
+    #[test]
+    fn adaptive_steps_and_density_scaling_are_scene_keys() {
+        let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+        let ok = |sets: &[&str]| {
+            let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+            parse("t.toml", BAR, &sets, &base, "t").map_err(|e| e.to_string())
+        };
+        let imp = "scheme.integrator=\"implicit-trapezoidal\"";
+        let ad = "scheme.adaptive={ rtol = 1e-3, atol_displacement = 1e-9, atol_velocity = 1e-6, safety = 0.8, max_motion_cells = 0.25 }";
+        let l = ok(&[imp, ad]).expect("adaptive");
+        let a = l.resolved.adaptive.clone().expect("resolved");
+        assert_eq!((a.rtol, a.safety, a.max_growth, a.end_time), (1e-3, 0.8, 2.0, l.scene.scheme.end_time));
+        assert_eq!(l.resolved.max_motion_cells, 0.25);
+        let e = err(BAR, &[ad]);
+        assert!(e.contains("`scheme.adaptive`") && e.contains("adaptive steps need scheme.integrator = \"implicit-trapezoidal\""), "{e}");
+        let e = err(BAR, &[imp, "scheme.adaptive={ rtol = -1, atol_displacement = 1e-9, atol_velocity = 1e-6 }"]);
+        assert!(e.contains("`scheme.adaptive.rtol` = -1"), "{e}");
+        let e = err(BAR, &[imp, "scheme.adaptive={ rtol = 1e-3, atol_displacement = 1e-9, atol_velocity = 1e-6, max_motion_cells = 0.8 }"]);
+        assert!(e.contains("`scheme.adaptive.max_motion_cells` = 0.8: the motion bound must lie in (0, 0.5]"), "{e}");
+        let e = err(BAR, &[imp, "scheme.adaptive={ rtol = 1e-3 }"]);
+        assert!(e.contains("atol_displacement"), "{e}");
+        let l = ok(&["scheme.density_scaling=100"]).expect("scaled");
+        assert_eq!(l.resolved.bodies[0].density, 100.0 * l.scene.bodies["bar"].density);
+        assert_eq!(l.resolved.density_scaling, 100.0);
+        // The acoustic step grows by sqrt(100) (c = 100 -> 10 m/s, plus the body's 0.01 m/s).
+        let plain = ok(&[]).expect("plain");
+        assert!((l.dt / plain.dt - 100.01 / 10.01).abs() < 1e-9, "{} vs {}", l.dt, plain.dt);
+        let e = err(BAR, &["scheme.density_scaling=0.5"]);
+        assert!(e.contains("`scheme.density_scaling` = 0.5: the density scaling factor must be finite and at least 1"), "{e}");
+        let e = err(MD, &["scheme.density_scaling=10"]);
+        assert!(e.contains("body `bar`: density scaling is for solids"), "{e}");
     }
 }

@@ -139,6 +139,7 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
     if let Some(d) = &scene.diffusion {
         let mut diffusion = continuum::diffusion::Diffusion::<D>::new(d.diffusivity, std::array::from_fn(|a| d.faces[a]));
         diffusion.flip = d.flip;
+        diffusion.law = d.law;
         diffusion.dirichlet = d.dirichlet;
         sim.diffusion = Some(diffusion);
     }
@@ -147,6 +148,8 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
         sim.prescribed_scalar_rate = body.iter().map(|&b| scene.bodies[b as usize].lithiation.map_or(0.0, |l| l.1)).collect();
     }
     sim.implicit.options.jacobian = scene.jacobian;
+    sim.implicit.options.adaptive = scene.adaptive.clone();
+    sim.implicit.options.max_motion_cells = scene.max_motion_cells;
     Ok(sim)
 }
 

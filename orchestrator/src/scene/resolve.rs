@@ -30,6 +30,11 @@ pub struct ResolvedScene {
     /// PIC/FLIP blend in [0, 1] (1: FLIP).
     pub flip_fraction: f64,
     pub jacobian: continuum::solver::implicit::JacobianKind,
+    /// Adaptive implicit steps (end time set), and the motion bound of a step in cells.
+    pub adaptive: Option<continuum::solver::implicit::Adaptive>,
+    pub max_motion_cells: f64,
+    /// `scheme.density_scaling` (already applied to every body's density).
+    pub density_scaling: f64,
     pub small_mass_fraction: f64,
     /// Time step (s).
     pub dt: f64,
@@ -50,6 +55,7 @@ pub struct ResolvedScene {
 #[derive(Debug, Clone)]
 pub struct ResolvedDiffusion {
     pub diffusivity: f64,
+    pub law: continuum::diffusion::DiffusivityLaw,
     pub flip: f64,
     pub dirichlet: continuum::diffusion::DirichletMode,
     /// (min, max) face per axis, x, y, z.

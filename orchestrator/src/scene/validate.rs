@@ -45,6 +45,20 @@ impl Scene {
         if self.bodies.is_empty() {
             return Err(loc.err("bodies", "{}", "a scene needs at least one body, e.g. [bodies.bar]"));
         }
+        let scaling = self.scheme.density_scaling;
+        if !(scaling.is_finite() && scaling >= 1.0) {
+            return Err(loc.err("scheme.density_scaling", scaling, "the density scaling factor must be finite and at least 1"));
+        }
+        if scaling != 1.0
+            && let Some((name, _)) =
+                self.bodies.iter().find(|(_, b)| matches!(b.material, Material::Md(_) | Material::IdealGasIsothermal(_)))
+        {
+            return Err(loc.err(
+                "scheme.density_scaling",
+                scaling,
+                format!("body `{name}`: density scaling is for solids whose stress does not depend on the density (an md body's density is its lattice's, a gas's pressure is c^2 rho)"),
+            ));
+        }
         let mut files = Vec::new();
         let mut max_speed: f64 = 0.0;
         let names: Vec<String> = self.bodies.keys().cloned().collect();
@@ -141,7 +155,7 @@ impl Scene {
                     Material::LinearElastic(e) => Law::LinearElastic { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio },
                     Material::NeoHookean(e) => Law::NeoHookean { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio },
                     Material::LinearPiola(e) => Law::LinearPiola { youngs_modulus: e.youngs_modulus, poisson_ratio: e.poisson_ratio },
-                    Material::HypoelasticPlastic(m) => Law::HypoelasticPlastic(m.law(body.density)),
+                    Material::HypoelasticPlastic(m) => Law::HypoelasticPlastic(m.law(body.density * s.density_scaling)),
                     Material::Md(m) => {
                         let (lattice_properties, atoms_per_box) = measured.remove(name).expect("every md body is measured by validation");
                         Law::Md(Box::new(ResolvedMd {
@@ -173,7 +187,7 @@ impl Scene {
                     min: body.min.clone(),
                     max: body.max.clone(),
                     notch: if body.shape == Shape::NotchedBlock { body.notch.clone() } else { None },
-                    density: body.density,
+                    density: body.density * s.density_scaling,
                     velocity: body.velocity.clone(),
                     initial_strain: [body.initial_strain[0], body.initial_strain[1], body.initial_strain[2]],
                     temperature_k: body.temperature_k,
@@ -200,6 +214,23 @@ impl Scene {
             integrator: s.integrator,
             flip_fraction: s.flip_fraction,
             jacobian: s.jacobian,
+            adaptive: s.adaptive.as_ref().map(|a| continuum::solver::implicit::Adaptive {
+                rtol: a.rtol,
+                atol_u: a.atol_displacement,
+                atol_v: a.atol_velocity,
+                safety: a.safety,
+                max_growth: a.max_growth,
+                min_shrink: a.min_shrink,
+                dt_min: a.dt_min,
+                dt_max: a.dt_max.unwrap_or(f64::INFINITY),
+                max_rejections: a.max_rejections,
+                end_time: s.end_time,
+            }),
+            max_motion_cells: s
+                .adaptive
+                .as_ref()
+                .map_or(continuum::solver::implicit::ImplicitOptions::default().max_motion_cells, |a| a.max_motion_cells),
+            density_scaling: s.density_scaling,
             small_mass_fraction: s.small_mass_fraction,
             dt,
             steps,
@@ -243,9 +274,26 @@ impl Scene {
             };
             if k % 2 == 0 { faces[k / 2].0 = Some(cond) } else { faces[k / 2].1 = Some(cond) }
         }
+        let law = match d.law {
+            None | Some(DiffusivityLawSpec::Constant) => continuum::diffusion::DiffusivityLaw::Constant,
+            Some(DiffusivityLawSpec::Cubic) => continuum::diffusion::DiffusivityLaw::Cubic,
+            Some(DiffusivityLawSpec::Pressure { alpha, beta, p_max }) => {
+                for (key, v, ok) in [("alpha", alpha, true), ("beta", beta, true), ("p_max", p_max, p_max >= 0.0)] {
+                    if !(v.is_finite() && ok) {
+                        return Err(loc.err(
+                            &format!("diffusion.law.{key}"),
+                            v,
+                            "alpha (per unit c) and beta (per Pa) must be finite, p_max (Pa) finite and >= 0",
+                        ));
+                    }
+                }
+                continuum::diffusion::DiffusivityLaw::Pressure { alpha, beta, p_max }
+            }
+        };
         let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
         let j_max = self.bodies.values().map(|b| b.initial_strain.iter().map(|e| 1.0 + e).product::<f64>()).fold(0.0f64, f64::max);
-        let bound = continuum::diffusion::explicit_bound(h, dim, d.diffusivity, j_max);
+        // The bound at the largest diffusivity the law can reach (c in [0, 1], p clamped).
+        let bound = continuum::diffusion::explicit_bound(h, dim, d.diffusivity * law.max_factor(), j_max);
         if dt > bound {
             // validate_scheme has filled both `cfl` and `timestep`: name the time step.
             let key = "scheme.timestep";
@@ -254,8 +302,8 @@ impl Scene {
                 key,
                 format!("{dt:e} s"),
                 format!(
-                    "the time step exceeds the corrected explicit diffusion bound dt <= J_min h0^2 / (2 d K) = {bound:.6e} s (battery thesis (6.90) with its sign fixed; d = {dim}, K = {:e} m^2/s, h0 = h / J with h = {h:e} m and J_max = {j_max}); the diffusion limit binds, {:.3e} times tighter than the acoustic limit {acoustic:.6e} s: give `scheme.timestep` <= {bound:.6e}",
-                    d.diffusivity,
+                    "the time step exceeds the corrected explicit diffusion bound dt <= J_min h0^2 / (2 d K) = {bound:.6e} s (battery thesis (6.90) with its sign fixed; d = {dim}, K = {:e} m^2/s (the largest the diffusion law reaches), h0 = h / J with h = {h:e} m and J_max = {j_max}); the diffusion limit binds, {:.3e} times tighter than the acoustic limit {acoustic:.6e} s: give `scheme.timestep` <= {bound:.6e}",
+                    d.diffusivity * law.max_factor(),
                     acoustic / bound
                 ),
             ));
@@ -264,7 +312,7 @@ impl Scene {
             DirichletSpec::Rate => DirichletMode::Rate,
             DirichletSpec::Value => DirichletMode::Value,
         };
-        Ok(Some(ResolvedDiffusion { diffusivity: d.diffusivity, flip: d.flip_fraction, dirichlet, faces, bound }))
+        Ok(Some(ResolvedDiffusion { diffusivity: d.diffusivity, law, flip: d.flip_fraction, dirichlet, faces, bound }))
     }
 
     fn validate_domain(&mut self, loc: &Locator<'_>) -> Result<(), SceneError> {
@@ -405,7 +453,7 @@ impl Scene {
         if !(b.temperature_k.is_finite() && b.temperature_k >= 0.0) {
             return Err(loc.err(&k("temperature_k"), b.temperature_k, "temperature (K) must be finite and >= 0"));
         }
-        let rho = b.density;
+        let rho = b.density * self.scheme.density_scaling;
         if let Some(l) = &b.lithiation {
             if !(l.initial.is_finite() && (0.0..=1.0).contains(&l.initial)) {
                 return Err(loc.err(&k("lithiation.initial"), l.initial, "the normalised concentration must lie in [0, 1]"));
@@ -656,6 +704,15 @@ impl Scene {
         let implicit = s.integrator == continuum::solver::TimeIntegrator::ImplicitTrapezoidal;
         if implicit {
             implicit_supported(loc, kind, s.artificial_viscosity, &self.bodies)?;
+            if s.jacobian == continuum::solver::implicit::JacobianKind::Analytic
+                && let Some((name, _)) = self.bodies.iter().find(|(_, b)| matches!(b.material, Material::HypoelasticPlastic(_)))
+            {
+                return Err(loc.err(
+                    "scheme.jacobian",
+                    "\"analytic\"",
+                    format!("body `{name}`: the hypoelastic-plastic law (radial return) gives no analytic tangent; use scheme.jacobian = \"finite-difference\""),
+                ));
+            }
         }
         // The implicit integrator has no CFL bound (its bound is on motion per step, below).
         let bound = if implicit { f64::INFINITY } else { CFL_LIMIT * h / speed };
@@ -690,16 +747,30 @@ impl Scene {
                 dt
             }
         };
+        let motion_cells = match &s.adaptive {
+            Some(a) if !implicit => {
+                return Err(loc.err(
+                    "scheme.adaptive",
+                    format!("{{ rtol = {} }}", a.rtol),
+                    "adaptive steps need scheme.integrator = \"implicit-trapezoidal\"",
+                ));
+            }
+            Some(a) => {
+                validate_adaptive(loc, a)?;
+                a.max_motion_cells
+            }
+            None => continuum::solver::implicit::ImplicitOptions::default().max_motion_cells,
+        };
         let moving = self.bodies.values().flat_map(|b| b.velocity.iter()).fold(0.0_f64, |m, v| m.max(v.abs()));
-        if implicit && moving * dt > continuum::solver::implicit::ImplicitOptions::default().max_motion_cells * h {
+        if implicit && moving * dt > motion_cells * h {
             return Err(loc.err(
                 "scheme.timestep",
                 dt,
                 format!(
                     "moves points {:.3} cells per step at the initial body speed {moving:e} m/s; the implicit step freezes the stencil, so at most {} (use dt <= {:.6e} s)",
                     moving * dt / h,
-                    continuum::solver::implicit::ImplicitOptions::default().max_motion_cells,
-                    0.5 * h / moving
+                    motion_cells,
+                    motion_cells * h / moving
                 ),
             ));
         }
@@ -1194,6 +1265,38 @@ fn face_debug(f: &FaceSpec) -> String {
         FaceSpec::Named(n) => format!("Named({:?})", n.scene_name()),
         FaceSpec::Piston { piston } => format!("Piston {{ piston: {piston:?} }}"),
     }
+}
+
+/// `scheme.adaptive`: every tolerance and factor in its range.
+fn validate_adaptive(loc: &Locator<'_>, a: &crate::scene::AdaptiveSpec) -> Result<(), SceneError> {
+    let check = |key: &str, v: f64, ok: bool, what: &str| {
+        if ok && v.is_finite() { Ok(()) } else { Err(loc.err(&format!("scheme.adaptive.{key}"), v, what)) }
+    };
+    check("rtol", a.rtol, a.rtol > 0.0, "the relative tolerance must be finite and positive")?;
+    check(
+        "atol_displacement",
+        a.atol_displacement,
+        a.atol_displacement > 0.0,
+        "the absolute displacement tolerance (m) must be finite and positive",
+    )?;
+    check("atol_velocity", a.atol_velocity, a.atol_velocity > 0.0, "the absolute velocity tolerance (m/s) must be finite and positive")?;
+    check("safety", a.safety, a.safety > 0.0 && a.safety <= 1.0, "the safety factor must lie in (0, 1]")?;
+    check("max_growth", a.max_growth, a.max_growth >= 1.0, "the largest growth of a step must be finite and at least 1")?;
+    check("min_shrink", a.min_shrink, a.min_shrink > 0.0 && a.min_shrink < 1.0, "the smallest shrink factor must lie in (0, 1)")?;
+    check("dt_min", a.dt_min, a.dt_min >= 0.0, "the smallest step (s) must be finite and >= 0")?;
+    if let Some(m) = a.dt_max {
+        check("dt_max", m, m > 0.0 && m >= a.dt_min, "the largest step (s) must be finite, positive and at least dt_min")?;
+    }
+    check(
+        "max_motion_cells",
+        a.max_motion_cells,
+        a.max_motion_cells > 0.0 && a.max_motion_cells <= 0.5,
+        "the motion bound must lie in (0, 0.5] cells (the stencil is frozen over a step)",
+    )?;
+    if a.max_rejections == 0 {
+        return Err(loc.err("scheme.adaptive.max_rejections", 0, "must be at least 1"));
+    }
+    Ok(())
 }
 
 fn cfl_message(implicit: bool) -> String {
