@@ -188,18 +188,19 @@ pub fn assemble_volumes<const D: usize>(
     pts: &Particles<D>,
     subs: &[[f64; D]],
     n: usize,
+    tiles: &par::Tiles,
     scatter: &mut Scatter,
     volume: &mut Vec<f64>,
 ) {
     let nc = 1usize << D;
-    scatter.run(
-        pts.len(),
+    scatter.run_tiled(
+        tiles,
         grid.node_count(),
         1,
         volume,
-        |r| sub_point_span(grid, &subs[r.start * n..r.end * n]),
-        |r, w| {
-            for p in r {
+        |p| sub_point_span(grid, &subs[p * n..(p + 1) * n]),
+        |tile, w| {
+            for &p in tile {
                 let vs = pts.volume[p] / n as f64;
                 for x in &subs[p * n..(p + 1) * n] {
                     let sh = cell_shape(grid, x);

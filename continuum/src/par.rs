@@ -1,10 +1,17 @@
 //! Deterministic parallel loops over material points.
 //!
 //! Points are cut into fixed chunks of [`CHUNK`] consecutive points, whatever the number of
-//! threads. Per-point work runs chunk by chunk in parallel; scatters to grid nodes go into one
-//! buffer per chunk (covering only the node window the chunk touches) and are reduced node by
-//! node in chunk order. The arithmetic, and so every bit of the result, is therefore the same
-//! for any thread count (the determinism contract of DESIGN.md).
+//! threads. Per-point work runs chunk by chunk in parallel. The explicit step's scatters to
+//! grid nodes ([`Scatter::run_tiled`]) are summed in an order fixed by space instead, so that
+//! the same order can be kept when the points are spread over MPI ranks: the grid is cut into
+//! [`Tiles`], slabs of [`TILE_CELLS`] cells along its slowest axis (the last); a point belongs
+//! to the slab of the cell holding its position at the start of the step; each tile sums its
+//! points in ascending point index into a buffer over the node window its points touch, and
+//! the tiles' buffers are added node by node in tile order. A node's value is then
+//! `((0 + T_a) + T_b) + ...` over the tiles that touch it, each `T` summed from 0 in point
+//! order: it depends neither on the thread count nor on which process computed which tile
+//! (the determinism contract of DESIGN.md). [`Scatter::run`] keeps the older chunk order (the
+//! implicit step's own assemblies and tests use it; they are single-process).
 
 use rayon::prelude::*;
 use std::ops::Range;
@@ -14,6 +21,90 @@ pub const CHUNK: usize = 256;
 
 /// Nodes per block in the reduction of a scatter.
 const NODE_BLOCK: usize = 1024;
+
+/// Cells of the grid's slowest axis per tile (fixed: results must not depend on the number of
+/// threads or ranks). Slabs keep each tile's node window one contiguous range of linear node
+/// indices (axis 0 varies fastest), so a tile's buffer holds no nodes it cannot touch beyond
+/// the stencil's reach, in 1D, 2D and 3D alike.
+pub const TILE_CELLS: usize = 4;
+
+/// The points of each tile, each tile's in ascending point index (a counting sort of the
+/// points by tile, rebuilt every step).
+#[derive(Debug, Default, Clone)]
+pub struct Tiles {
+    start: Vec<usize>,
+    order: Vec<usize>,
+    tile: Vec<u32>,
+}
+
+impl Tiles {
+    /// Sorts points `0..n` into `n_tiles` tiles, point `p` into `tile_of(p)` (< `n_tiles`).
+    pub fn assign(&mut self, n_tiles: usize, n: usize, tile_of: impl Fn(usize) -> usize + Sync) {
+        self.tile.clear();
+        self.tile.par_extend((0..n).into_par_iter().with_min_len(CHUNK).map(|p| {
+            let t = tile_of(p);
+            assert!(t < n_tiles, "point {p} in tile {t} of {n_tiles}");
+            t as u32
+        }));
+        self.start.clear();
+        self.start.resize(n_tiles + 1, 0);
+        for &t in &self.tile {
+            self.start[t as usize + 1] += 1;
+        }
+        for t in 0..n_tiles {
+            self.start[t + 1] += self.start[t];
+        }
+        let mut next = self.start[..n_tiles].to_vec();
+        self.order.clear();
+        self.order.resize(n, 0);
+        for (p, &t) in self.tile.iter().enumerate() {
+            self.order[next[t as usize]] = p;
+            next[t as usize] += 1;
+        }
+    }
+
+    /// Keeps only the points of the tiles for which `keep(tile)` holds (the tiles a rank owns);
+    /// the others become empty. Points keep their order.
+    pub fn restrict(&self, keep: impl Fn(usize) -> bool) -> Tiles {
+        let mut out = Tiles { start: vec![0], order: Vec::new(), tile: self.tile.clone() };
+        for t in 0..self.count() {
+            if keep(t) {
+                out.order.extend_from_slice(self.points(t));
+            }
+            out.start.push(out.order.len());
+        }
+        out
+    }
+
+    /// Number of tiles.
+    pub fn count(&self) -> usize {
+        self.start.len().saturating_sub(1)
+    }
+
+    /// The points of tile `t`, in ascending index.
+    pub fn points(&self, t: usize) -> &[usize] {
+        &self.order[self.start[t]..self.start[t + 1]]
+    }
+
+    /// The tile of point `p` (as last assigned).
+    pub fn tile_of(&self, p: usize) -> usize {
+        self.tile[p] as usize
+    }
+}
+
+/// The slab tile of a position: `TILE_CELLS` cells of the last axis per tile, clamped into the
+/// grid (a point outside it is the stencil's error to report), and the number of tiles.
+pub fn slab_tile<const D: usize>(grid: &crate::grid::Grid<D>, x: &[f64; D]) -> usize {
+    let a = D - 1;
+    let cell = ((x[a] - grid.origin[a]) / grid.h[a]).floor();
+    let cell = if cell.is_finite() { cell.clamp(0.0, (grid.cells[a].max(1) - 1) as f64) as usize } else { 0 };
+    cell / TILE_CELLS
+}
+
+/// Number of slab tiles of a grid.
+pub fn slab_tile_count<const D: usize>(grid: &crate::grid::Grid<D>) -> usize {
+    grid.cells[D - 1].max(1).div_ceil(TILE_CELLS)
+}
 
 /// Point ranges of the chunks of `n` points.
 pub fn chunk_ranges(n: usize) -> Vec<Range<usize>> {
@@ -66,24 +157,84 @@ impl Scatter {
             body(r, &mut Window { lo, hi, stride, buf });
             *sp = (lo, hi);
         });
-        out.clear();
-        out.resize(n_nodes * stride, 0.0);
-        let (bufs, spans) = (&self.bufs, &self.spans);
-        out.par_chunks_mut(NODE_BLOCK * stride).enumerate().for_each(|(b, dst)| {
-            let n0 = b * NODE_BLOCK;
-            let n1 = n0 + dst.len() / stride;
-            for (c, &(lo, hi)) in spans.iter().enumerate() {
-                let (a, e) = (lo.max(n0), hi.min(n1));
-                if a >= e {
-                    continue;
-                }
-                let src = &bufs[c][(a - lo) * stride..(e - lo) * stride];
-                for (d, s) in dst[(a - n0) * stride..(e - n0) * stride].iter_mut().zip(src) {
-                    *d += *s;
+        reduce_in_order(&self.bufs, &self.spans, n_nodes, stride, out);
+    }
+
+    /// Sums per-point contributions into `out` (`n_nodes * stride` values, overwritten) in
+    /// tile order (see the module's documentation). `span(p)` gives the node window `lo..hi`
+    /// point `p` touches; `body(points, w)` adds the contributions of one tile's points (in
+    /// the order given) through `w.slot(node)`.
+    pub fn run_tiled<S, F>(&mut self, tiles: &Tiles, n_nodes: usize, stride: usize, out: &mut Vec<f64>, span: S, body: F)
+    where
+        S: Fn(usize) -> (usize, usize) + Sync,
+        F: Fn(&[usize], &mut Window<'_>) + Sync,
+    {
+        self.tile_buffers(tiles, stride, span, body);
+        reduce_in_order(&self.bufs, &self.spans, n_nodes, stride, out);
+    }
+
+    /// The first half of [`Scatter::run_tiled`]: fills one buffer per tile (read them with
+    /// [`Scatter::buffer`]). A process that owns some of the tiles fills these, exchanges the
+    /// ones other processes need, and reduces with [`reduce_in_order`].
+    pub fn tile_buffers<S, F>(&mut self, tiles: &Tiles, stride: usize, span: S, body: F)
+    where
+        S: Fn(usize) -> (usize, usize) + Sync,
+        F: Fn(&[usize], &mut Window<'_>) + Sync,
+    {
+        let nt = tiles.count();
+        self.bufs.resize_with(nt, Vec::new);
+        self.bufs.truncate(nt);
+        self.spans.clear();
+        self.spans.resize(nt, (0, 0));
+        self.bufs.par_iter_mut().zip(self.spans.par_iter_mut()).enumerate().for_each(|(t, (buf, sp))| {
+            let pts = tiles.points(t);
+            let (mut lo, mut hi) = (usize::MAX, 0);
+            for &p in pts {
+                let (a, b) = span(p);
+                if a < b {
+                    lo = lo.min(a);
+                    hi = hi.max(b);
                 }
             }
+            if lo >= hi {
+                (lo, hi) = (0, 0);
+            }
+            buf.clear();
+            buf.resize((hi - lo) * stride, 0.0);
+            if lo < hi {
+                body(pts, &mut Window { lo, hi, stride, buf });
+            }
+            *sp = (lo, hi);
         });
     }
+
+    /// Tile `t`'s node window and buffer after [`Scatter::tile_buffers`].
+    pub fn buffer(&self, t: usize) -> ((usize, usize), &[f64]) {
+        (self.spans[t], &self.bufs[t])
+    }
+}
+
+/// Adds the buffers `bufs[k]` (over node windows `spans[k]`, `stride` values per node) into
+/// `out` (`n_nodes * stride` values, overwritten), node by node in the order of `k`: each node
+/// is `((0 + b_first) + b_next) + ...` over the buffers whose window holds it, whatever the
+/// thread count.
+pub fn reduce_in_order<B: AsRef<[f64]> + Sync>(bufs: &[B], spans: &[(usize, usize)], n_nodes: usize, stride: usize, out: &mut Vec<f64>) {
+    out.clear();
+    out.resize(n_nodes * stride, 0.0);
+    out.par_chunks_mut(NODE_BLOCK * stride).enumerate().for_each(|(b, dst)| {
+        let n0 = b * NODE_BLOCK;
+        let n1 = n0 + dst.len() / stride;
+        for (c, &(lo, hi)) in spans.iter().enumerate() {
+            let (a, e) = (lo.max(n0), hi.min(n1));
+            if a >= e {
+                continue;
+            }
+            let src = &bufs[c].as_ref()[(a - lo) * stride..(e - lo) * stride];
+            for (d, s) in dst[(a - n0) * stride..(e - n0) * stride].iter_mut().zip(src) {
+                *d += *s;
+            }
+        }
+    });
 }
 
 /// Runs `f(chunk_range, chunk_slice)` over the chunks of a per-point array in parallel
@@ -135,5 +286,112 @@ mod tests {
         assert_eq!(a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.iter().map(|v| v.to_bits()).collect::<Vec<_>>());
         let expected: f64 = (0..n).filter(|&p| (p * 7) % nodes >= (p / CHUNK * CHUNK * 7) % nodes).count() as f64;
         assert_eq!(a.iter().step_by(2).sum::<f64>(), expected);
+    }
+
+    /// Points of a 2D grid of 10 x 21 cells (slab tiles of [`TILE_CELLS`] rows), each touching
+    /// the four nodes of its cell and their right neighbours, with values far apart in
+    /// magnitude so that any change of summation order shows in the bits.
+    fn tiled_case() -> (crate::grid::Grid<2>, Vec<[f64; 2]>, Vec<f64>) {
+        use crate::grid::{Face, Grid};
+        let grid =
+            Grid::<2> { origin: [0.0; 2], h: [0.1, 0.05], cells: [10, 21], faces: [(Face::Free, Face::Free), (Face::Free, Face::Free)] };
+        let mut state = 0x9e3779b97f4a7c15u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let n = 2000;
+        let x: Vec<[f64; 2]> = (0..n).map(|_| [0.999 * next(), 1.049 * next()]).collect();
+        let val: Vec<f64> = (0..n).map(|_| (next() - 0.3) * 10f64.powi((next() * 12.0) as i32 - 6)).collect();
+        (grid, x, val)
+    }
+
+    fn touched(grid: &crate::grid::Grid<2>, x: &[f64; 2]) -> Vec<usize> {
+        let (i, j) = ((x[0] / grid.h[0]).floor() as usize, (x[1] / grid.h[1]).floor() as usize);
+        let mut v = Vec::new();
+        for dj in 0..2 {
+            for di in 0..3 {
+                if i + di <= grid.cells[0] {
+                    v.push(grid.linear([i + di, j + dj]));
+                }
+            }
+        }
+        v
+    }
+
+    #[test]
+    fn tiled_scatter_sums_in_tile_order_for_any_thread_count_and_tile_owner() {
+        let (grid, x, val) = tiled_case();
+        let n = x.len();
+        let nodes = grid.node_count();
+        let mut tiles = Tiles::default();
+        tiles.assign(slab_tile_count(&grid), n, |p| slab_tile(&grid, &x[p]));
+        assert_eq!(tiles.count(), 6);
+        let span = |p: usize| {
+            let t = touched(&grid, &x[p]);
+            (*t.iter().min().unwrap(), t.iter().max().unwrap() + 1)
+        };
+        let body = |pts: &[usize], w: &mut Window<'_>| {
+            for &p in pts {
+                for (k, i) in touched(&grid, &x[p]).into_iter().enumerate() {
+                    let s = w.slot(i);
+                    s[0] += val[p] * (1.0 + 0.1 * k as f64);
+                    s[1] += 1.0;
+                }
+            }
+        };
+        let bits = |v: &[f64]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        let single = |threads: usize| {
+            rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool").install(|| {
+                let mut out = Vec::new();
+                Scatter::default().run_tiled(&tiles, nodes, 2, &mut out, span, body);
+                out
+            })
+        };
+        let one = single(1);
+        assert_eq!(bits(&one), bits(&single(2)));
+        assert_eq!(bits(&one), bits(&single(3)));
+        // The order written out: per node, tiles in order, each tile's points in index order.
+        let mut expected = vec![0.0; nodes];
+        for t in 0..tiles.count() {
+            let mut part = vec![0.0; nodes];
+            for p in (0..n).filter(|&p| tiles.tile_of(p) == t) {
+                for (k, i) in touched(&grid, &x[p]).into_iter().enumerate() {
+                    part[i] += val[p] * (1.0 + 0.1 * k as f64);
+                }
+            }
+            for i in 0..nodes {
+                if part[i] != 0.0 {
+                    expected[i] += part[i];
+                }
+            }
+        }
+        assert_eq!(bits(&one.iter().step_by(2).copied().collect::<Vec<_>>()), bits(&expected));
+        assert_eq!(one.iter().skip(1).step_by(2).sum::<f64>(), 6.0 * n as f64 - 2.0 * x.iter().filter(|x| x[0] >= 0.9).count() as f64);
+        // Tiles spread over 1 to 4 "ranks" in contiguous and scattered assignments: each rank
+        // fills only its own tiles' buffers from only its own points; the buffers gathered in
+        // tile order reduce to the single-process bits.
+        for ranks in 1..=4usize {
+            for owner in
+                [Box::new(move |t: usize| t * ranks / 6) as Box<dyn Fn(usize) -> usize>, Box::new(move |t: usize| (t * 5 + 1) % ranks)]
+            {
+                let mut gathered: Vec<Option<((usize, usize), Vec<f64>)>> = vec![None; tiles.count()];
+                for r in 0..ranks {
+                    let mine = tiles.restrict(|t| owner(t) == r);
+                    let mut sc = Scatter::default();
+                    sc.tile_buffers(&mine, 2, span, body);
+                    for (t, slot) in gathered.iter_mut().enumerate().filter(|(t, _)| owner(*t) == r) {
+                        let (sp, b) = sc.buffer(t);
+                        *slot = Some((sp, b.to_vec()));
+                    }
+                }
+                let (spans, bufs): (Vec<_>, Vec<_>) = gathered.into_iter().map(|g| g.expect("every tile has an owner")).unzip();
+                let mut out = Vec::new();
+                reduce_in_order(&bufs, &spans, nodes, 2, &mut out);
+                assert_eq!(bits(&out), bits(&one), "{ranks} ranks");
+            }
+        }
     }
 }

@@ -161,6 +161,9 @@ pub struct Simulation<const D: usize> {
     /// Per body (1D), point indices sorted by initial position, for the neighbour-gap guard.
     order_1d: Vec<Vec<usize>>,
     scatter: Scatter,
+    /// The points of each slab tile, the fixed summation order of every scatter of the step
+    /// (see [`crate::par`]).
+    tiles: par::Tiles,
     flat: Vec<f64>,
     sub_x: Vec<[f64; D]>,
     ddmp_field: Vec<f64>,
@@ -241,6 +244,7 @@ impl<const D: usize> Simulation<D> {
             body_ranges,
             order_1d,
             scatter: Scatter::default(),
+            tiles: par::Tiles::default(),
             flat: Vec::new(),
             old_stress: Vec::new(),
             old_q: Vec::new(),
@@ -344,10 +348,12 @@ impl<const D: usize> Simulation<D> {
     fn build_stencil(&mut self) -> Result<(), OutsideGrid> {
         let n = self.points.len();
         let ns = self.sub_points.max(1);
+        let (grid, x) = (&self.grid, &self.points.x);
+        self.tiles.assign(par::slab_tile_count(grid), n, |p| par::slab_tile(grid, &x[p]));
         if self.scheme.is_ddmp() {
             ddmp::place_all(&self.points, ns, &mut self.sub_x);
             if self.ddmp_point_volumes {
-                ddmp::assemble_volumes(&self.grid, &self.points, &self.sub_x, ns, &mut self.scatter, &mut self.ddmp_field);
+                ddmp::assemble_volumes(&self.grid, &self.points, &self.sub_x, ns, &self.tiles, &mut self.scatter, &mut self.ddmp_field);
             }
         }
         let ranges = par::chunk_ranges(n);
@@ -384,14 +390,14 @@ impl<const D: usize> Simulation<D> {
     /// Steps 3-4: lumped nodal mass and momentum, nodal velocity, small-mass velocities (7.7).
     fn map_to_grid(&mut self) {
         let (st, pts) = (&self.stencil, &self.points);
-        self.scatter.run(
-            pts.len(),
+        self.scatter.run_tiled(
+            &self.tiles,
             self.grid.node_count(),
             D + 1,
             &mut self.flat,
-            |r| st.span(r),
-            |r, w| {
-                for p in r {
+            |p| row_span(st, p),
+            |tile, w| {
+                for &p in tile {
                     let (nodes, weights, _) = st.row(p);
                     for (&i, &s) in nodes.iter().zip(weights) {
                         if s == 0.0 {
@@ -448,14 +454,14 @@ impl<const D: usize> Simulation<D> {
     /// Step 5: f_i = -sum_p V_p (sigma_p + q_p) . G_ip, then the distribution (7.4)-(7.6).
     fn nodal_forces(&mut self) {
         let (st, pts, body, t) = (&self.stencil, &self.points, &self.body_force, self.time);
-        self.scatter.run(
-            pts.len(),
+        self.scatter.run_tiled(
+            &self.tiles,
             self.grid.node_count(),
             D,
             &mut self.flat,
-            |r| st.span(r),
-            |r, w| {
-                for p in r {
+            |p| row_span(st, p),
+            |tile, w| {
+                for &p in tile {
                     let s = tensor::add_scaled(&pts.stress[p], &pts.visc_stress[p], 1.0);
                     let vol = pts.volume[p];
                     let b = body.as_ref().map(|f| f(&pts.x0[p], t));
@@ -806,6 +812,13 @@ impl<const D: usize> Simulation<D> {
     pub fn stencil(&self) -> &Stencil<D> {
         &self.stencil
     }
+}
+
+/// The node window `lo..hi` point `p`'s row touches (`(0, 0)` for an empty row).
+fn row_span<const D: usize>(st: &Stencil<D>, p: usize) -> (usize, usize) {
+    let (nodes, _, _) = st.row(p);
+    let (lo, hi) = nodes.iter().fold((usize::MAX, 0), |(lo, hi), &i| (lo.min(i), hi.max(i + 1)));
+    if lo < hi { (lo, hi) } else { (0, 0) }
 }
 
 /// Calls `f` with every node sharing a cell with node `i` (itself included), each once.
