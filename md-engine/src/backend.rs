@@ -914,7 +914,11 @@ impl CpuBackend {
     }
     /// A back end on the given pool.
     pub fn with_pool(pot: Arc<Potential>, pool: Arc<rayon::ThreadPool>) -> Self {
-        CpuBackend { engine: Engine::new(pot), spread: Rayon(Some(pool)) }
+        Self::on(pot, Some(pool))
+    }
+    /// A back end on `threads`, or on rayon's global pool for `None`.
+    pub fn on(pot: Arc<Potential>, threads: Option<Arc<rayon::ThreadPool>>) -> Self {
+        CpuBackend { engine: Engine::new(pot), spread: Rayon(threads) }
     }
 }
 

@@ -73,12 +73,7 @@ fn fall_back_to_cpu(why: &dyn std::fmt::Display) {
 /// Builds the back end `choice` asks for, for boxes of `pot`. `source` (the potential's file
 /// as received) is needed by the `mpi` back end only, which ships it to its ranks.
 pub fn build(choice: &BackendChoice, pot: Arc<Potential>, source: Option<&PotentialSource>) -> Result<Box<dyn MdBackend>, MdError> {
-    let cpu = |pot| -> Box<dyn MdBackend> {
-        match &choice.threads {
-            Some(pool) => Box::new(CpuBackend::with_pool(pot, pool.clone())),
-            None => Box::new(CpuBackend::new(pot)),
-        }
-    };
+    let cpu = |pot| -> Box<dyn MdBackend> { Box::new(CpuBackend::on(pot, choice.threads.clone())) };
     if let Some(device) = &choice.device {
         let precision = choice.precision.as_str();
         if !matches!(precision, "double" | "mixed") {

@@ -370,9 +370,9 @@ pub struct MpiBackend {
     owner: HashMap<PointId, (usize, DeformMode)>,
 }
 
-/// Every rank's own boxes: the `cpu` back end of the one registry ([`crate::device::build`]).
-fn cpu_backend(pot: Arc<Potential>, threads: Option<Arc<rayon::ThreadPool>>) -> Result<Box<dyn MdBackend>, MdError> {
-    crate::device::build(&crate::device::BackendChoice::named("cpu").with_threads(threads), pot, None)
+/// Every rank's own boxes: the `cpu` back end, as the registry builds it (`device::build`).
+fn cpu_backend(pot: Arc<Potential>, threads: Option<Arc<rayon::ThreadPool>>) -> Box<dyn MdBackend> {
+    Box::new(crate::CpuBackend::on(pot, threads))
 }
 
 /// Runs `f` on rank 0's hub, under its lock.
@@ -453,7 +453,7 @@ impl MpiBackend {
         h.shipped.insert(source.sha256.clone());
         let size = h.size;
         drop(guard);
-        Ok(MpiBackend { session, size, local: cpu_backend(pot.clone(), threads)?, pot, owner: HashMap::new() })
+        Ok(MpiBackend { session, size, local: cpu_backend(pot.clone(), threads), pot, owner: HashMap::new() })
     }
 
     /// The session id on the ranks.
@@ -724,7 +724,7 @@ pub fn serve_rank(world: &MpiWorld, threads: Option<Arc<rayon::ThreadPool>>) -> 
                     .get(&potential_sha256)
                     .cloned()
                     .ok_or_else(|| rank_error(me, format!("potential {potential_name} ({potential_sha256}) never arrived")))?;
-                sessions.insert(session, cpu_backend(pot, threads.clone())?);
+                sessions.insert(session, cpu_backend(pot, threads.clone()));
                 Ok(Reply::Done)
             })(),
             Command::Open { session, specs } => match sessions.get_mut(&session) {

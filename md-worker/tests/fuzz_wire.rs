@@ -11,6 +11,7 @@
 #![allow(clippy::unwrap_used)]
 
 use md_worker::server::Loopback;
+use md_worker::{BoxWork, StressSampling, wire};
 use mscale_proto::coupling::v1 as pb;
 use mscale_testkit::fuzz::{Fuzzer, Rng, Rng64, class_of, mutate_bytes, mutate_json};
 use prost::Message;
@@ -119,15 +120,18 @@ fn spec(id: u64, cells: u32, t: f64) -> pb::BoxSpec {
     }
 }
 
-fn work(id: u64, steps: u64) -> pb::WorkItem {
-    pb::WorkItem {
-        point_id: id,
-        velocity_gradient: pb::Doubles::full([0.01, 0.0, 0.0, 0.0, -0.005, 0.0, 0.0, 0.0, 0.0]),
-        steps,
-        dt_ps: 0.001,
-        energy_to_add_ev: 0.01,
-        stress_sampling: (id % 2) as i32,
-    }
+/// A step message of boxes `ids`, `steps` MD steps each (the coordinator's own encoding).
+fn batch(session: u64, step: u64, ids: impl IntoIterator<Item = u64>, steps: u64) -> Vec<u8> {
+    let work: Vec<BoxWork> = ids
+        .into_iter()
+        .map(|id| {
+            let mut w = BoxWork::new(id, [[0.01, 0.0, 0.0], [0.0, -0.005, 0.0], [0.0; 3]], steps, 0.001);
+            w.energy_to_add_ev = 0.01;
+            w.stress_sampling = if id % 2 == 0 { StressSampling::Last } else { StressSampling::Average };
+            w
+        })
+        .collect();
+    wire::batch_to_pb(session, step, &work).encode_to_vec()
 }
 
 /// Lowers the work of a request that decodes to more than the bounds of the module doc; the
@@ -166,11 +170,17 @@ fn bounded(method: &str, body: Vec<u8>, protected: u64) -> Vec<u8> {
         },
         "Step" => match pb::StepBatch::decode(body.as_slice()) {
             Ok(mut b) => {
-                let big = b.work.len() > 16 || b.work.iter().any(|w| w.steps > 10);
+                let big = b.point_id.len() > 16 || b.steps.iter().any(|&s| s > 10);
                 if big {
-                    b.work.truncate(16);
-                    for w in &mut b.work {
-                        w.steps = w.steps.min(10);
+                    // Every column cut to 16 boxes (a column of the wrong length stays wrong).
+                    b.point_id.truncate(16);
+                    b.velocity_gradient.truncate(16 * 9);
+                    b.steps.truncate(16);
+                    b.dt_ps.truncate(16);
+                    b.energy_to_add_ev.truncate(16);
+                    b.stress_sampling.truncate(16);
+                    for s in &mut b.steps {
+                        *s = (*s).min(10);
                     }
                     b.encode_to_vec()
                 } else {
@@ -253,7 +263,7 @@ fn fuzz_worker_messages() {
             o.boxes[0].deformation = "seed".into();
             o.encode_to_vec()
         }),
-        (3, pb::StepBatch { session, step: 7, work: (1..=4).map(|i| work(i, 2)).collect() }.encode_to_vec()),
+        (3, batch(session, 7, 1..=4, 2)),
         (4, pb::SnapshotRequest { session, point_ids: vec![1, 2, 3] }.encode_to_vec()),
         (5, pb::RestoreRequest { session, states: states.clone() }.encode_to_vec()),
         (6, pb::CloseRequest { session: session + 1000 }.encode_to_vec()),
@@ -296,17 +306,11 @@ fn fuzz_worker_messages() {
         let mut class = class;
         if method == "Restore" && class == "Restore ok" {
             // What the accepted states step to: finite results or a refusal, never NaN.
-            let step = pb::StepBatch { session, step: 1, work: (1..=4).map(|i| work(i, 1)).collect() }.encode_to_vec();
-            let (c, a) = rt.block_on(call(channel.clone(), "Step", step, false));
+            let (c, a) = rt.block_on(call(channel.clone(), "Step", batch(session, 1, 1..=4, 1), false));
             if let Ok(r) = pb::StepResults::decode(a.as_slice()) {
-                for x in &r.results {
-                    let all = x.stress_gpa.as_slice().iter().chain(x.lengths.as_slice()).chain([
-                        &x.potential_energy_ev,
-                        &x.kinetic_energy_ev,
-                        &x.temperature_k,
-                    ]);
-                    assert!(all.into_iter().all(|v| v.is_finite()), "restored states stepped to non-finite results: {x:?}");
-                }
+                let mut all =
+                    r.stress_gpa.iter().chain(&r.lengths).chain(&r.potential_energy_ev).chain(&r.kinetic_energy_ev).chain(&r.temperature_k);
+                assert!(all.all(|v| v.is_finite()), "restored states stepped to non-finite results: {r:?}");
             }
             class = format!("{class} then {c}");
             let (c, _) = rt.block_on(call(channel.clone(), "Restore", restore_protected.clone(), false));
@@ -317,8 +321,7 @@ fn fuzz_worker_messages() {
         class
     });
     // Still serving, with its protected session intact.
-    let (class, _) =
-        rt.block_on(call(channel.clone(), "Step", pb::StepBatch { session, step: 8, work: vec![work(1, 1)] }.encode_to_vec(), false));
+    let (class, _) = rt.block_on(call(channel.clone(), "Step", batch(session, 8, [1], 1), false));
     assert_eq!(class, "Step ok");
     assert_eq!(PANICS.load(Ordering::SeqCst), 0);
     assert!(n > 0);
