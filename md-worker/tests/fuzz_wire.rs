@@ -234,7 +234,7 @@ fn fuzz_worker_messages() {
     let pot = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("potentials/Cu_u3.eam")).unwrap();
     let pref = pb::PotentialRef { name: "Cu_u3.eam".into(), sha256: hex::encode(Sha256::digest(&pot)) };
     let open = |boxes: Vec<pb::BoxSpec>, bytes: Vec<u8>, session: u64| pb::OpenRequest {
-        protocol_version: 1,
+        protocol_version: mscale_proto::COUPLING_PROTOCOL_VERSION,
         potential: Some(pref.clone()),
         potential_bytes: bytes,
         boxes,
