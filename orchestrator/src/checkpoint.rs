@@ -281,6 +281,16 @@ impl Checkpoint {
             internal: self.initial.internal,
         };
         let wall_impulse = vec_d("wall_impulse", &self.wall_impulse)?;
+        // Each step counts at most points x sub-points updates (the implicit step counts
+        // points): a larger count is not a count this run could have made.
+        let most = (self.step as u128) * (points.len() as u128) * (sim.sub_points.max(1) as u128);
+        ensure!(
+            u128::from(self.integration_point_updates) <= most,
+            "checkpoint field integration_point_updates = {} exceeds {most}, the most {} steps of {} points can make",
+            self.integration_point_updates,
+            self.step,
+            points.len()
+        );
         match (md, &self.md) {
             (None, None) => {}
             (Some(m), Some(saved)) => {
