@@ -1207,15 +1207,7 @@ mod tests {
             let mut pool = MdPool::new(eps).unwrap();
             let pot =
                 PotentialSource::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/potentials/Cu_u3.eam"))).unwrap();
-            let specs: Vec<BoxSpec> = (0..6)
-                .map(|id| {
-                    let mut s = BoxSpec::lattice(id, crate::LatticeKind::Fcc, 3.615, [2, 2, 2]);
-                    s.temperature_k = 50.0 + id as f64;
-                    s.seed = 7;
-                    s
-                })
-                .collect();
-            pool.open(&pot, &specs).unwrap();
+            pool.open(&pot, &specs_of_run()).unwrap();
             let mut out = Vec::new();
             for step in 1..=STEPS {
                 out.push(format!("{:?}", pool.step(step, &work_of(step)).unwrap()));
@@ -1238,6 +1230,18 @@ mod tests {
 
     const STEPS: u64 = 6;
 
+    /// The 6 boxes of [`run`].
+    fn specs_of_run() -> Vec<BoxSpec> {
+        (0..6)
+            .map(|id| {
+                let mut s = BoxSpec::lattice(id, crate::LatticeKind::Fcc, 3.615, [2, 2, 2]);
+                s.temperature_k = 50.0 + id as f64;
+                s.seed = 7;
+                s
+            })
+            .collect()
+    }
+
     /// The work of call `step` of [`run`].
     fn work_of(step: u64) -> Vec<BoxWork> {
         (0..6)
@@ -1256,15 +1260,7 @@ mod tests {
         let (eps, counters): (Vec<_>, Vec<_>) = fail_at.iter().map(|&f| flaky(if f == 0 { u64::MAX } else { f })).unzip();
         let mut pool = MdPool::new(eps).unwrap();
         let pot = PotentialSource::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/potentials/Cu_u3.eam"))).unwrap();
-        let specs: Vec<BoxSpec> = (0..6)
-            .map(|id| {
-                let mut s = BoxSpec::lattice(id, crate::LatticeKind::Fcc, 3.615, [2, 2, 2]);
-                s.temperature_k = 50.0 + id as f64;
-                s.seed = 7;
-                s
-            })
-            .collect();
-        pool.open(&pot, &specs).unwrap();
+        pool.open(&pot, &specs_of_run()).unwrap();
         let mut out = Vec::new();
         let r = (|| {
             for step in 1..=STEPS {
