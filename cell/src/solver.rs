@@ -174,7 +174,7 @@ impl CellEqn {
             out[3 * i] *= T_UNIT;
             out[3 * i + 1] *= T_UNIT;
         }
-        self.rhs_calls.set(self.rhs_calls.get() + 1);
+        self.rhs_calls.set(self.rhs_calls.get().saturating_add(1));
         self.rhs_s.set(self.rhs_s.get() + t.elapsed().as_secs_f64());
     }
 
@@ -225,7 +225,7 @@ impl CellEqn {
                 }
             }
         }
-        self.jac_evals.set(self.jac_evals.get() + 1);
+        self.jac_evals.set(self.jac_evals.get().saturating_add(1));
         JAC_S.with(|c| c.set(c.get() + t.elapsed().as_secs_f64()));
     }
 }
@@ -442,7 +442,8 @@ pub enum Control {
     Stop,
 }
 
-/// Step statistics and checks of a run.
+/// Step statistics and checks of a run. The counters saturate: a count restored from a
+/// checkpoint never stops a run.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Stats {
     pub steps: u64,
@@ -604,14 +605,14 @@ fn explicit(
         let target = outputs.peek().copied().unwrap_or(settings.end_time).min(settings.end_time);
         let h = dt.min(target - t);
         model.rhs(&y, &open, &mut f);
-        stats.rhs_evaluations += 1;
+        stats.rhs_evaluations = stats.rhs_evaluations.saturating_add(1);
         for i in 0..model.n {
             y[3 * i] += h * f[3 * i];
             y[3 * i + 1] += h * f[3 * i + 1];
         }
         model.solve_poisson(&mut y);
         t = if target - t <= dt { target } else { t + h };
-        stats.steps += 1;
+        stats.steps = stats.steps.saturating_add(1);
         stats.min_step = stats.min_step.min(h);
         stats.max_step = stats.max_step.max(h);
         stats.t = t;
@@ -619,7 +620,7 @@ fn explicit(
         for (k, gk) in g.iter().enumerate() {
             if *gk >= 0.0 && !open[k] || *gk < 0.0 && open[k] {
                 open[k] = !open[k];
-                stats.switch_events += 1;
+                stats.switch_events = stats.switch_events.saturating_add(1);
                 stats.switch_log.push((t, k, open[k]));
             }
         }
@@ -688,11 +689,11 @@ fn segment<L: LaLinearSolver<M> + Default>(
         let before = solver.state().t * T_UNIT;
         let reason = solver.step().map_err(|e| fail(before, stats.steps, e))?;
         let st = solver.get_statistics();
-        stats.steps = base.steps + st.number_of_steps as u64;
-        stats.error_test_failures = base.error_test_failures + st.number_of_error_test_failures as u64;
-        stats.newton_iterations = base.newton_iterations + st.number_of_nonlinear_solver_iterations as u64;
-        stats.newton_failures = base.newton_failures + st.number_of_nonlinear_solver_fails as u64;
-        stats.lu_setups = base.lu_setups + st.number_of_linear_solver_setups as u64;
+        stats.steps = base.steps.saturating_add(st.number_of_steps as u64);
+        stats.error_test_failures = base.error_test_failures.saturating_add(st.number_of_error_test_failures as u64);
+        stats.newton_iterations = base.newton_iterations.saturating_add(st.number_of_nonlinear_solver_iterations as u64);
+        stats.newton_failures = base.newton_failures.saturating_add(st.number_of_nonlinear_solver_fails as u64);
+        stats.lu_setups = base.lu_setups.saturating_add(st.number_of_linear_solver_setups as u64);
         if let OdeSolverStopReason::RootFound(tau_root, _) = reason {
             let t_root = tau_root * T_UNIT;
             solver.state_mut_back(tau_root).map_err(|e| fail(t_root, stats.steps, e))?;
@@ -781,7 +782,7 @@ fn bdf(
         if let Some(k) = switched {
             let mut open = problem.eqn.open.borrow_mut();
             open[k] = !open[k];
-            stats.switch_events += 1;
+            stats.switch_events = stats.switch_events.saturating_add(1);
             stats.switch_log.push((t_end, k, open[k]));
         }
         t = t_end;

@@ -904,10 +904,10 @@ impl<const D: usize> Simulation<D> {
         for (p, vg) in self.points.vel_grad.iter_mut().enumerate() {
             *vg = trial.l[p];
         }
-        self.closure_evaluations += residuals * self.points.len() as u64;
+        self.closure_evaluations = self.closure_evaluations.saturating_add(residuals.saturating_mul(self.points.len() as u64));
         self.time += dt;
         self.step = step;
-        self.integration_point_updates += self.points.len() as u64;
+        self.integration_point_updates = self.integration_point_updates.saturating_add(self.points.len() as u64);
         let s = &mut self.implicit.stats;
         s.accepted_steps += 1;
         s.newton_iterations += iterations as u64;

@@ -127,7 +127,8 @@ pub struct Simulation<const D: usize> {
     /// DDMP nodal volumes V_j summed over the integration points instead of the exact grid
     /// integral (see [`crate::ddmp`]); off by default.
     pub ddmp_point_volumes: bool,
-    /// Closure evaluations so far (points advanced), the measure of cost users compare.
+    /// Closure evaluations so far (points advanced), the measure of cost users compare. The
+    /// counters saturate: a count (restored from a checkpoint, say) never stops a run.
     pub closure_evaluations: u64,
     /// Integration-point updates so far (points times sub-points per step).
     pub integration_point_updates: u64,
@@ -339,7 +340,7 @@ impl<const D: usize> Simulation<D> {
         self.move_points();
         self.time += dt;
         self.step = step;
-        self.integration_point_updates += (self.points.len() * self.sub_points) as u64;
+        self.integration_point_updates = self.integration_point_updates.saturating_add((self.points.len() * self.sub_points) as u64);
         self.guard(step)?;
         Ok(StepReport { step, time: self.time })
     }
@@ -649,7 +650,7 @@ impl<const D: usize> Simulation<D> {
                     closure.prepare(&batch, dt).map_err(|source| SolverError::Closure { step, source })?;
                 } else {
                     closure.advance(batch, dt).map_err(|source| SolverError::Closure { step, source })?;
-                    self.closure_evaluations += range.len() as u64;
+                    self.closure_evaluations = self.closure_evaluations.saturating_add(range.len() as u64);
                 }
             }
         }

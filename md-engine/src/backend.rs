@@ -470,17 +470,70 @@ impl Engine {
 
     fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
         for s in &states {
-            let n = s.x.len();
-            if [s.v.len(), s.f.len(), s.x_build.len(), s.img.len(), s.types.len()].iter().any(|&m| m != n) {
-                return Err(MdError::invalid("box state", format!("point id {}: per-atom arrays differ in length", s.meta.id)));
-            }
-            if let Some(t) = s.types.iter().find(|&&t| t as usize >= self.pot.n_elements()) {
-                return Err(MdError::invalid("box state", format!("point id {}: element {t} not in the potential", s.meta.id)));
-            }
+            check_state(&self.pot, s)?;
         }
         self.install(states);
         Ok(())
     }
+}
+
+/// Refuses a box state (a snapshot handed back by a peer or read from a checkpoint) that no
+/// run of this potential could have made: per-atom arrays of different lengths, an element
+/// the potential lacks, a box corner, length, skin, position, velocity or force that is not
+/// finite, a box shorter than the neighbour list can serve ([`crate::neighbor::min_box_side`]),
+/// positions far outside the box, or a density past [`MAX_NUMBER_DENSITY`].
+pub fn check_state(pot: &Potential, s: &BoxState) -> Result<(), MdError> {
+    let m = &s.meta;
+    let bad = |why: String| Err(MdError::invalid("box state", format!("point id {}: {why}", m.id)));
+    let n = s.x.len();
+    if [s.v.len(), s.f.len(), s.x_build.len(), s.img.len(), s.types.len()].iter().any(|&k| k != n) {
+        return bad("per-atom arrays differ in length".into());
+    }
+    if let Some(t) = s.types.iter().find(|&&t| t as usize >= pot.n_elements()) {
+        return bad(format!("element {t} not in the potential"));
+    }
+    if !(m.skin > 0.0 && m.skin.is_finite()) {
+        return bad(format!("skin must be > 0 A, got {}", crate::error::show(m.skin)));
+    }
+    if !finite3(&m.lo) || !finite3(&m.lo_build) || !finite3(&m.virial) || !m.pe.is_finite() {
+        return bad(format!("box corner {:?}, corner at the list build {:?}, energy and virial must be finite", m.lo, m.lo_build));
+    }
+    let min_side = crate::neighbor::min_box_side(pot.cutoff() + m.skin);
+    for (name, l) in [("box lengths", m.l), ("box lengths at the list build", m.l_build)] {
+        if let Some(d) = (0..3).find(|&d| !(l[d].is_finite() && l[d] >= min_side)) {
+            return bad(format!(
+                "{name} {l:?} A: {} A along {} is below the {min_side} A the neighbour radius needs (or not finite)",
+                crate::error::show(l[d]),
+                ["x", "y", "z"][d]
+            ));
+        }
+    }
+    let density = n as f64 / (m.l[0] * m.l[1] * m.l[2]);
+    if !(density <= MAX_NUMBER_DENSITY) {
+        return bad(format!("{n} atoms in a {:?} A box are {density:.3e} atoms/A^3; at most {MAX_NUMBER_DENSITY}", m.l));
+    }
+    for (name, a) in [("position", &s.x), ("position at the list build", &s.x_build), ("velocity", &s.v), ("force", &s.f)] {
+        if let Some(i) = a.iter().position(|u| !finite3(&u[..])) {
+            return bad(format!("atom {i}: {name} {:?} is not finite", a[i]));
+        }
+    }
+    for (i, (x, xb)) in s.x.iter().zip(&s.x_build).enumerate() {
+        for d in 0..3 {
+            for (c, lo, l) in [(x[d], m.lo[d], m.l[d]), (xb[d], m.lo_build[d], m.l_build[d])] {
+                let outside = lengths_outside(c, lo, l);
+                if outside > MAX_BOX_LENGTHS_OUTSIDE {
+                    return bad(format!("atom {i}: {} = {c} A lies {outside:.3e} box lengths outside the box", ["x", "y", "z"][d]));
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// How many box lengths `c` lies outside `[lo, lo + l)` (negative inside); written so that it
+/// cannot overflow for any finite `c`.
+fn lengths_outside(c: f64, lo: f64, l: f64) -> f64 {
+    if c < lo { (lo - c) / l } else { (c - lo) / l - 1.0 }
 }
 
 fn finite3(v: &[f64]) -> bool {
@@ -538,8 +591,7 @@ pub fn validate_spec(pot: &Potential, s: &BoxSpec) -> Result<(), MdError> {
                     if !c.is_finite() {
                         return bad(format!("atom {i} (0-based, in id order): {axis} = {c} is not a finite position"));
                     }
-                    // Written so that it cannot overflow for any finite c.
-                    let outside = if c < lo[d] { (lo[d] - c) / l } else { (c - lo[d]) / l - 1.0 };
+                    let outside = lengths_outside(c, lo[d], l);
                     if outside > MAX_BOX_LENGTHS_OUTSIDE {
                         return bad(format!(
                             "atom {i} (0-based, in id order): {axis} = {} A lies {outside:.3e} box lengths outside the box [{}, {}] along {axis}; \

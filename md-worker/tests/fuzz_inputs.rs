@@ -4,18 +4,19 @@
 //! through the engine (time-step bound, a box built and stepped). No mutation may panic
 //! (every error is a value), and every input that once broke the engine is a named
 //! regression test below. The streams are deterministic (ChaCha from a fixed seed), so a
-//! failure names the seed and iteration that reproduce it. Each target runs for
-//! MSCALE_FUZZ_SECS seconds (default 10).
+//! failure names the seed and iteration that reproduce it. Each target runs a fixed
+//! number of mutations (MSCALE_FUZZ_ITERS or MSCALE_FUZZ_SECS change it).
 #![allow(clippy::unwrap_used)]
 
 mod common;
 use common::*;
 use md_worker::data::DataFile;
 use md_worker::{BoxResult, BoxSpec, BoxWork, InitialAtoms, LatticeKind, MdBackend, Potential, ReferenceBackend};
+use mscale_testkit::fuzz::Budget;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha20Rng;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 /// Numbers and words that broke parsers somewhere.
 const HOSTILE: &[&str] = &[
@@ -54,10 +55,6 @@ const HOSTILE: &[&str] = &[
     "xlo",
     "xhi",
 ];
-
-fn fuzz_secs() -> Duration {
-    Duration::from_secs_f64(std::env::var("MSCALE_FUZZ_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10.0))
-}
 
 /// One to three random mutations of `text`; lines near the top (headers) are hit half the time.
 fn mutate(rng: &mut ChaCha20Rng, text: &str) -> String {
@@ -124,13 +121,15 @@ fn mutate(rng: &mut ChaCha20Rng, text: &str) -> String {
     lines.join("\n") + "\n"
 }
 
-/// Runs `check` on mutations of each seed input for the fuzz time; a panic fails the test
-/// with the seed input, iteration and the input text (its start).
-fn fuzz(target: &str, seeds: &[(String, String)], check: impl Fn(&str, &str)) {
+/// Runs `check` on `iterations` mutations of the seed inputs (or the environment's
+/// [`Budget`]); a panic fails the test with the seed input, iteration and the input text (its
+/// start).
+fn fuzz(target: &str, seeds: &[(String, String)], iterations: u64, check: impl Fn(&str, &str)) {
+    let budget = Budget::from_env(iterations);
     let t0 = Instant::now();
     let mut rng = ChaCha20Rng::seed_from_u64(0x5eed_0000 + target.len() as u64);
     let mut iters = 0u64;
-    while t0.elapsed() < fuzz_secs() || iters < 20 {
+    while budget.more(iters, t0.elapsed()) || iters < 20 {
         let (name, text) = &seeds[iters as usize % seeds.len()];
         let input = mutate(&mut rng, text);
         let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| check(name, &input)));
@@ -213,7 +212,7 @@ fn fuzz_eam_potentials_of_the_three_formats() {
     let mut seeds = small_potentials();
     let u3 = std::fs::read_to_string(crate_dir().join("potentials/Cu_u3.eam")).unwrap();
     seeds.push(("Cu_u3.eam".into(), u3));
-    fuzz("eam", &seeds, |name, text| {
+    fuzz("eam", &seeds, 30_000, |name, text| {
         if let Ok(pot) = Potential::from_text(name, text) {
             exercise_potential(pot);
         }
@@ -226,7 +225,7 @@ fn fuzz_the_shipped_setfl_and_fs_files() {
     // as setfl and (one element: the same layout) as Finnis-Sinclair.
     let text = std::fs::read_to_string(crate_dir().join("potentials/Cu_mishin1.eam.alloy")).unwrap();
     let seeds = vec![("Cu_mishin1.eam.alloy".to_string(), text.clone()), ("Cu_mishin1.eam.fs".to_string(), text)];
-    fuzz("mishin", &seeds, |name, text| {
+    fuzz("mishin", &seeds, 1_000, |name, text| {
         if let Ok(pot) = Potential::from_text(name, text) {
             exercise_potential(pot);
         }
@@ -243,7 +242,7 @@ fn fuzz_lammps_data_files() {
     let masses: Vec<f64> = (0..pot.n_elements()).map(|e| pot.mass(e)).collect();
     let hot = std::fs::read_to_string(crate_dir().join("tests/golden/cu108_hot.data")).unwrap();
     let seeds = vec![("small.data".to_string(), SMALL_DATA.to_string()), ("cu108_hot.data".to_string(), hot)];
-    fuzz("data", &seeds, |name, text| {
+    fuzz("data", &seeds, 60_000, |name, text| {
         let Ok(d) = DataFile::parse(text, name) else { return };
         // What parses writes back and reads again to the same atoms.
         let again = DataFile::parse(&d.to_text("again"), "again").unwrap_or_else(|e| panic!("written data does not read back: {e}"));

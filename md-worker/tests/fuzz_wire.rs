@@ -7,7 +7,7 @@
 //! tasks), hang a call, or grow memory past the bound. Requests whose work is legitimately
 //! large (more than 2,000 atoms, 50 relaxation steps, 10 MD steps or 16 boxes) have those
 //! fields lowered before they are sent, so a run measures robustness, not MD throughput.
-//! Each target runs for MSCALE_FUZZ_SECS seconds (default 10).
+//! Each target runs a fixed number of mutations (MSCALE_FUZZ_ITERS or MSCALE_FUZZ_SECS change it).
 #![allow(clippy::unwrap_used)]
 
 use md_worker::server::Loopback;
@@ -276,7 +276,7 @@ fn fuzz_worker_messages() {
             v
         })
         .collect();
-    let mut f = Fuzzer::new("worker-messages", &corpus_root(), seeds);
+    let mut f = Fuzzer::new("worker-messages", &corpus_root(), seeds, 10_000);
     let restore_protected = pb::RestoreRequest { session, states }.encode_to_vec();
     let mut n = 0u64;
     f.run(mutate_message, |input| {

@@ -233,6 +233,31 @@ fn snapshot_restore_replays_bit_for_bit(backend: &str) {
     assert_eq!(bits(&a.snapshot(&[9]).unwrap()[0]), bits(&b.snapshot(&[9]).unwrap()[0]));
 }
 
+fn impossible_box_states_are_refused_on_restore(backend: &str) {
+    // Found by fuzz_wire: a restored box length of 5e-324 A overflowed the neighbour-list build.
+    let mut a = make_backend(backend, mishin());
+    a.open(&[hot_box(4, 2, 300.0, DeformMode::Seed)]).unwrap();
+    let good = a.snapshot(&[4]).unwrap().remove(0);
+    type Spoil = fn(&mut BoxState);
+    let cases: [(&str, Spoil, &str); 7] = [
+        ("tiny box", |s| s.meta.l[0] = 5e-324, "box lengths"),
+        ("NaN box at the build", |s| s.meta.l_build[2] = f64::NAN, "box lengths at the list build"),
+        ("zero skin", |s| s.meta.skin = 0.0, "skin"),
+        ("infinite corner", |s| s.meta.lo[1] = f64::INFINITY, "box corner"),
+        ("NaN velocity", |s| s.v[3][0] = f64::NAN, "atom 3: velocity"),
+        ("far atom", |s| s.x[1][2] = 1e300, "box lengths outside the box"),
+        ("short array", |s| _ = s.f.pop(), "differ in length"),
+    ];
+    for (what, spoil, says) in cases {
+        let mut s = good.clone();
+        spoil(&mut s);
+        let mut b = make_backend(backend, mishin());
+        let e = b.restore(vec![s]).expect_err(what).to_string();
+        assert!(e.contains("point id 4") && e.contains(says), "{what}: {e}");
+    }
+    make_backend(backend, mishin()).restore(vec![good]).unwrap();
+}
+
 fn bad_requests_are_refused(backend: &str) {
     let mut b = make_backend(backend, mishin());
     b.open(&[hot_box(1, 2, 0.0, DeformMode::Affine)]).unwrap();
@@ -257,6 +282,7 @@ for_each_backend!(
     energy_added_as_thermal_kinetic_energy,
     bitwise_same_for_any_thread_count_and_order,
     snapshot_restore_replays_bit_for_bit,
+    impossible_box_states_are_refused_on_restore,
     bad_requests_are_refused,
     box_relaxes_to_zero_mean_stress,
 );

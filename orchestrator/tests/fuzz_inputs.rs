@@ -4,8 +4,8 @@
 //! as `mscale run --resume` does), the users file of `mscale serve --users`, and every
 //! protobuf message `mscale serve` decodes (raw bytes over gRPC to a real server, with each
 //! role's token). No input may panic, hang or grow memory past the bound; every input that
-//! once broke something is a named regression test below. Each target runs for
-//! MSCALE_FUZZ_SECS seconds (default 10); the corpora are in tests/fuzz-corpus/.
+//! once broke something is a named regression test below. Each target runs a fixed
+//! number of mutations (MSCALE_FUZZ_ITERS or MSCALE_FUZZ_SECS change it); the corpora are in tests/fuzz-corpus/.
 #![allow(clippy::unwrap_used)]
 
 use mscale_proto::orchestrator::v1 as pb;
@@ -157,7 +157,7 @@ fn build_and_step<const D: usize>(l: &orchestrator::scene::LoadedScene) -> Resul
 #[test]
 fn fuzz_scenes_and_set_overrides() {
     let (_t, dir) = scene_home();
-    let mut f = Fuzzer::new("scene", &corpus_root(), scene_seeds());
+    let mut f = Fuzzer::new("scene", &corpus_root(), scene_seeds(), 2_000);
     f.run(mutate_scene, |input| check_scene(&dir, input));
 }
 
@@ -278,7 +278,7 @@ fn fuzz_checkpoint_files() {
     let loaded: Vec<Loaded> = scenes.iter().map(|(s, sets)| Loaded::load(s, sets).unwrap()).collect();
     // The corpus keeps only small inputs: the seeds are made afresh on every run (the body
     // of a checkpoint holds this machine's paths and timings), mutations of them in memory.
-    let mut f = Fuzzer::new("checkpoint", &corpus_root(), seeds);
+    let mut f = Fuzzer::new("checkpoint", &corpus_root(), seeds, 4_000);
     f.run(mutate_checkpoint, |input| check_checkpoint(&loaded, work.path(), input));
 }
 
@@ -301,7 +301,7 @@ fn users_seed() -> Vec<Vec<u8>> {
 
 #[test]
 fn fuzz_users_file() {
-    let mut f = Fuzzer::new("users", &corpus_root(), users_seed());
+    let mut f = Fuzzer::new("users", &corpus_root(), users_seed(), 20_000);
     f.run(mutate_text, |input| {
         let text = String::from_utf8_lossy(input);
         match orchestrator::service::parse_users(&text, "users.toml") {
@@ -533,7 +533,7 @@ fn fuzz_orchestrator_messages() {
         s
     }));
     let reg = pb::RegisterWorkerResponse::decode(answer.as_slice()).unwrap();
-    let mut f = Fuzzer::new("orchestrator-messages", &corpus_root(), message_seeds(&job, &reg.worker_id, reg.epoch));
+    let mut f = Fuzzer::new("orchestrator-messages", &corpus_root(), message_seeds(&job, &reg.worker_id, reg.epoch), 8_000);
     f.watched_pid.store(proc.pid(), std::sync::atomic::Ordering::SeqCst);
     let (mut n, mut seen) = (0u64, 0u64);
     f.run(mutate_message, |input| {
@@ -605,4 +605,37 @@ fn a_cell_checkpoint_restarting_at_minus_9e18_s_is_refused_not_a_hang() {
     v["restart"]["y"].as_array_mut().unwrap().pop();
     let r = resume_with(2, &v, &loaded, work.path());
     assert!(r.contains("its state has # values, the scene's model #"), "{r}");
+}
+
+#[test]
+fn checkpoints_with_their_counters_at_u64_max_resume_or_are_refused_without_an_overflow() {
+    // Found by fuzz_checkpoint_files: integration_point_updates and then closure_evaluations =
+    // u64::MAX made the next step's counter overflow (a panic in a debug build). The first is
+    // refused (no run of the checkpoint's steps and points makes that count); the closure
+    // count saturates; a step count past the scene's steps ends the run at once.
+    let work = tempfile::tempdir().unwrap();
+    for k in 0..2 {
+        let (seed, loaded) = seed_json(k, work.path());
+        for field in ["integration_point_updates", "closure_evaluations", "step"] {
+            let mut v = seed.clone();
+            v[field] = serde_json::json!(u64::MAX);
+            let r = resume_with(k, &v, &loaded, work.path());
+            if field == "integration_point_updates" {
+                assert!(r.contains("checkpoint field integration_point_updates = # exceeds"), "{field}: {r}");
+            } else {
+                assert!(!r.contains("panicked"), "{field}: {r}");
+            }
+        }
+    }
+    // The cell's step statistics (error_test_failures = u64::MAX overflowed the next step's).
+    let (seed, loaded) = seed_json(2, work.path());
+    let counters: Vec<String> =
+        seed["restart"]["stats"].as_object().unwrap().iter().filter(|(_, x)| x.is_u64()).map(|(k, _)| k.clone()).collect();
+    assert!(counters.len() >= 8, "{counters:?}");
+    for c in &counters {
+        let mut v = seed.clone();
+        v["restart"]["stats"][c] = serde_json::json!(u64::MAX);
+        let r = resume_with(2, &v, &loaded, work.path());
+        assert!(!r.contains("panicked"), "{c}: {r}");
+    }
 }

@@ -9,9 +9,11 @@
 //! `tests/fuzz-corpus/<target>/` of the crate (committed, small), is read at start, and is
 //! written back when `MSCALE_FUZZ_SAVE=1` (the long runs).
 //!
-//! Each target runs for `MSCALE_FUZZ_SECS` seconds (default 10). The streams are deterministic
-//! (ChaCha from the target's name and `MSCALE_FUZZ_SEED`), so a failure names what reproduces
-//! it. A panic in the check fails the test with the input's file (it is written under the
+//! The streams are deterministic (ChaCha from the target's name and `MSCALE_FUZZ_SEED`), and a
+//! target runs a fixed number of mutations ([`Budget`]: its own default, or
+//! `MSCALE_FUZZ_ITERS`), so the test command and CI put the same inputs through on every
+//! machine, fast or slow; `MSCALE_FUZZ_SECS` turns that into a time budget for the long
+//! exploratory runs. A failure names what reproduces it. A panic in the check fails the test with the input's file (it is written under the
 //! temporary directory before each check, so an abort leaves it too); a check running past the
 //! hang limit (`MSCALE_FUZZ_HANG_SECS`, default 60) or a resident size past the memory bound
 //! (`MSCALE_FUZZ_MAX_RSS_MB`, default 3072, of this process and of a watched server) aborts
@@ -87,9 +89,31 @@ fn env_f64(name: &str, default: f64) -> f64 {
     std::env::var(name).ok().and_then(|s| s.parse().ok()).unwrap_or(default)
 }
 
-/// Seconds a fuzz target runs (`MSCALE_FUZZ_SECS`, default 10).
-pub fn secs() -> Duration {
-    Duration::from_secs_f64(env_f64("MSCALE_FUZZ_SECS", 10.0))
+/// How long a fuzz target runs: a fixed number of mutations (the same inputs on any machine),
+/// or, with `MSCALE_FUZZ_SECS` set, seconds (long runs: how far they get depends on the
+/// machine, so a time budget is for exploring, not for the test command).
+#[derive(Debug, Clone, Copy)]
+pub enum Budget {
+    Iterations(u64),
+    Time(Duration),
+}
+
+impl Budget {
+    /// `MSCALE_FUZZ_SECS` when set, else `MSCALE_FUZZ_ITERS` or the target's `default` count.
+    pub fn from_env(default: u64) -> Budget {
+        match std::env::var("MSCALE_FUZZ_SECS").ok().and_then(|s| s.parse::<f64>().ok()) {
+            Some(s) => Budget::Time(Duration::from_secs_f64(s)),
+            None => Budget::Iterations(std::env::var("MSCALE_FUZZ_ITERS").ok().and_then(|s| s.parse().ok()).unwrap_or(default)),
+        }
+    }
+
+    /// Whether another mutation is due after `done` of them, `elapsed` into the run.
+    pub fn more(&self, done: u64, elapsed: Duration) -> bool {
+        match *self {
+            Budget::Iterations(n) => done < n,
+            Budget::Time(limit) => elapsed < limit,
+        }
+    }
 }
 
 fn fnv(bytes: &[u8]) -> u64 {
@@ -142,6 +166,7 @@ pub struct Fuzzer {
     pub watched_pid: Arc<AtomicU32>,
     max_corpus: usize,
     max_saved_len: usize,
+    budget: Budget,
 }
 
 /// What a run of a target did.
@@ -157,8 +182,9 @@ pub struct Report {
 
 impl Fuzzer {
     /// A target named `name` whose corpus is `corpus_root/<name>/`, started from `seeds` and
-    /// what the corpus directory holds.
-    pub fn new(name: &str, corpus_root: &Path, seeds: Vec<Vec<u8>>) -> Fuzzer {
+    /// what the corpus directory holds, running `iterations` mutations unless the environment
+    /// says otherwise ([`Budget::from_env`]).
+    pub fn new(name: &str, corpus_root: &Path, seeds: Vec<Vec<u8>>, iterations: u64) -> Fuzzer {
         let dir = corpus_root.join(name);
         let mut corpus = seeds;
         if let Ok(entries) = std::fs::read_dir(&dir) {
@@ -184,10 +210,11 @@ impl Fuzzer {
             watched_pid: Arc::new(AtomicU32::new(0)),
             max_corpus: 96,
             max_saved_len: 12 << 10,
+            budget: Budget::from_env(iterations),
         }
     }
 
-    /// Runs mutations of the corpus through `check` for [`secs`]: `mutate` makes an input from
+    /// Runs mutations of the corpus through `check` for the target's [`Budget`]: `mutate` makes an input from
     /// a parent (and the whole corpus, to splice), `check` answers the outcome class of an
     /// input (a panic in it fails the test).
     pub fn run(
@@ -195,7 +222,6 @@ impl Fuzzer {
         mut mutate: impl FnMut(&mut Rng64, &[u8], &[Vec<u8>]) -> Vec<u8>,
         mut check: impl FnMut(&[u8]) -> String,
     ) -> Report {
-        let limit = secs();
         let hang = Duration::from_secs_f64(env_f64("MSCALE_FUZZ_HANG_SECS", 60.0));
         let max_rss = (env_f64("MSCALE_FUZZ_MAX_RSS_MB", 3072.0) * 1048576.0) as u64;
         // The watchdog: a check past the hang limit, or memory past the bound, aborts.
@@ -236,7 +262,7 @@ impl Fuzzer {
         let mut iterations = 0u64;
         // The corpus itself first (each must pass), then mutations.
         let mut queue: Vec<Vec<u8>> = self.corpus.clone();
-        while t0.elapsed() < limit || !queue.is_empty() || iterations < 20 {
+        while self.budget.more(iterations, t0.elapsed()) || !queue.is_empty() || iterations < 20 {
             let input = match queue.pop() {
                 Some(i) => i,
                 None => {

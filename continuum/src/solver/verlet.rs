@@ -75,7 +75,7 @@ impl<const D: usize> Simulation<D> {
             }
         });
         self.step = step;
-        self.integration_point_updates += (self.points.len() * self.sub_points) as u64;
+        self.integration_point_updates = self.integration_point_updates.saturating_add((self.points.len() * self.sub_points) as u64);
         self.guard(step)?;
         Ok(StepReport { step, time: self.time })
     }

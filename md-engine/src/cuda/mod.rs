@@ -503,13 +503,7 @@ impl<E: Exec> GpuEngine<E> {
 
     pub(crate) fn restore(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
         for s in &states {
-            let n = s.x.len();
-            if [s.v.len(), s.f.len(), s.x_build.len(), s.img.len(), s.types.len()].iter().any(|&m| m != n) {
-                return Err(MdError::invalid("box state", format!("point id {}: per-atom arrays differ in length", s.meta.id)));
-            }
-            if let Some(t) = s.types.iter().find(|&&t| t as usize >= self.pot.n_elements()) {
-                return Err(MdError::invalid("box state", format!("point id {}: element {t} not in the potential", s.meta.id)));
-            }
+            crate::backend::check_state(&self.pot, s)?;
         }
         let mut all = self.states()?;
         for s in states {
