@@ -1,6 +1,13 @@
 //! Small 3x3 tensor helpers. Every point carries full 3x3 velocity gradients, deformation
 //! gradients and stresses whatever the dimension: a 1D elastic closure still has a full
 //! diagonal stress. Vectors in `D` dimensions embed into 3D with zeros.
+//!
+//! The storage stays a plain row-major array (`[[f64; 3]; 3]`): it is the layout of the
+//! per-point arrays, of checkpoints (serde) and of the wire's packed tensor columns, and the
+//! closed-form products, determinant and cofactor inverse below are summed in a fixed order
+//! that the pinned digests depend on. Iterative algorithms come from nalgebra (the symmetric
+//! eigensolver here, the SVD and polar decomposition of `kinematics`, the moment matrices of
+//! `mls`); see ARCHITECTURE.md, "Linear algebra".
 
 /// A 3x3 tensor, row major: `t[i][j]`.
 pub type Mat3 = [[f64; 3]; 3];
@@ -49,36 +56,12 @@ pub fn inverse(a: &Mat3) -> Option<Mat3> {
     Some(inv)
 }
 
-/// Eigenvalues and unit eigenvectors (columns of the returned matrix) of a symmetric tensor,
-/// by cyclic Jacobi rotations (converges to round-off in a few sweeps for 3x3).
+/// Eigenvalues and unit eigenvectors (columns of the returned matrix) of a symmetric tensor
+/// (nalgebra's symmetric QR eigensolver; only the lower triangle of `a` is read).
 pub fn sym_eigen(a: &Mat3) -> ([f64; 3], Mat3) {
-    let mut m = *a;
-    let mut v = IDENTITY;
-    for _sweep in 0..32 {
-        let off = m[0][1] * m[0][1] + m[0][2] * m[0][2] + m[1][2] * m[1][2];
-        let scale = m[0][0] * m[0][0] + m[1][1] * m[1][1] + m[2][2] * m[2][2];
-        if off <= 1e-30 * scale || off == 0.0 {
-            break;
-        }
-        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
-            if m[p][q] == 0.0 {
-                continue;
-            }
-            let theta = (m[q][q] - m[p][p]) / (2.0 * m[p][q]);
-            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-            let t = if theta == 0.0 { 1.0 } else { t };
-            let c = 1.0 / (t * t + 1.0).sqrt();
-            let s = t * c;
-            let mut r = IDENTITY;
-            r[p][p] = c;
-            r[q][q] = c;
-            r[p][q] = s;
-            r[q][p] = -s;
-            m = mul(&transpose(&r), &mul(&m, &r));
-            v = mul(&v, &r);
-        }
-    }
-    ([m[0][0], m[1][1], m[2][2]], v)
+    let e = nalgebra::SymmetricEigen::new(nalgebra::Matrix3::from_fn(|i, j| a[i][j]));
+    let v = &e.eigenvectors;
+    ([e.eigenvalues[0], e.eigenvalues[1], e.eigenvalues[2]], std::array::from_fn(|i| std::array::from_fn(|j| v[(i, j)])))
 }
 
 pub fn trace(a: &Mat3) -> f64 {

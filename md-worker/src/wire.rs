@@ -7,6 +7,7 @@ use crate::error::MdError;
 use crate::kernel::DeformMode;
 use crate::lattice::{LatticeKind, Orientation};
 use mscale_proto::coupling::v1 as pb;
+use mscale_proto::{f64_column, f64_values};
 
 /// Largest gRPC message either side accepts (bytes).
 pub const MAX_MESSAGE: usize = 64 << 20;
@@ -143,10 +144,10 @@ pub fn batch_to_pb(session: u64, step: u64, work: &[BoxWork]) -> pb::StepBatch {
         session,
         step,
         point_id: work.iter().map(|w| w.id).collect(),
-        velocity_gradient: work.iter().flat_map(|w| w.velocity_gradient.into_iter().flatten()).collect(),
+        velocity_gradient: f64_column(work.iter().flat_map(|w| w.velocity_gradient.into_iter().flatten())),
         steps: work.iter().map(|w| w.steps).collect(),
-        dt_ps: work.iter().map(|w| w.dt_ps).collect(),
-        energy_to_add_ev: work.iter().map(|w| w.energy_to_add_ev).collect(),
+        dt_ps: f64_column(work.iter().map(|w| w.dt_ps)),
+        energy_to_add_ev: f64_column(work.iter().map(|w| w.energy_to_add_ev)),
         stress_sampling: work.iter().map(|w| sampling_to_pb(w.stress_sampling)).collect(),
     }
 }
@@ -163,23 +164,33 @@ fn column(name: &str, len: usize, boxes: usize, per_box: usize) -> Result<(), Md
     ))
 }
 
+/// The values of the f64 column `name`, refused unless it holds `per_box` values for each
+/// of `boxes`.
+fn f64s(name: &str, bytes: &[u8], boxes: usize, per_box: usize) -> Result<Vec<f64>, MdError> {
+    let v = f64_values(bytes).ok_or_else(|| {
+        MdError::invalid(format!("step message column `{name}`"), format!("{} bytes: not a whole number of 8-byte doubles", bytes.len()))
+    })?;
+    column(name, v.len(), boxes, per_box)?;
+    Ok(v)
+}
+
 /// The work of a step message, every value checked (a bad one is refused naming the point
 /// and the field, a column of the wrong length naming the column).
 pub fn batch_from_pb(p: &pb::StepBatch) -> Result<Vec<BoxWork>, MdError> {
     let n = p.point_id.len();
-    column("velocity_gradient", p.velocity_gradient.len(), n, 9)?;
+    let velocity_gradient = f64s("velocity_gradient", &p.velocity_gradient, n, 9)?;
     column("steps", p.steps.len(), n, 1)?;
-    column("dt_ps", p.dt_ps.len(), n, 1)?;
-    column("energy_to_add_ev", p.energy_to_add_ev.len(), n, 1)?;
+    let dt = f64s("dt_ps", &p.dt_ps, n, 1)?;
+    let energy = f64s("energy_to_add_ev", &p.energy_to_add_ev, n, 1)?;
     column("stress_sampling", p.stress_sampling.len(), n, 1)?;
     (0..n)
         .map(|k| {
             let id = p.point_id[k];
             let mut l = [[0.0; 3]; 3];
-            for (j, v) in p.velocity_gradient[9 * k..9 * k + 9].iter().enumerate() {
+            for (j, v) in velocity_gradient[9 * k..9 * k + 9].iter().enumerate() {
                 l[j / 3][j % 3] = finite(id, "velocity_gradient", *v)?;
             }
-            let (steps, dt_ps) = (p.steps[k], p.dt_ps[k]);
+            let (steps, dt_ps) = (p.steps[k], dt[k]);
             if steps > MAX_STEPS_PER_CALL {
                 return Err(invalid(id, "steps", format!("{steps} exceeds {MAX_STEPS_PER_CALL}")));
             }
@@ -191,7 +202,7 @@ pub fn batch_from_pb(p: &pb::StepBatch) -> Result<Vec<BoxWork>, MdError> {
                 velocity_gradient: l,
                 steps,
                 dt_ps,
-                energy_to_add_ev: finite(id, "energy_to_add_ev", p.energy_to_add_ev[k])?,
+                energy_to_add_ev: finite(id, "energy_to_add_ev", energy[k])?,
                 stress_sampling: sampling_from_pb(id, p.stress_sampling[k])?,
             })
         })
@@ -204,13 +215,13 @@ pub fn results_to_pb(step: u64, results: &[BoxResult], compute_seconds: f64) -> 
         step,
         compute_seconds,
         point_id: results.iter().map(|r| r.id).collect(),
-        stress_gpa: results.iter().flat_map(|r| r.stress_gpa).collect(),
-        potential_energy_ev: results.iter().map(|r| r.potential_energy_ev).collect(),
-        kinetic_energy_ev: results.iter().map(|r| r.kinetic_energy_ev).collect(),
-        temperature_k: results.iter().map(|r| r.temperature_k).collect(),
-        lengths: results.iter().flat_map(|r| r.diagnostics.lengths_a).collect(),
+        stress_gpa: f64_column(results.iter().flat_map(|r| r.stress_gpa)),
+        potential_energy_ev: f64_column(results.iter().map(|r| r.potential_energy_ev)),
+        kinetic_energy_ev: f64_column(results.iter().map(|r| r.kinetic_energy_ev)),
+        temperature_k: f64_column(results.iter().map(|r| r.temperature_k)),
+        lengths: f64_column(results.iter().flat_map(|r| r.diagnostics.lengths_a)),
         neighbor_rebuilds: results.iter().map(|r| r.diagnostics.neighbor_rebuilds).collect(),
-        energy_shortfall_ev: results.iter().map(|r| r.diagnostics.energy_shortfall_ev).collect(),
+        energy_shortfall_ev: f64_column(results.iter().map(|r| r.diagnostics.energy_shortfall_ev)),
         total_steps: results.iter().map(|r| r.diagnostics.total_steps).collect(),
         wraps: results.iter().map(|r| r.diagnostics.wraps).collect(),
         stress_sampling: results.iter().map(|r| sampling_to_pb(r.stress_sampling)).collect(),
@@ -221,13 +232,13 @@ pub fn results_to_pb(step: u64, results: &[BoxResult], compute_seconds: f64) -> 
 /// values are checked by [`check_result`], which names the worker).
 pub fn results_from_pb(p: &pb::StepResults) -> Result<Vec<BoxResult>, MdError> {
     let n = p.point_id.len();
-    column("stress_gpa", p.stress_gpa.len(), n, 6)?;
-    column("potential_energy_ev", p.potential_energy_ev.len(), n, 1)?;
-    column("kinetic_energy_ev", p.kinetic_energy_ev.len(), n, 1)?;
-    column("temperature_k", p.temperature_k.len(), n, 1)?;
-    column("lengths", p.lengths.len(), n, 3)?;
+    let stress = f64s("stress_gpa", &p.stress_gpa, n, 6)?;
+    let pe = f64s("potential_energy_ev", &p.potential_energy_ev, n, 1)?;
+    let ke = f64s("kinetic_energy_ev", &p.kinetic_energy_ev, n, 1)?;
+    let temperature = f64s("temperature_k", &p.temperature_k, n, 1)?;
+    let lengths = f64s("lengths", &p.lengths, n, 3)?;
     column("neighbor_rebuilds", p.neighbor_rebuilds.len(), n, 1)?;
-    column("energy_shortfall_ev", p.energy_shortfall_ev.len(), n, 1)?;
+    let shortfall = f64s("energy_shortfall_ev", &p.energy_shortfall_ev, n, 1)?;
     column("total_steps", p.total_steps.len(), n, 1)?;
     column("wraps", p.wraps.len(), n, 1)?;
     column("stress_sampling", p.stress_sampling.len(), n, 1)?;
@@ -236,15 +247,15 @@ pub fn results_from_pb(p: &pb::StepResults) -> Result<Vec<BoxResult>, MdError> {
             let id = p.point_id[k];
             Ok(BoxResult {
                 id,
-                stress_gpa: std::array::from_fn(|j| p.stress_gpa[6 * k + j]),
-                potential_energy_ev: p.potential_energy_ev[k],
-                kinetic_energy_ev: p.kinetic_energy_ev[k],
-                temperature_k: p.temperature_k[k],
+                stress_gpa: std::array::from_fn(|j| stress[6 * k + j]),
+                potential_energy_ev: pe[k],
+                kinetic_energy_ev: ke[k],
+                temperature_k: temperature[k],
                 stress_sampling: sampling_from_pb(id, p.stress_sampling[k])?,
                 diagnostics: Diagnostics {
                     total_steps: p.total_steps[k],
-                    lengths_a: std::array::from_fn(|j| p.lengths[3 * k + j]),
-                    energy_shortfall_ev: p.energy_shortfall_ev[k],
+                    lengths_a: std::array::from_fn(|j| lengths[3 * k + j]),
+                    energy_shortfall_ev: shortfall[k],
                     neighbor_rebuilds: p.neighbor_rebuilds[k],
                     wraps: p.wraps[k],
                 },
@@ -334,11 +345,14 @@ mod tests {
         assert_eq!((back.session, back.step), (4, 17));
         assert_eq!(batch_from_pb(&back).unwrap(), work);
         let mut short = back.clone();
-        short.velocity_gradient.pop();
+        short.velocity_gradient.truncate(26 * 8);
         let e = batch_from_pb(&short).unwrap_err().to_string();
         assert!(e.contains("column `velocity_gradient`") && e.contains("26 values for 3 boxes; expected 27 (9 per box)"), "{e}");
+        short.velocity_gradient.pop();
+        let e = batch_from_pb(&short).unwrap_err().to_string();
+        assert!(e.contains("column `velocity_gradient`") && e.contains("207 bytes: not a whole number"), "{e}");
         let mut nan = back;
-        nan.velocity_gradient[9 + 4] = f64::NAN;
+        nan.velocity_gradient[8 * (9 + 4)..8 * (9 + 5)].copy_from_slice(&f64::NAN.to_le_bytes());
         let e = batch_from_pb(&nan).unwrap_err().to_string();
         assert!(e.contains("point 11 field `velocity_gradient`") && e.contains("NaN"), "{e}");
 

@@ -174,10 +174,10 @@ fn bounded(method: &str, body: Vec<u8>, protected: u64) -> Vec<u8> {
                 if big {
                     // Every column cut to 16 boxes (a column of the wrong length stays wrong).
                     b.point_id.truncate(16);
-                    b.velocity_gradient.truncate(16 * 9);
+                    b.velocity_gradient.truncate(16 * 9 * 8);
                     b.steps.truncate(16);
-                    b.dt_ps.truncate(16);
-                    b.energy_to_add_ev.truncate(16);
+                    b.dt_ps.truncate(16 * 8);
+                    b.energy_to_add_ev.truncate(16 * 8);
                     b.stress_sampling.truncate(16);
                     for s in &mut b.steps {
                         *s = (*s).min(10);
@@ -308,8 +308,8 @@ fn fuzz_worker_messages() {
             // What the accepted states step to: finite results or a refusal, never NaN.
             let (c, a) = rt.block_on(call(channel.clone(), "Step", batch(session, 1, 1..=4, 1), false));
             if let Ok(r) = pb::StepResults::decode(a.as_slice()) {
-                let mut all =
-                    r.stress_gpa.iter().chain(&r.lengths).chain(&r.potential_energy_ev).chain(&r.kinetic_energy_ev).chain(&r.temperature_k);
+                let columns = [&r.stress_gpa, &r.lengths, &r.potential_energy_ev, &r.kinetic_energy_ev, &r.temperature_k];
+                let mut all = columns.iter().flat_map(|c| mscale_proto::f64_values(c).expect("the worker's own column"));
                 assert!(all.all(|v| v.is_finite()), "restored states stepped to non-finite results: {r:?}");
             }
             class = format!("{class} then {c}");

@@ -7,6 +7,7 @@
 #![allow(clippy::unwrap_used)] // a benchmark: a failed encode or decode is a bug to see at once
 
 use mscale_proto::coupling::v1 as pb;
+use mscale_proto::f64_column;
 use prost::Message;
 use std::hint::black_box;
 use std::time::Instant;
@@ -39,23 +40,23 @@ fn main() {
         session: 7,
         step: 123,
         point_id: ids().collect(),
-        velocity_gradient: ids().flat_map(|i| (0..9).map(move |k| (i as f64 + k as f64) * 1e-4 - 0.3)).collect(),
+        velocity_gradient: f64_column(ids().flat_map(|i| (0..9).map(move |k| (i as f64 + k as f64) * 1e-4 - 0.3))),
         steps: ids().map(|_| 10).collect(),
-        dt_ps: ids().map(|_| 0.001).collect(),
-        energy_to_add_ev: ids().map(|i| 1e-3 * i as f64).collect(),
+        dt_ps: f64_column(ids().map(|_| 0.001)),
+        energy_to_add_ev: f64_column(ids().map(|i| 1e-3 * i as f64)),
         stress_sampling: ids().map(|_| 0).collect(),
     };
     let results = pb::StepResults {
         step: 123,
         compute_seconds: 0.5,
         point_id: ids().collect(),
-        stress_gpa: ids().flat_map(|i| (0..6).map(move |k| (i as f64) * 0.01 - k as f64)).collect(),
-        potential_energy_ev: ids().map(|i| -3.5 * i as f64).collect(),
-        kinetic_energy_ev: ids().map(|_| 0.04).collect(),
-        temperature_k: ids().map(|i| 300.0 + i as f64).collect(),
-        lengths: ids().flat_map(|i| (0..3).map(move |k| 18.0 + (i as f64 + k as f64) * 1e-6)).collect(),
+        stress_gpa: f64_column(ids().flat_map(|i| (0..6).map(move |k| (i as f64) * 0.01 - k as f64))),
+        potential_energy_ev: f64_column(ids().map(|i| -3.5 * i as f64)),
+        kinetic_energy_ev: f64_column(ids().map(|_| 0.04)),
+        temperature_k: f64_column(ids().map(|i| 300.0 + i as f64)),
+        lengths: f64_column(ids().flat_map(|i| (0..3).map(move |k| 18.0 + (i as f64 + k as f64) * 1e-6))),
         neighbor_rebuilds: ids().map(|_| 2).collect(),
-        energy_shortfall_ev: ids().map(|_| 0.0).collect(),
+        energy_shortfall_ev: f64_column(ids().map(|_| 0.0)),
         total_steps: ids().map(|i| 1000 + i).collect(),
         wraps: ids().map(|_| 3).collect(),
         stress_sampling: ids().map(|_| 0).collect(),

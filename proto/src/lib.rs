@@ -19,8 +19,43 @@ pub mod orchestrator {
     }
 }
 
+/// An f64 column of the Step messages: the values as packed little-endian doubles (the wire
+/// form of a packed `repeated double`).
+pub fn f64_column(values: impl IntoIterator<Item = f64>) -> Vec<u8> {
+    let values = values.into_iter();
+    let mut out = Vec::with_capacity(8 * values.size_hint().0);
+    for v in values {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+/// The values of an f64 column, or `None` when its length is not a whole number of doubles.
+pub fn f64_values(column: &[u8]) -> Option<Vec<f64>> {
+    let chunks = column.chunks_exact(8);
+    chunks.remainder().is_empty().then(|| chunks.map(|c| f64::from_le_bytes(c.try_into().unwrap_or_default())).collect())
+}
+
 /// Version of `mscale.coupling.v1` this build speaks; checked on `Open`.
 pub const COUPLING_PROTOCOL_VERSION: u32 = 2;
 
 /// Encoded file descriptor set of every service (for gRPC reflection).
 pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("mscale_descriptor");
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_f64_column_is_on_the_wire_a_packed_repeated_double() {
+        let values = [0.0, -1.5, f64::MIN_POSITIVE, 1e300, -0.0];
+        let mut packed = Vec::new();
+        prost::encoding::double::encode_packed(5, &values, &mut packed);
+        let mut column = Vec::new();
+        prost::encoding::bytes::encode(5, &f64_column(values), &mut column);
+        assert_eq!(packed, column);
+        let back = f64_values(&f64_column(values)).unwrap();
+        assert_eq!(back.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), values.map(f64::to_bits));
+        assert!(f64_values(&[0; 12]).is_none());
+    }
+}
