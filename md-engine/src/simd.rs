@@ -167,7 +167,15 @@ pub(crate) struct Images {
     /// Largest |image| per axis, as f64.
     h: [f64; 3],
     l: [f64; 3],
+    /// For at most [`LUT`] codes (every box whose sides are at least the neighbour radius):
+    /// each code's shift `n * L` per axis (`lut[d][code]`, the scalar's shift-table product),
+    /// looked up by two-table permutes instead of decoded arithmetically (a long latency
+    /// chain that was a third of the geometry pass).
+    lut: Option<[[f64; LUT]; 3]>,
 }
+
+/// Codes the geometry pass looks up in registers (four 8-lane tables per axis).
+const LUT: usize = 32;
 
 impl Images {
     /// The decoding of `list.images` (None if they are not `neighbor::build`'s enumeration).
@@ -178,7 +186,16 @@ impl Images {
         if span.iter().any(|&s| s < 1) || (span[0] * span[1] * span[2]) as usize != list.images.len() || list.images.len() > 1 << 16 {
             return None;
         }
-        let img = Images { ncodes: list.images.len(), s12: (span[1] * span[2]) as f64, s2: span[2] as f64, h: h.map(|x| x as f64), l };
+        let lut = (list.images.len() <= LUT).then(|| {
+            let mut t = [[0.0; LUT]; 3];
+            for (c, n) in list.images.iter().enumerate() {
+                for d in 0..3 {
+                    t[d][c] = n[d] as f64 * l[d];
+                }
+            }
+            t
+        });
+        let img = Images { ncodes: list.images.len(), s12: (span[1] * span[2]) as f64, s2: span[2] as f64, h: h.map(|x| x as f64), l, lut };
         // The enumeration a, b, c (c fastest) from -h to h.
         let ok = list.images.iter().enumerate().all(|(k, n)| {
             let k = k as i32;
@@ -767,6 +784,11 @@ mod avx512 {
             (_mm512_set1_pd(img.s12), _mm512_set1_pd(1.0 / img.s12), _mm512_set1_pd(img.s2), _mm512_set1_pd(1.0 / img.s2));
         let h = [_mm512_set1_pd(img.h[0]), _mm512_set1_pd(img.h[1]), _mm512_set1_pd(img.h[2])];
         let l = [_mm512_set1_pd(img.l[0]), _mm512_set1_pd(img.l[1]), _mm512_set1_pd(img.l[2])];
+        // SAFETY: each table holds LUT = 32 f64, read as four 8-lane vectors.
+        let lut = img
+            .lut
+            .as_ref()
+            .map(|t| t.map(|a| std::array::from_fn::<__m512d, 4, _>(|q| unsafe { _mm512_loadu_pd(a.as_ptr().add(8 * q)) })));
         let len = js.len();
         let mut k = 0;
         while k < len {
@@ -787,16 +809,28 @@ mod avx512 {
                     o[l] = (*js.get_unchecked(k + l) as i32) << 2;
                 }
                 let [xj, yj, zj, _] = rows4(x4, &o);
-                // code = ((a + h0) s1 + b + h1) s2 + c + h2, decoded exactly in f64 (< 2^16).
-                let c = _mm512_cvtepi32_pd(cv);
-                let a = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(c, half), inv12));
-                let rest = _mm512_sub_pd(c, _mm512_mul_pd(a, s12));
-                let b = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(rest, half), inv2));
-                let cc = _mm512_sub_pd(rest, _mm512_mul_pd(b, s2));
-                // shift = n * L, n exact: the same product as the scalar's shift table.
-                let sx = _mm512_mul_pd(_mm512_sub_pd(a, h[0]), l[0]);
-                let sy = _mm512_mul_pd(_mm512_sub_pd(b, h[1]), l[1]);
-                let sz = _mm512_mul_pd(_mm512_sub_pd(cc, h[2]), l[2]);
+                let (sx, sy, sz) = if let Some(t) = &lut {
+                    // Table lookup: bit 3 of the index picks the table of a pair, bit 4 the pair.
+                    let ix = _mm512_cvtepu32_epi64(cv);
+                    let upper = _mm512_test_epi64_mask(ix, _mm512_set1_epi64(16));
+                    let look = |t: &[__m512d; 4]| {
+                        _mm512_mask_blend_pd(upper, _mm512_permutex2var_pd(t[0], ix, t[1]), _mm512_permutex2var_pd(t[2], ix, t[3]))
+                    };
+                    (look(&t[0]), look(&t[1]), look(&t[2]))
+                } else {
+                    // code = ((a + h0) s1 + b + h1) s2 + c + h2, decoded exactly in f64 (< 2^16).
+                    let c = _mm512_cvtepi32_pd(cv);
+                    let a = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(c, half), inv12));
+                    let rest = _mm512_sub_pd(c, _mm512_mul_pd(a, s12));
+                    let b = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(rest, half), inv2));
+                    let cc = _mm512_sub_pd(rest, _mm512_mul_pd(b, s2));
+                    // shift = n * L, n exact: the same product as the scalar's shift table.
+                    (
+                        _mm512_mul_pd(_mm512_sub_pd(a, h[0]), l[0]),
+                        _mm512_mul_pd(_mm512_sub_pd(b, h[1]), l[1]),
+                        _mm512_mul_pd(_mm512_sub_pd(cc, h[2]), l[2]),
+                    )
+                };
                 let dx = _mm512_sub_pd(_mm512_sub_pd(x0, xj), sx);
                 let dy = _mm512_sub_pd(_mm512_sub_pd(x1, yj), sy);
                 let dz = _mm512_sub_pd(_mm512_sub_pd(x2, zj), sz);
@@ -911,7 +945,15 @@ mod avx512 {
                 let phip = _mm512_sub_pd(mul(z2p, recip), mul(phi, recip));
                 let iv = _mm256_loadu_si256(s.i.as_ptr().add(q) as *const __m256i);
                 let jv = _mm256_loadu_si256(s.j.as_ptr().add(q) as *const __m256i);
-                let fpi = gather(iv, fp);
+                // Eight pairs span one or two rows (i ascends): two broadcasts and a blend
+                // give the gather's values; padding or short rows take the gather.
+                let (ia, ib) = (*s.i.get_unchecked(q), *s.i.get_unchecked(q + 7));
+                let ma = _mm256_cmpeq_epi32_mask(iv, _mm256_set1_epi32(ia));
+                let fpi = if ma | _mm256_cmpeq_epi32_mask(iv, _mm256_set1_epi32(ib)) == 0xff {
+                    _mm512_mask_blend_pd(ma, _mm512_set1_pd(*fp.add(ib as usize)), _mm512_set1_pd(*fp.add(ia as usize)))
+                } else {
+                    gather(iv, fp)
+                };
                 let fpj = gather(jv, fp);
                 let psip = add(add(mul(fpi, rho_p), mul(fpj, rho_p)), phip);
                 let neg = _mm512_castsi512_pd(_mm512_xor_si512(_mm512_castpd_si512(psip), sign));
