@@ -566,7 +566,7 @@ fn dispatch(cli: Cli) -> i32 {
             // state; rank 0 writes the outputs and speaks, the others write theirs into a
             // private scratch directory removed at the end.
             let (rank, ranks) = mpi_ranks();
-            if ranks > 1 && (resume.is_some() || workers.is_some()) {
+            if ranks > 1 && (resume.is_some() || !workers.is_empty()) {
                 if rank == 0 {
                     eprintln!("mscale: --resume and --workers are not supported over MPI ranks yet (issue 14)");
                 }
