@@ -19,6 +19,8 @@ pub mod exact;
 pub mod grid;
 pub mod kinematics;
 pub mod mls;
+#[cfg(feature = "mpi")]
+pub mod mpi;
 pub mod par;
 pub mod particles;
 pub mod shape;

@@ -169,8 +169,42 @@ impl Scatter {
         S: Fn(usize) -> (usize, usize) + Sync,
         F: Fn(&[usize], &mut Window<'_>) + Sync,
     {
-        self.tile_buffers(tiles, stride, span, body);
+        match exchange().filter(|e| e.size() > 1) {
+            None => self.tile_buffers(tiles, stride, span, body),
+            Some(ex) => {
+                let (rank, size, nt) = (ex.rank(), ex.size(), tiles.count());
+                let mine = tiles.restrict(|t| tile_owner(t, nt, size) == rank);
+                self.tile_buffers(&mine, stride, span, body);
+                self.share_tiles(ex, nt, stride);
+            }
+        }
         reduce_in_order(&self.bufs, &self.spans, n_nodes, stride, out);
+    }
+
+    /// Replaces every tile's buffer by its owner's (all ranks end with the same buffers): each
+    /// rank packs the tiles it owns as `[tile, lo, hi, values...]` (integers exact in f64),
+    /// the packs are all-gathered, and every rank unpacks all of them.
+    fn share_tiles(&mut self, ex: &dyn TileExchange, nt: usize, stride: usize) {
+        let (rank, size) = (ex.rank(), ex.size());
+        let mut pack = Vec::new();
+        for t in (0..nt).filter(|&t| tile_owner(t, nt, size) == rank) {
+            let (lo, hi) = self.spans[t];
+            pack.extend([t as f64, lo as f64, hi as f64]);
+            pack.extend_from_slice(&self.bufs[t]);
+        }
+        let all = ex.all_gather(&pack);
+        for r in &all {
+            let mut k = 0;
+            while k < r.len() {
+                let (t, lo, hi) = (r[k] as usize, r[k + 1] as usize, r[k + 2] as usize);
+                k += 3;
+                let len = (hi - lo) * stride;
+                self.spans[t] = (lo, hi);
+                self.bufs[t].clear();
+                self.bufs[t].extend_from_slice(&r[k..k + len]);
+                k += len;
+            }
+        }
     }
 
     /// The first half of [`Scatter::run_tiled`]: fills one buffer per tile (read them with
@@ -212,6 +246,39 @@ impl Scatter {
     pub fn buffer(&self, t: usize) -> ((usize, usize), &[f64]) {
         (self.spans[t], &self.bufs[t])
     }
+}
+
+/// The processes a scatter's tiles are spread over (MPI ranks under the feature `mpi`, see
+/// [`set_exchange`]); every rank calls [`TileExchange::all_gather`] at the same points of the
+/// step, in the same order.
+pub trait TileExchange: Send + Sync {
+    /// This process's rank, `0..size()`.
+    fn rank(&self) -> usize;
+    /// The number of processes.
+    fn size(&self) -> usize;
+    /// Every rank's `mine`, in rank order (a collective: every rank calls it).
+    fn all_gather(&self, mine: &[f64]) -> Vec<Vec<f64>>;
+}
+
+static EXCHANGE: std::sync::OnceLock<Box<dyn TileExchange>> = std::sync::OnceLock::new();
+
+/// Spreads the tiles of every [`Scatter::run_tiled`] of this process over `ex`'s ranks from now
+/// on (once per process; `Err` gives `ex` back if one is set already). Each rank then fills the
+/// buffers of the tiles it owns ([`tile_owner`]) from their points only, the buffers are
+/// all-gathered and reduced in tile order as on one process: the same bits.
+pub fn set_exchange(ex: Box<dyn TileExchange>) -> Result<(), Box<dyn TileExchange>> {
+    EXCHANGE.set(ex)
+}
+
+/// The exchange set by [`set_exchange`], if any.
+pub fn exchange() -> Option<&'static dyn TileExchange> {
+    EXCHANGE.get().map(|b| b.as_ref())
+}
+
+/// The rank owning tile `t` of `n_tiles` over `ranks` ranks: contiguous blocks of tiles, as
+/// even as the tile count allows.
+pub fn tile_owner(t: usize, n_tiles: usize, ranks: usize) -> usize {
+    (t * ranks / n_tiles.max(1)).min(ranks.saturating_sub(1))
 }
 
 /// Adds the buffers `bufs[k]` (over node windows `spans[k]`, `stride` values per node) into

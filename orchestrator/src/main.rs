@@ -355,10 +355,24 @@ enum ReportCommand {
 }
 
 fn main() -> ExitCode {
+    // Under `mpirun -np N` (feature `mpi`): MPI lives until the end of main (finalised on drop).
+    #[cfg(feature = "mpi")]
+    let _mpi = match continuum::mpi::init() {
+        Ok(m) => {
+            let _ = MPI_RANKS.set((m.rank, m.size));
+            m
+        }
+        Err(e) => {
+            eprintln!("mscale: cannot start MPI: {e}");
+            return ExitCode::from(exit::RUN_FAILED as u8);
+        }
+    };
+    // Ranks above 0 log warnings only (rank 0 speaks for the run).
+    let filter = if mpi_ranks().0 > 0 { None } else { tracing_subscriber::EnvFilter::try_from_default_env().ok() };
     tracing_subscriber::fmt()
         // diffsol logs its statistics at info at the end of every integration segment (the
         // cell run restarts at every output time and switch): warnings only.
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,diffsol=warn".into()))
+        .with_env_filter(filter.unwrap_or_else(|| if mpi_ranks().0 > 0 { "warn".into() } else { "info,diffsol=warn".into() }))
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
@@ -375,6 +389,18 @@ fn main() -> ExitCode {
     }));
     let code = std::panic::catch_unwind(|| dispatch(cli)).unwrap_or(exit::RUN_FAILED);
     ExitCode::from(code as u8)
+}
+
+/// (rank, ranks) of this process under MPI (feature `mpi`); (0, 1) otherwise.
+#[cfg(feature = "mpi")]
+static MPI_RANKS: std::sync::OnceLock<(usize, usize)> = std::sync::OnceLock::new();
+
+fn mpi_ranks() -> (usize, usize) {
+    #[cfg(feature = "mpi")]
+    if let Some(&r) = MPI_RANKS.get() {
+        return r;
+    }
+    (0, 1)
 }
 
 fn dispatch(cli: Cli) -> i32 {
@@ -536,6 +562,19 @@ fn dispatch(cli: Cli) -> i32 {
                 }
             };
             let out = resume.clone().or(out).unwrap_or_else(|| loaded.default_out_dir());
+            // Over MPI ranks (continuum/README.md "MPI"): every rank steps the same replicated
+            // state; rank 0 writes the outputs and speaks, the others write theirs into a
+            // private scratch directory removed at the end.
+            let (rank, ranks) = mpi_ranks();
+            if ranks > 1 && (resume.is_some() || !workers.is_empty()) {
+                if rank == 0 {
+                    eprintln!("mscale: --resume and --workers are not supported over MPI ranks yet (issue 14)");
+                }
+                return exit::BAD_INPUT;
+            }
+            let scratch = (rank > 0).then(|| std::env::temp_dir().join(format!("mscale-rank{rank}-{}", std::process::id())));
+            let out = scratch.clone().unwrap_or(out);
+            let _scratch = ScratchDir(scratch);
             let mut opts = run::RunOptions::new(out.clone(), std::env::args().collect());
             opts.workers = workers;
             opts.checkpoint_every = checkpoint_every;
@@ -544,6 +583,13 @@ fn dispatch(cli: Cli) -> i32 {
             match orchestrator::checkpoint::stop_on_signals() {
                 Ok(flag) => opts.cancel = Some(flag),
                 Err(e) => eprintln!("mscale: warning: cannot handle SIGINT/SIGTERM, no checkpoint will be written on them: {e}"),
+            }
+            if rank > 0 {
+                // The same replicated state as rank 0: the same outcome, reported by rank 0.
+                return match loaded.run(&opts) {
+                    Ok(run::Outcome::Completed(_)) => exit::OK,
+                    _ => exit::RUN_FAILED,
+                };
             }
             match loaded.run(&opts) {
                 Ok(run::Outcome::Completed(summary)) => {
@@ -588,6 +634,17 @@ fn dispatch(cli: Cli) -> i32 {
                 }
                 Err(e) => report(Err(e)),
             }
+        }
+    }
+}
+
+/// A rank's scratch output directory (ranks above 0 under MPI), removed on drop.
+struct ScratchDir(Option<std::path::PathBuf>);
+
+impl Drop for ScratchDir {
+    fn drop(&mut self) {
+        if let Some(d) = &self.0 {
+            let _ = std::fs::remove_dir_all(d);
         }
     }
 }

@@ -1,0 +1,74 @@
+//! The continuum over MPI ranks (cargo feature `mpi`): [`init`] starts MPI and spreads the
+//! tiles of every explicit scatter ([`crate::par::Scatter::run_tiled`]) over the ranks of
+//! `MPI_COMM_WORLD`. Stage 1 of issue 14 (README "MPI"): the point state stays replicated on
+//! every rank, each rank sums only the tiles it owns and the tile buffers are all-gathered, so
+//! every rank reduces the same buffers in the same tile order and ends each step with the
+//! single-process bits.
+
+use crate::par::{self, TileExchange};
+use mpi::traits::*;
+
+/// `MPI_COMM_WORLD`, used from one thread at a time (the solver's; MPI is initialised at
+/// `MPI_THREAD_SERIALIZED` or above).
+struct World {
+    comm: mpi::topology::SimpleCommunicator,
+    rank: usize,
+    size: usize,
+}
+
+// SAFETY: the communicator is a handle MPI lets any thread use once MPI runs at
+// MPI_THREAD_SERIALIZED or above ([`init`] refuses less); the collectives of a scatter are
+// called by the one thread stepping the simulation, never concurrently.
+unsafe impl Send for World {}
+// SAFETY: as above.
+unsafe impl Sync for World {}
+
+impl TileExchange for World {
+    fn rank(&self) -> usize {
+        self.rank
+    }
+
+    fn size(&self) -> usize {
+        self.size
+    }
+
+    fn all_gather(&self, mine: &[f64]) -> Vec<Vec<f64>> {
+        let n = i32::try_from(mine.len()).expect("a rank's tile buffers exceed 2^31 values");
+        let mut counts = vec![0i32; self.size];
+        self.comm.all_gather_into(&n, &mut counts[..]);
+        let displs: Vec<i32> = counts.iter().scan(0i32, |acc, &c| Some(std::mem::replace(acc, *acc + c))).collect();
+        let total: usize = counts.iter().map(|&c| c as usize).sum();
+        let mut all = vec![0f64; total];
+        {
+            let mut part = mpi::datatype::PartitionMut::new(&mut all[..], &counts[..], &displs[..]);
+            self.comm.all_gather_varcount_into(mine, &mut part);
+        }
+        counts.iter().zip(&displs).map(|(&c, &d)| all[d as usize..(d + c) as usize].to_vec()).collect()
+    }
+}
+
+/// MPI while it lives (finalised on drop): this process's rank and the number of ranks.
+pub struct Mpi {
+    _universe: mpi::environment::Universe,
+    /// This process's rank.
+    pub rank: usize,
+    /// The number of ranks.
+    pub size: usize,
+}
+
+/// Starts MPI and, over more than one rank, spreads the tiles of every explicit scatter over
+/// the ranks ([`par::set_exchange`]). `Err` when MPI is already initialised or its thread level
+/// is below `MPI_THREAD_SERIALIZED`.
+pub fn init() -> Result<Mpi, String> {
+    let (universe, level) =
+        mpi::initialize_with_threading(mpi::Threading::Serialized).ok_or_else(|| "MPI is already initialised".to_string())?;
+    if matches!(level, mpi::Threading::Single | mpi::Threading::Funneled) {
+        return Err(format!("the MPI library gives thread level {level:?}; the continuum needs Serialized or Multiple"));
+    }
+    let comm = universe.world();
+    let (rank, size) = (comm.rank() as usize, comm.size() as usize);
+    if size > 1 && par::set_exchange(Box::new(World { comm, rank, size })).is_err() {
+        return Err("a tile exchange is set already".into());
+    }
+    Ok(Mpi { _universe: universe, rank, size })
+}
