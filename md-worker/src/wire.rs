@@ -7,7 +7,7 @@ use crate::error::MdError;
 use crate::kernel::DeformMode;
 use crate::lattice::{LatticeKind, Orientation};
 use mscale_proto::coupling::v1 as pb;
-use mscale_proto::{f64_column, f64_values};
+use mscale_proto::{f64_at, f64_column};
 
 /// Largest gRPC message either side accepts (bytes).
 pub const MAX_MESSAGE: usize = 64 << 20;
@@ -164,14 +164,26 @@ fn column(name: &str, len: usize, boxes: usize, per_box: usize) -> Result<(), Md
     ))
 }
 
-/// The values of the f64 column `name`, refused unless it holds `per_box` values for each
-/// of `boxes`.
-fn f64s(name: &str, bytes: &[u8], boxes: usize, per_box: usize) -> Result<Vec<f64>, MdError> {
-    let v = f64_values(bytes).ok_or_else(|| {
-        MdError::invalid(format!("step message column `{name}`"), format!("{} bytes: not a whole number of 8-byte doubles", bytes.len()))
-    })?;
-    column(name, v.len(), boxes, per_box)?;
-    Ok(v)
+/// The f64 column `name` (its bytes, read with [`f64_at`]), refused unless it holds
+/// `per_box` values for each of `boxes`.
+fn f64s<'a>(name: &str, bytes: &'a [u8], boxes: usize, per_box: usize) -> Result<F64s<'a>, MdError> {
+    if bytes.len() % 8 != 0 {
+        return Err(MdError::invalid(
+            format!("step message column `{name}`"),
+            format!("{} bytes: not a whole number of 8-byte doubles", bytes.len()),
+        ));
+    }
+    column(name, bytes.len() / 8, boxes, per_box)?;
+    Ok(F64s(bytes))
+}
+
+/// A checked f64 column.
+struct F64s<'a>(&'a [u8]);
+
+impl F64s<'_> {
+    fn at(&self, k: usize) -> f64 {
+        f64_at(self.0, k)
+    }
 }
 
 /// The work of a step message, every value checked (a bad one is refused naming the point
@@ -187,10 +199,10 @@ pub fn batch_from_pb(p: &pb::StepBatch) -> Result<Vec<BoxWork>, MdError> {
         .map(|k| {
             let id = p.point_id[k];
             let mut l = [[0.0; 3]; 3];
-            for (j, v) in velocity_gradient[9 * k..9 * k + 9].iter().enumerate() {
-                l[j / 3][j % 3] = finite(id, "velocity_gradient", *v)?;
+            for j in 0..9 {
+                l[j / 3][j % 3] = finite(id, "velocity_gradient", velocity_gradient.at(9 * k + j))?;
             }
-            let (steps, dt_ps) = (p.steps[k], dt[k]);
+            let (steps, dt_ps) = (p.steps[k], dt.at(k));
             if steps > MAX_STEPS_PER_CALL {
                 return Err(invalid(id, "steps", format!("{steps} exceeds {MAX_STEPS_PER_CALL}")));
             }
@@ -202,7 +214,7 @@ pub fn batch_from_pb(p: &pb::StepBatch) -> Result<Vec<BoxWork>, MdError> {
                 velocity_gradient: l,
                 steps,
                 dt_ps,
-                energy_to_add_ev: finite(id, "energy_to_add_ev", energy[k])?,
+                energy_to_add_ev: finite(id, "energy_to_add_ev", energy.at(k))?,
                 stress_sampling: sampling_from_pb(id, p.stress_sampling[k])?,
             })
         })
@@ -247,15 +259,15 @@ pub fn results_from_pb(p: &pb::StepResults) -> Result<Vec<BoxResult>, MdError> {
             let id = p.point_id[k];
             Ok(BoxResult {
                 id,
-                stress_gpa: std::array::from_fn(|j| stress[6 * k + j]),
-                potential_energy_ev: pe[k],
-                kinetic_energy_ev: ke[k],
-                temperature_k: temperature[k],
+                stress_gpa: std::array::from_fn(|j| stress.at(6 * k + j)),
+                potential_energy_ev: pe.at(k),
+                kinetic_energy_ev: ke.at(k),
+                temperature_k: temperature.at(k),
                 stress_sampling: sampling_from_pb(id, p.stress_sampling[k])?,
                 diagnostics: Diagnostics {
                     total_steps: p.total_steps[k],
-                    lengths_a: std::array::from_fn(|j| lengths[3 * k + j]),
-                    energy_shortfall_ev: shortfall[k],
+                    lengths_a: std::array::from_fn(|j| lengths.at(3 * k + j)),
+                    energy_shortfall_ev: shortfall.at(k),
                     neighbor_rebuilds: p.neighbor_rebuilds[k],
                     wraps: p.wraps[k],
                 },

@@ -30,6 +30,14 @@ pub fn f64_column(values: impl IntoIterator<Item = f64>) -> Vec<u8> {
     out
 }
 
+/// Value `k` of an f64 column whose length is a whole number of doubles (panics past its end,
+/// as a slice index does).
+pub fn f64_at(column: &[u8], k: usize) -> f64 {
+    let mut b = [0; 8];
+    b.copy_from_slice(&column[8 * k..8 * k + 8]);
+    f64::from_le_bytes(b)
+}
+
 /// The values of an f64 column, or `None` when its length is not a whole number of doubles.
 pub fn f64_values(column: &[u8]) -> Option<Vec<f64>> {
     let chunks = column.chunks_exact(8);
@@ -57,5 +65,6 @@ mod tests {
         let back = f64_values(&f64_column(values)).unwrap();
         assert_eq!(back.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), values.map(f64::to_bits));
         assert!(f64_values(&[0; 12]).is_none());
+        assert_eq!(f64_at(&f64_column(values), 3), 1e300);
     }
 }
