@@ -167,7 +167,7 @@ fn column(name: &str, len: usize, boxes: usize, per_box: usize) -> Result<(), Md
 /// The f64 column `name` (its bytes, read with [`f64_at`]), refused unless it holds
 /// `per_box` values for each of `boxes`.
 fn f64s<'a>(name: &str, bytes: &'a [u8], boxes: usize, per_box: usize) -> Result<F64s<'a>, MdError> {
-    if bytes.len() % 8 != 0 {
+    if !bytes.len().is_multiple_of(8) {
         return Err(MdError::invalid(
             format!("step message column `{name}`"),
             format!("{} bytes: not a whole number of 8-byte doubles", bytes.len()),
