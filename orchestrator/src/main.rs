@@ -358,10 +358,7 @@ fn main() -> ExitCode {
     // Under `mpirun -np N` (feature `mpi`): MPI lives until the end of main (finalised on drop).
     #[cfg(feature = "mpi")]
     let _mpi = match continuum::mpi::init() {
-        Ok(m) => {
-            let _ = MPI_RANKS.set((m.rank, m.size));
-            m
-        }
+        Ok(m) => m,
         Err(e) => {
             eprintln!("mscale: cannot start MPI: {e}");
             return ExitCode::from(exit::RUN_FAILED as u8);
@@ -391,16 +388,10 @@ fn main() -> ExitCode {
     ExitCode::from(code as u8)
 }
 
-/// (rank, ranks) of this process under MPI (feature `mpi`); (0, 1) otherwise.
-#[cfg(feature = "mpi")]
-static MPI_RANKS: std::sync::OnceLock<(usize, usize)> = std::sync::OnceLock::new();
-
+/// (rank, ranks) of this process: those of the tile exchange that MPI sets over more than one
+/// rank (feature `mpi`), (0, 1) otherwise.
 fn mpi_ranks() -> (usize, usize) {
-    #[cfg(feature = "mpi")]
-    if let Some(&r) = MPI_RANKS.get() {
-        return r;
-    }
-    (0, 1)
+    continuum::par::exchange().map_or((0, 1), |e| (e.rank(), e.size()))
 }
 
 fn dispatch(cli: Cli) -> i32 {
