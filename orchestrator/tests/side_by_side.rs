@@ -135,12 +135,14 @@ fn three_jobs_on_four_workers_end_with_their_digests_when_a_worker_is_killed() {
     let j1 = server.submit(&LONGER, 0, 1);
     let j2 = server.submit(&OTHER, 0, 1);
     let j3 = server.submit(&LONGER, 0, 2);
-    // All three run at once, on disjoint workers: 1, 1 and 2 of the 4.
+    // All three run at once, on disjoint workers: 1, 1 and 2 of the 4. (A job holds its
+    // workers a moment before its state says running: wait for both.)
     let mut held = BTreeMap::new();
     mscale_testkit::wait_until("three jobs running on 1, 1 and 2 workers", Duration::from_secs(120), || {
         held = server.holders();
         let count = |j: &str| held.values().filter(|h| h.as_str() == j).count();
         (count(&j1), count(&j2), count(&j3)) == (1, 1, 2)
+            && [&j1, &j2, &j3].iter().all(|j| server.job(j).state == pb::JobState::Running as i32)
     });
     for j in [&j1, &j2, &j3] {
         assert_eq!(server.job(j).state, pb::JobState::Running as i32, "{held:?}\n{}", server.proc.log());
