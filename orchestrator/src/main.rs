@@ -352,6 +352,16 @@ enum ReportCommand {
         #[arg(long, value_name = "KEY")]
         replicas: Option<String>,
     },
+    /// Score a finished run again against a direct-MD reference (eq. 7.12, the run's own code),
+    /// from the snapshots it wrote: prints the log line and the summary.json `errors` it would
+    /// have. The run's `scene.resolved.toml` with --set overrides names the reference, e.g.
+    /// --set reference.times_ps=[5.0,10.0] --set reference.profile=\"direct.csv\".
+    Score {
+        run_dir: PathBuf,
+        /// Override of the run's resolved scene (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
 }
 
 fn main() -> ExitCode {
@@ -494,6 +504,26 @@ fn dispatch(cli: Cli) -> i32 {
                 exit::BAD_INPUT
             }
         },
+        Command::Report(ReportCommand::Score { run_dir, set }) => {
+            let scene = match orchestrator::scene::load(&run_dir.join("scene.resolved.toml"), &set) {
+                Ok(l) => l.scene,
+                Err(e) => {
+                    eprintln!("mscale: {e}");
+                    return exit::BAD_INPUT;
+                }
+            };
+            match orchestrator::run::rescore(&scene, &run_dir) {
+                Ok((json, line)) => {
+                    println!("{line}");
+                    println!("{}", serde_json::to_string_pretty(&json).unwrap_or_default());
+                    exit::OK
+                }
+                Err(e) => {
+                    eprintln!("mscale: {}: {e:#}", run_dir.display());
+                    exit::BAD_INPUT
+                }
+            }
+        }
         Command::Report(ReportCommand::ErrorVsTime { scene, sweep, set, out, .. }) if orchestrator::cell_run::is_cell_scene(&scene) => {
             let out = out.unwrap_or_else(|| orchestrator::report::default_out(&scene));
             match orchestrator::cell_run::error_vs_time(&scene, &set, &sweep, &out) {

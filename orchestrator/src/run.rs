@@ -674,6 +674,25 @@ fn plot_profiles<const D: usize>(sim: &Simulation<D>, exact: Option<&IsothermalR
     Ok(())
 }
 
+/// Scores a finished run again (`mscale report score RUN_DIR`): eq. 7.12 of the run in `dir`
+/// against `scene`'s direct-MD reference (typically the run's own `scene.resolved.toml` with
+/// `--set reference.profile=...` / `reference.times_ps=[...]`), from the snapshots the run
+/// wrote, up to the time its summary.json says it reached. The same code as the run's own
+/// score; the run directory is not changed. Returns summary.json-style `errors` and the log line.
+pub fn rescore(scene: &Scene, dir: &Path) -> Result<(Value, String)> {
+    let path = dir.join("summary.json");
+    let summary: Value = serde_json::from_str(&std::fs::read_to_string(&path).with_context(|| format!("cannot read {}", path.display()))?)
+        .with_context(|| format!("{} is not JSON", path.display()))?;
+    let reached = summary["simulated_time_s"]
+        .as_f64()
+        .ok_or_else(|| anyhow::anyhow!("{} has no simulated_time_s: not a finished run's summary", path.display()))?;
+    // The run's last step lands within round-off of its end time.
+    let score = direct_md_errors(scene, dir, reached * (1.0 + 1e-9))
+        .ok_or_else(|| anyhow::anyhow!("the scene names no `[reference] solution = \"direct-md\"` to score against"))?;
+    let line = score.line.map_err(|e| anyhow::anyhow!(e))?;
+    Ok((score.json, line))
+}
+
 /// A run's score against its scene's direct-MD reference: summary.json `errors`, and the log
 /// line (or why it could not be scored).
 struct DirectScore {

@@ -317,6 +317,21 @@ fn a_run_with_a_direct_md_reference_scores_itself() {
     let o = mscale(&["check", out.join("scene.resolved.toml").to_str().expect("utf8")]);
     assert_eq!(o.status.code(), Some(0), "{}", text(&o.stderr));
     assert!(text(&o.stdout).contains("solution = \"direct-md\""), "{}", text(&o.stdout));
+    // `mscale report score` scores the finished run again by the same code: the same errors, and
+    // a time the run never reached (or the reference lacks) is refused by name.
+    let run_dir = out.to_str().expect("utf8");
+    let o = mscale(&["report", "score", run_dir]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o.stderr));
+    let printed = text(&o.stdout);
+    assert!(printed.lines().next().expect("a line").contains(&format!("{:.2} % at 5 ps", 100.0 * e5)), "{printed}");
+    let again: serde_json::Value = serde_json::from_str(printed.split_once('\n').expect("json").1).expect("json");
+    assert_eq!(again["sxx_error_10ps"], e["sxx_error_10ps"], "{again}");
+    let o = mscale(&["report", "score", run_dir, "--set", "reference.times_ps=[5.0]"]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o.stderr));
+    assert!(!text(&o.stdout).contains("10 ps"), "{}", text(&o.stdout));
+    let o = mscale(&["report", "score", run_dir, "--set", "reference.times_ps=[5.0,20.0]"]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o.stdout));
+    assert!(text(&o.stderr).contains("reference.times_ps"), "{}", text(&o.stderr));
 }
 
 /// Issue 18: an implicit run past the explicit CFL bound reports Newton iterations per step and
