@@ -76,6 +76,13 @@ impl Default for ImplicitOptions {
 pub struct ImplicitStats {
     pub accepted_steps: u64,
     pub rejected_steps: u64,
+    /// Of `rejected_steps` (adaptive steps only): the estimated local error above 1, the motion
+    /// bound, Newton (or its residual) failing; the step whose attempt first hit the motion
+    /// bound (0: none).
+    pub rejected_for_error: u64,
+    pub rejected_for_motion: u64,
+    pub rejected_for_newton: u64,
+    pub first_motion_rejection_step: u64,
     /// Newton iterations (linear solves) over all accepted steps.
     pub newton_iterations: u64,
     pub max_newton_iterations_per_step: usize,
@@ -139,8 +146,10 @@ enum Attempt {
     Rejected {
         err: f64,
     },
-    /// Newton failed or the motion bound was hit (a smaller dt may succeed).
+    /// Newton failed (a smaller dt may succeed).
     Failed(SolverError),
+    /// The converged step would move a point past the motion bound.
+    TooFar(SolverError),
 }
 
 /// Adaptive time step (the thesis's future work 9.6.2, as proposed in the notes): WRMS norm of
@@ -684,7 +693,7 @@ impl<const D: usize> Simulation<D> {
             let Some(ad) = self.implicit.options.adaptive.clone() else {
                 return match attempt {
                     Attempt::Accepted { report, .. } => Ok(report),
-                    Attempt::Failed(e) => Err(e),
+                    Attempt::Failed(e) | Attempt::TooFar(e) => Err(e),
                     Attempt::Rejected { .. } => unreachable!("only adaptive steps are rejected on their error"),
                 };
             };
@@ -700,6 +709,7 @@ impl<const D: usize> Simulation<D> {
                 }
                 Attempt::Rejected { err } => {
                     self.implicit.stats.rejected_steps += 1;
+                    self.implicit.stats.rejected_for_error += 1;
                     self.dt *= factor(err).clamp(ad.min_shrink, 0.9);
                     rejections += 1;
                     if self.dt < ad.dt_min || rejections > ad.max_rejections {
@@ -713,8 +723,23 @@ impl<const D: usize> Simulation<D> {
                         });
                     }
                 }
-                Attempt::Failed(e) => {
-                    self.implicit.stats.rejected_steps += 1;
+                failed @ (Attempt::Failed(_) | Attempt::TooFar(_)) => {
+                    let st = &mut self.implicit.stats;
+                    st.rejected_steps += 1;
+                    let e = match failed {
+                        Attempt::TooFar(e) => {
+                            st.rejected_for_motion += 1;
+                            if st.first_motion_rejection_step == 0 {
+                                st.first_motion_rejection_step = self.step + 1;
+                            }
+                            e
+                        }
+                        Attempt::Failed(e) => {
+                            st.rejected_for_newton += 1;
+                            e
+                        }
+                        _ => unreachable!("matched above"),
+                    };
                     self.dt *= ad.min_shrink;
                     rejections += 1;
                     if self.dt < ad.dt_min || rejections > ad.max_rejections {
@@ -725,7 +750,7 @@ impl<const D: usize> Simulation<D> {
         }
     }
 
-    /// Newton on the step's residual from the predictor, then the motion bound.
+    /// Newton on the step's residual from the predictor.
     fn implicit_newton(&mut self, s: &Setup) -> Result<NewtonOut, SolverError> {
         let (step, _dt) = (s.step, s.dt);
         let h_min = self.grid.min_spacing();
@@ -795,8 +820,14 @@ impl<const D: usize> Simulation<D> {
             }
             iterations += 1;
         }
-        // Motion bound: the stencil was frozen, so no point may cross more than half a cell.
-        let (st, pts) = (&self.stencil, &self.points);
+        Ok(NewtonOut { u, trial, force, history, iterations, residuals, colours, times: [t_res, t_jac, t_solve] })
+    }
+
+    /// The motion bound on the converged displacement: the stencil was frozen over the step, so
+    /// no point may move more than `max_motion_cells` cells along any axis.
+    fn implicit_motion(&self, step: u64, u: &[f64]) -> Result<(), SolverError> {
+        let max_cells = self.implicit.options.max_motion_cells;
+        let (st, pts, h) = (&self.stencil, &self.points, &self.grid.h);
         let motion = (0..pts.len())
             .into_par_iter()
             .with_min_len(CHUNK)
@@ -808,18 +839,24 @@ impl<const D: usize> Simulation<D> {
                         d[a] += w * u[i * D + a];
                     }
                 }
-                (0..D).map(|a| d[a].abs() / self.grid.h[a]).fold(0.0, f64::max)
+                (0..D).map(|a| d[a].abs() / h[a]).fold(0.0, f64::max)
             })
             .collect::<Vec<f64>>();
-        if let Some((p, cells)) = motion.iter().copied().enumerate().find(|(_, m)| *m > opts.max_motion_cells) {
+        // Name the point that moves most (the first one past the bound is seldom the worst).
+        let over = motion.iter().filter(|m| **m > max_cells).count();
+        if over > 0 {
+            let (p, cells) = motion.iter().copied().enumerate().fold((0, 0.0), |b, (p, m)| if m > b.1 { (p, m) } else { b });
             return Err(SolverError::Diverged {
                 step,
-                what: format!("particle {p} would move {cells:.3} cells in one implicit step (limit {})", opts.max_motion_cells),
+                what: format!(
+                    "particle {p} would move {cells:.3} cells in one implicit step (limit {}; {over} of {} points past it)",
+                    max_cells,
+                    motion.len()
+                ),
                 cause: "time step too large for the frozen stencil: reduce the time step so no point moves more than half a cell",
             });
         }
-
-        Ok(NewtonOut { u, trial, force, history, iterations, residuals, colours, times: [t_res, t_jac, t_solve] })
+        Ok(())
     }
 
     /// One attempt at the step with the current dt.
@@ -833,6 +870,9 @@ impl<const D: usize> Simulation<D> {
             Ok(n) => n,
             Err(e) => return Ok(Attempt::Failed(e)),
         };
+        if let Err(e) = self.implicit_motion(step, &n.u) {
+            return Ok(Attempt::TooFar(e));
+        }
         let NewtonOut { u, trial, force, history, iterations, residuals, colours, times: [t_res, t_jac, t_solve] } = n;
         let Setup { index_of, mass, v0, v1_fixed, f0, b0, b1, a0, .. } = s;
         let mass_of = |g: usize| mass[g];
