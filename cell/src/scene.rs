@@ -264,8 +264,16 @@ pub struct CellScheme {
     pub end_time_s: f64,
     #[serde(default = "default_rtol")]
     pub rtol: f64,
-    #[serde(default = "default_atol_c")]
-    pub atol_concentration: f64,
+    /// Absolute tolerance on a concentration (1/nm^3), the same in every cell whatever the
+    /// cell count. Either this or `atol_inventory_per_nm2`, not both; neither: 1e-9.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub atol_concentration: Option<f64>,
+    /// Absolute tolerance on a cell's inventory, concentration x dx (1/nm^2): the
+    /// concentration's tolerance is this / dx, so a refined grid is held to the same amounts
+    /// per cell rather than to the same concentrations (which at 1e5 cells lies below what the
+    /// Newton iteration can resolve in double precision; cell/README.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub atol_inventory_per_nm2: Option<f64>,
     #[serde(default = "default_atol_phi")]
     pub atol_potential_v: f64,
     /// Only for explicit-euler.
@@ -292,9 +300,8 @@ fn default_face_state() -> FaceState {
 fn default_rtol() -> f64 {
     1e-6
 }
-fn default_atol_c() -> f64 {
-    1e-9
-}
+/// The concentrations' absolute tolerance when a scene sets neither key (1/nm^3).
+pub const DEFAULT_ATOL_CONCENTRATION: f64 = 1e-9;
 fn default_atol_phi() -> f64 {
     1e-9
 }
@@ -534,7 +541,19 @@ impl CellScene {
         if !(s.rtol.is_finite() && s.rtol > 0.0 && s.rtol < 0.1) {
             return Err(err(locate, "scheme.rtol", s.rtol, "allowed: 0 < rtol < 0.1"));
         }
-        positive(locate, "scheme.atol_concentration", s.atol_concentration)?;
+        match (s.atol_concentration, s.atol_inventory_per_nm2) {
+            (Some(_), Some(a)) => {
+                return Err(err(
+                    locate,
+                    "scheme.atol_inventory_per_nm2",
+                    a,
+                    "set either scheme.atol_concentration or scheme.atol_inventory_per_nm2, not both",
+                ));
+            }
+            (Some(c), None) => positive(locate, "scheme.atol_concentration", c)?,
+            (None, Some(a)) => positive(locate, "scheme.atol_inventory_per_nm2", a)?,
+            (None, None) => {}
+        }
         positive(locate, "scheme.atol_potential_v", s.atol_potential_v)?;
         if s.max_steps == 0 {
             return Err(err(locate, "scheme.max_steps", 0, "must be at least 1"));
@@ -616,6 +635,16 @@ impl CellScene {
             v.push(("cathode", c.width_nm));
         }
         v
+    }
+
+    /// The concentrations' absolute tolerance (1/nm^3) at this scene's cell size:
+    /// `atol_concentration`, or `atol_inventory_per_nm2 / dx`.
+    pub fn atol_concentration(&self) -> f64 {
+        match (self.scheme.atol_concentration, self.scheme.atol_inventory_per_nm2) {
+            (Some(c), _) => c,
+            (None, Some(a)) => a / (self.length_nm() / self.grid.cells as f64),
+            (None, None) => DEFAULT_ATOL_CONCENTRATION,
+        }
     }
 
     pub fn length_nm(&self) -> f64 {

@@ -35,7 +35,7 @@ fn load(name: &str, sets: &[(&str, &str)]) -> CellScene {
 fn settings(s: &CellScene) -> Settings {
     Settings {
         rtol: s.scheme.rtol,
-        atol_concentration: s.scheme.atol_concentration,
+        atol_concentration: s.atol_concentration(),
         atol_potential: s.scheme.atol_potential_v,
         end_time: s.scheme.end_time_s,
         output_times: s.output.times_s.clone(),
@@ -200,6 +200,29 @@ fn scene_errors_name_the_line_and_the_key() {
     let text = scene_text("pnp-full-cell.toml").replace("cells = 1000", "cells = 1001");
     let e = scene::parse(&text, &BTreeMap::new(), "x").expect_err("regions must be whole cells");
     assert_eq!(e.key, "grid.cells");
+}
+
+/// `scheme.atol_inventory_per_nm2` sets the concentrations' tolerance per cell inventory
+/// (1e-10 /nm^2: 1e-9 /nm^3 at 1000 cells, 1e-7 /nm^3 at 1e5); a fixed `atol_concentration`
+/// is the same at every cell count; not both.
+#[test]
+fn the_concentration_tolerance_can_follow_the_cell_inventory() {
+    let fixed = |cells: &str| load("pnp-full-cell.toml", &[("grid.cells", cells)]).atol_concentration();
+    assert_eq!(fixed("1000"), 1e-9);
+    assert_eq!(fixed("100000"), 1e-9);
+    let per_cell = |cells: &str| {
+        let text = scene_text("pnp-full-cell.toml")
+            .replace("atol_concentration = 1e-9", "atol_inventory_per_nm2 = 1e-10")
+            .replace("cells = 1000\n", &format!("cells = {cells}\n"));
+        scene::parse(&text, &BTreeMap::new(), "x").expect("an inventory tolerance alone").atol_concentration()
+    };
+    assert_eq!(per_cell("100"), 1e-10);
+    assert_eq!(per_cell("1000"), 1e-9);
+    assert_eq!(per_cell("100000"), 1e-7);
+    let both =
+        scene_text("pnp-full-cell.toml").replace("atol_concentration = 1e-9", "atol_concentration = 1e-9\natol_inventory_per_nm2 = 1e-10");
+    let e = scene::parse(&both, &BTreeMap::new(), "x").expect_err("both tolerances");
+    assert_eq!(e.key, "scheme.atol_inventory_per_nm2");
 }
 
 /// The thesis's Fig. 8.5 study over 1e2..1e4 cells: the L2 error (8.85) of phi against the

@@ -204,7 +204,7 @@ pub fn run(loaded: &LoadedCell, opts: &RunOptions) -> Result<Outcome> {
     let model = Model::new(scene);
     let settings = Settings {
         rtol: scene.scheme.rtol,
-        atol_concentration: scene.scheme.atol_concentration,
+        atol_concentration: scene.atol_concentration(),
         atol_potential: scene.scheme.atol_potential_v,
         end_time: scene.scheme.end_time_s,
         output_times: scene.output.times_s.clone(),
