@@ -146,10 +146,12 @@ enum Attempt {
     Rejected {
         err: f64,
     },
-    /// Newton failed (a smaller dt may succeed).
-    Failed(SolverError),
-    /// The converged step would move a point past the motion bound.
-    TooFar(SolverError),
+    /// Newton failed, or (`motion`) the converged step would move a point past the motion
+    /// bound; a smaller dt may succeed.
+    Failed {
+        error: SolverError,
+        motion: bool,
+    },
 }
 
 /// Adaptive time step (the thesis's future work 9.6.2, as proposed in the notes): WRMS norm of
@@ -693,7 +695,7 @@ impl<const D: usize> Simulation<D> {
             let Some(ad) = self.implicit.options.adaptive.clone() else {
                 return match attempt {
                     Attempt::Accepted { report, .. } => Ok(report),
-                    Attempt::Failed(e) | Attempt::TooFar(e) => Err(e),
+                    Attempt::Failed { error, .. } => Err(error),
                     Attempt::Rejected { .. } => unreachable!("only adaptive steps are rejected on their error"),
                 };
             };
@@ -723,27 +725,21 @@ impl<const D: usize> Simulation<D> {
                         });
                     }
                 }
-                failed @ (Attempt::Failed(_) | Attempt::TooFar(_)) => {
+                Attempt::Failed { error, motion } => {
                     let st = &mut self.implicit.stats;
                     st.rejected_steps += 1;
-                    let e = match failed {
-                        Attempt::TooFar(e) => {
-                            st.rejected_for_motion += 1;
-                            if st.first_motion_rejection_step == 0 {
-                                st.first_motion_rejection_step = self.step + 1;
-                            }
-                            e
+                    if motion {
+                        st.rejected_for_motion += 1;
+                        if st.first_motion_rejection_step == 0 {
+                            st.first_motion_rejection_step = self.step + 1;
                         }
-                        Attempt::Failed(e) => {
-                            st.rejected_for_newton += 1;
-                            e
-                        }
-                        _ => unreachable!("matched above"),
-                    };
+                    } else {
+                        st.rejected_for_newton += 1;
+                    }
                     self.dt *= ad.min_shrink;
                     rejections += 1;
                     if self.dt < ad.dt_min || rejections > ad.max_rejections {
-                        return Err(e);
+                        return Err(error);
                     }
                 }
             }
@@ -868,10 +864,10 @@ impl<const D: usize> Simulation<D> {
         let nf = s.free.len();
         let n = match self.implicit_newton(&s) {
             Ok(n) => n,
-            Err(e) => return Ok(Attempt::Failed(e)),
+            Err(error) => return Ok(Attempt::Failed { error, motion: false }),
         };
         if let Err(e) = self.implicit_motion(step, &n.u) {
-            return Ok(Attempt::TooFar(e));
+            return Ok(Attempt::Failed { error: e, motion: true });
         }
         let NewtonOut { u, trial, force, history, iterations, residuals, colours, times: [t_res, t_jac, t_solve] } = n;
         let Setup { index_of, mass, v0, v1_fixed, f0, b0, b1, a0, .. } = s;
