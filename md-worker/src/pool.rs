@@ -110,12 +110,11 @@ pub struct PoolTimes {
 /// Boxes spread over endpoints.
 pub struct MdPool {
     endpoints: Vec<Box<dyn Endpoint>>,
-    owner: IdMap<usize>,
+    /// Every box: its endpoint, atoms and MD steps done (one lookup per box and step).
+    boxes: IdMap<Held>,
     pub times: PoolTimes,
     /// Relative throughput of each endpoint (empty: equal); `open` spreads boxes by it.
     weights: Vec<f64>,
-    /// Atoms of each box (from its spec), for the per-endpoint load.
-    atoms: IdMap<u64>,
     /// Per endpoint: seconds in step calls and atom-steps done.
     load: Vec<(f64, f64)>,
     /// Per endpoint: false once lost (it holds no boxes and gets no calls).
@@ -133,8 +132,17 @@ pub struct MdPool {
     last_step: u64,
     /// Boxes that share their computation with bitwise identical ones ([`crate::reuse`]).
     classes: Classes,
-    /// MD steps each box was really stepped in step calls (recovery replays not counted).
-    done_steps: IdMap<u64>,
+}
+
+/// What the pool keeps of one box.
+#[derive(Debug, Clone, Copy)]
+struct Held {
+    /// Index of the endpoint that holds it.
+    endpoint: usize,
+    /// Atoms (from its spec), for the per-endpoint load.
+    atoms: u64,
+    /// MD steps it was really stepped in step calls (recovery replays not counted).
+    done_steps: u64,
 }
 
 /// Told of every lost endpoint once its boxes live on the survivors.
@@ -192,10 +200,9 @@ impl MdPool {
         let alive = vec![true; endpoints.len()];
         Ok(MdPool {
             endpoints,
-            owner: IdMap::default(),
+            boxes: IdMap::default(),
             times: PoolTimes::default(),
             weights: Vec::new(),
-            atoms: IdMap::default(),
             load,
             alive,
             specs: IdMap::default(),
@@ -206,7 +213,6 @@ impl MdPool {
             on_loss: None,
             last_step: 0,
             classes: Classes::default(),
-            done_steps: IdMap::default(),
         })
     }
 
@@ -252,7 +258,7 @@ impl MdPool {
     }
 
     fn work_atom_steps(&self, work: &[BoxWork]) -> f64 {
-        work.iter().map(|w| w.steps as f64 * self.atoms.get(&w.id).copied().unwrap_or(0) as f64).sum()
+        work.iter().map(|w| w.steps as f64 * self.atoms_of(w.id) as f64).sum()
     }
 
     /// Spreads the boxes of later `open` calls in proportion to these weights (one per
@@ -274,9 +280,9 @@ impl MdPool {
             .zip(&self.load)
             .map(|(e, l)| EndpointLoad { name: e.name(), step_seconds: l.0, atom_steps: l.1, ..Default::default() })
             .collect();
-        for (id, &e) in &self.owner {
-            out[e].boxes += 1;
-            out[e].atoms += self.atoms.get(id).copied().unwrap_or(0);
+        for b in self.boxes.values() {
+            out[b.endpoint].boxes += 1;
+            out[b.endpoint].atoms += b.atoms;
         }
         out
     }
@@ -305,8 +311,8 @@ impl MdPool {
             // Shares of all boxes opened so far and these, so that several `open` calls (one
             // per body) add up to one proportional partition.
             let mut have = vec![0usize; n];
-            self.owner.values().for_each(|&e| have[e] += 1);
-            let target = proportional_blocks(self.owner.len() + specs.len(), &self.weights);
+            self.boxes.values().for_each(|b| have[b.endpoint] += 1);
+            let target = proportional_blocks(self.boxes.len() + specs.len(), &self.weights);
             let mut need: Vec<usize> = target.iter().zip(&have).map(|(t, h)| t.saturating_sub(*h)).collect();
             let mut excess = need.iter().sum::<usize>() - specs.len();
             for x in need.iter_mut().rev() {
@@ -318,7 +324,7 @@ impl MdPool {
         };
         let mut parts: Vec<Vec<BoxSpec>> = vec![Vec::new(); n];
         for (k, s) in specs.iter().enumerate() {
-            if self.owner.contains_key(&s.id) {
+            if self.boxes.contains_key(&s.id) {
                 return Err(MdError::invalid("box spec", format!("point {} is opened twice", s.id)));
             }
             parts[dest[k]].push(s.clone());
@@ -332,8 +338,7 @@ impl MdPool {
             r.map_err(|err| lost(&*self.endpoints[e], "open", err))?;
         }
         for (k, s) in specs.iter().enumerate() {
-            self.owner.insert(s.id, dest[k]);
-            self.atoms.insert(s.id, spec_atoms(s));
+            self.boxes.insert(s.id, Held { endpoint: dest[k], atoms: spec_atoms(s), done_steps: 0 });
             self.specs.insert(s.id, s.clone());
         }
         self.potential = Some(potential.clone());
@@ -362,12 +367,17 @@ impl MdPool {
 
     /// MD steps box `id` was really stepped by step calls (less than it was sent under reuse).
     pub fn md_steps_done(&self, id: PointId) -> u64 {
-        self.done_steps.get(&id).copied().unwrap_or(0)
+        self.boxes.get(&id).map_or(0, |b| b.done_steps)
+    }
+
+    /// The endpoint that holds box `id`.
+    fn endpoint_of(&self, id: PointId) -> Result<usize, MdError> {
+        self.boxes.get(&id).map(|b| b.endpoint).ok_or(MdError::UnknownBox(id))
     }
 
     /// Atoms of box `id` (0 if unknown).
     pub fn atoms_of(&self, id: PointId) -> u64 {
-        self.atoms.get(&id).copied().unwrap_or(0)
+        self.boxes.get(&id).map_or(0, |b| b.atoms)
     }
 
     /// Gives each `(from, to)` box pair the state `from` has now.
@@ -399,19 +409,12 @@ impl MdPool {
     /// so a replay rebuilds each box on its own, to the same bits.
     pub fn step(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
         let out = if self.classes.is_empty() {
-            let out = self.step_physical(step, work)?;
-            for w in work {
-                *self.done_steps.entry(w.id).or_insert(0) += w.steps;
-            }
-            out
+            self.step_physical(step, work)?
         } else {
             let plan = self.classes.plan(work)?;
             self.last_step = step;
             self.copy_boxes(&plan.copies)?;
             let res = self.step_physical(step, &plan.physical)?;
-            for w in &plan.physical {
-                *self.done_steps.entry(w.id).or_insert(0) += w.steps;
-            }
             self.classes.apply(&plan);
             work.iter()
                 .zip(&plan.source)
@@ -426,7 +429,8 @@ impl MdPool {
         Ok(out)
     }
 
-    /// [`MdPool::step`] of every box as named (no reuse), without logging the inputs.
+    /// [`MdPool::step`] of every box as named (no reuse), without logging the inputs; counts
+    /// the MD steps done.
     fn step_physical(&mut self, step: u64, work: &[BoxWork]) -> Result<Vec<BoxResult>, MdError> {
         let start = Instant::now();
         self.last_step = step;
@@ -434,13 +438,18 @@ impl MdPool {
         let each = work.len() / n + 1;
         let mut parts: Vec<Vec<BoxWork>> = (0..n).map(|_| Vec::with_capacity(each)).collect();
         let mut slot: Vec<Vec<usize>> = (0..n).map(|_| Vec::with_capacity(each)).collect();
+        let mut atom_steps = vec![0.0; n];
         for (k, w) in work.iter().enumerate() {
-            let e = *self.owner.get(&w.id).ok_or(MdError::UnknownBox(w.id))?;
-            parts[e].push(*w);
-            slot[e].push(k);
+            let b = self.boxes.get_mut(&w.id).ok_or(MdError::UnknownBox(w.id))?;
+            // Counted when sent: a step call that fails ends the run, and the recovery of a
+            // lost endpoint below redoes the call without counting it again.
+            b.done_steps += w.steps;
+            parts[b.endpoint].push(*w);
+            slot[b.endpoint].push(k);
+            atom_steps[b.endpoint] += w.steps as f64 * b.atoms as f64;
         }
-        for (e, part) in parts.iter().enumerate() {
-            let d = self.deadline_for(e, self.work_atom_steps(part));
+        for (e, &a) in atom_steps.iter().enumerate() {
+            let d = self.deadline_for(e, a);
             self.endpoints[e].set_deadline(d);
         }
         let results = self.on_every_endpoint(parts, |ep, part| {
@@ -462,18 +471,11 @@ impl MdPool {
             };
             slowest = slowest.max(secs);
             self.load[e].0 += secs;
-            self.load[e].1 +=
-                slot[e].iter().map(|&k| work[k].steps as f64 * self.atoms.get(&work[k].id).copied().unwrap_or(0) as f64).sum::<f64>();
-            let name = self.endpoints[e].name();
-            match check_results(&name, &slot[e], work, res) {
-                Ok(checked) => {
-                    for (k, r) in checked {
-                        out[k] = r;
-                    }
-                }
-                // A worker that answers garbage (a non-finite value, other boxes than asked)
-                // is faulty: it is dropped as a lost one is, and its boxes rebuilt elsewhere.
-                Err(err) => failed.push((e, format!("declared faulty: {err}"))),
+            self.load[e].1 += atom_steps[e];
+            // A worker that answers garbage (a non-finite value, other boxes than asked) is
+            // faulty: it is dropped as a lost one is, and its boxes rebuilt elsewhere.
+            if let Err(err) = place_results(&self.endpoints[e].name(), &slot[e], work, res, &mut out) {
+                failed.push((e, format!("declared faulty: {err}")));
             }
         }
         if !failed.is_empty() {
@@ -500,9 +502,9 @@ impl MdPool {
                 self.alive[*e] = false;
             }
             let mut boxes: Vec<Vec<PointId>> = vec![Vec::new(); self.endpoints.len()];
-            for (id, &e) in &self.owner {
-                if !self.alive[e] {
-                    boxes[e].push(*id);
+            for (id, b) in &self.boxes {
+                if !self.alive[b.endpoint] {
+                    boxes[b.endpoint].push(*id);
                 }
             }
             let moved: Vec<PointId> = {
@@ -577,8 +579,10 @@ impl MdPool {
                 });
             }
             // The survivors take their boxes now, so a survivor lost below loses them too.
-            for (id, e) in &dest {
-                self.owner.insert(*id, *e);
+            for (id, &e) in &dest {
+                if let Some(b) = self.boxes.get_mut(id) {
+                    b.endpoint = e;
+                }
             }
             let expect: Vec<Vec<usize>> = plans
                 .iter()
@@ -591,14 +595,11 @@ impl MdPool {
             let mut again = Vec::new();
             for (e, r) in results.into_iter().enumerate() {
                 match r {
-                    Ok(res) => match check_results(&self.endpoints[e].name(), &expect[e], work, res) {
-                        Ok(checked) => {
-                            for (k, r) in checked {
-                                out[k] = r;
-                            }
+                    Ok(res) => {
+                        if let Err(err) = place_results(&self.endpoints[e].name(), &expect[e], work, res, out) {
+                            again.push((e, format!("declared faulty: {err}")));
                         }
-                        Err(err) => again.push((e, format!("declared faulty: {err}"))),
-                    },
+                    }
                     Err(err) if self.endpoints[e].lost() => again.push((e, err.to_string())),
                     Err(err) => return Err(lost(&*self.endpoints[e], &format!("the replay of lost boxes at continuum step {step}"), err)),
                 }
@@ -666,9 +667,9 @@ impl MdPool {
         let mut k = 0;
         while k < ids.len() {
             // Consecutive ids on one endpoint go in one call.
-            let e = *self.owner.get(&ids[k]).ok_or(MdError::UnknownBox(ids[k]))?;
+            let e = self.endpoint_of(ids[k])?;
             let mut end = k + 1;
-            while end < ids.len() && self.owner.get(&ids[end]) == Some(&e) {
+            while end < ids.len() && self.boxes.get(&ids[end]).map(|b| b.endpoint) == Some(e) {
                 end += 1;
             }
             let d = self.deadline_for(e, 0.0);
@@ -726,8 +727,7 @@ impl MdPool {
     fn restore_physical(&mut self, states: Vec<BoxState>) -> Result<(), MdError> {
         let mut parts: Vec<Vec<BoxState>> = vec![Vec::new(); self.endpoints.len()];
         for s in states {
-            let e = *self.owner.get(&s.meta.id).ok_or(MdError::UnknownBox(s.meta.id))?;
-            parts[e].push(s);
+            parts[self.endpoint_of(s.meta.id)?].push(s);
         }
         for e in 0..self.endpoints.len() {
             let d = self.deadline_for(e, 0.0);
@@ -742,7 +742,7 @@ impl MdPool {
 
     /// Ids of every box this pool holds, ascending.
     pub fn box_ids(&self) -> Vec<PointId> {
-        let mut ids: Vec<PointId> = self.owner.keys().copied().collect();
+        let mut ids: Vec<PointId> = self.boxes.keys().copied().collect();
         ids.sort_unstable();
         ids
     }
@@ -808,16 +808,17 @@ fn replay(ep: &mut dyn Endpoint, potential: &PotentialSource, plan: ReplayPlan, 
 
 /// Checks an endpoint's results of the items `slots` of `work` (count, ids, finite values,
 /// stress sampling); returns them with their slots.
-fn check_results(name: &str, slots: &[usize], work: &[BoxWork], res: Vec<BoxResult>) -> Result<Vec<(usize, BoxResult)>, MdError> {
+/// Checks an endpoint's answer to the boxes `work[k]`, k in `slots`, and moves result j into
+/// `out[slots[j]]`; nothing is moved when any result is wrong.
+fn place_results(name: &str, slots: &[usize], work: &[BoxWork], res: Vec<BoxResult>, out: &mut [BoxResult]) -> Result<(), MdError> {
     if res.len() != slots.len() {
         return Err(MdError::invalid("worker reply", format!("{name} returned {} results for {} boxes", res.len(), slots.len())));
     }
-    let mut out = Vec::with_capacity(res.len());
-    for (&k, r) in slots.iter().zip(res) {
+    for (&k, r) in slots.iter().zip(&res) {
         if r.id != work[k].id {
             return Err(MdError::invalid("worker reply", format!("{name} answered point {} for point {}", r.id, work[k].id)));
         }
-        wire::check_result(&r, name)?;
+        wire::check_result(r, name)?;
         if r.stress_sampling != work[k].stress_sampling {
             return Err(MdError::Worker {
                 worker: name.to_string(),
@@ -829,9 +830,11 @@ fn check_results(name: &str, slots: &[usize], work: &[BoxWork], res: Vec<BoxResu
                 ),
             });
         }
-        out.push((k, r));
     }
-    Ok(out)
+    for (&k, r) in slots.iter().zip(res) {
+        out[k] = r;
+    }
+    Ok(())
 }
 
 fn lost(ep: &dyn Endpoint, when: &str, err: MdError) -> MdError {

@@ -7,6 +7,7 @@
 
 use crate::backend::MdBackend;
 use crate::error::MdError;
+use crate::ids::IdMap;
 use crate::metrics::{Timed, WorkerMetrics};
 use crate::pool::PotentialSource;
 use crate::potential::Potential;
@@ -38,9 +39,10 @@ pub struct WorkerService {
     potentials: Shared<HashMap<String, Arc<Potential>>>,
     sessions: Shared<HashMap<u64, Shared<Box<dyn MdBackend>>>>,
     next_session: AtomicU64,
-    /// What it counts (`--metrics`), and the atoms of every open box by (session, point).
+    /// What it counts (`--metrics`), and the atoms of every open box by session and point
+    /// (one session lookup per batch, then the cheap point-id hash per box).
     metrics: Arc<WorkerMetrics>,
-    atoms: Shared<HashMap<(u64, crate::PointId), u64>>,
+    atoms: Shared<HashMap<u64, IdMap<u64>>>,
     /// Potential files as received, by SHA-256: the `mpi` back end ships them to its ranks.
     #[cfg(feature = "mpi")]
     sources: Shared<HashMap<String, PotentialSource>>,
@@ -72,11 +74,11 @@ impl WorkerService {
     /// Records the atoms of boxes opened in `session`.
     fn opened(&self, session: u64, boxes: &[(crate::PointId, u64)]) {
         let mut atoms = lock(&self.atoms);
-        for &(id, n) in boxes {
-            atoms.insert((session, id), n);
+        if !boxes.is_empty() {
+            atoms.entry(session).or_default().extend(boxes.iter().copied());
         }
-        self.metrics.boxes.set(atoms.len() as i64);
-        self.metrics.atoms.set(atoms.values().sum::<u64>() as i64);
+        self.metrics.boxes.set(atoms.values().map(|s| s.len()).sum::<usize>() as i64);
+        self.metrics.atoms.set(atoms.values().flat_map(|s| s.values()).sum::<u64>() as i64);
     }
 
     fn session(&self, id: u64) -> Result<Shared<Box<dyn MdBackend>>, Status> {
@@ -209,7 +211,8 @@ impl MdWorker for WorkerService {
                     let work = wire::batch_from_pb(&batch).map_err(wire::status)?;
                     let sizes: Vec<(u64, u64)> = {
                         let atoms = lock(&atoms);
-                        work.iter().map(|w| (w.steps, atoms.get(&(batch.session, w.id)).copied().unwrap_or(0))).collect()
+                        let of = atoms.get(&batch.session);
+                        work.iter().map(|w| (w.steps, of.and_then(|a| a.get(&w.id)).copied().unwrap_or(0))).collect()
                     };
                     let (results, secs) = blocking(move || {
                         let t = std::time::Instant::now();
@@ -263,7 +266,7 @@ impl MdWorker for WorkerService {
     async fn close(&self, req: Request<pb::CloseRequest>) -> Result<Response<pb::CloseResponse>, Status> {
         let session = req.get_ref().session;
         lock(&self.sessions).remove(&session);
-        lock(&self.atoms).retain(|k, _| k.0 != session);
+        lock(&self.atoms).remove(&session);
         self.opened(session, &[]);
         self.metrics.sessions.set(lock(&self.sessions).len() as i64);
         Ok(Response::new(pb::CloseResponse {}))

@@ -35,28 +35,28 @@ fn time(mut f: impl FnMut()) -> f64 {
 }
 
 fn main() {
-    let ids = || 0..BOXES;
+    let ids = || (0..BOXES as usize).map(|i| i as u64);
     let batch = pb::StepBatch {
         session: 7,
         step: 123,
         point_id: ids().collect(),
-        velocity_gradient: f64_column(ids().flat_map(|i| (0..9).map(move |k| (i as f64 + k as f64) * 1e-4 - 0.3))),
+        velocity_gradient: f64_column(ids().map(|i| std::array::from_fn::<f64, 9, _>(|k| (i as f64 + k as f64) * 1e-4 - 0.3))),
         steps: ids().map(|_| 10).collect(),
-        dt_ps: f64_column(ids().map(|_| 0.001)),
-        energy_to_add_ev: f64_column(ids().map(|i| 1e-3 * i as f64)),
+        dt_ps: f64_column(ids().map(|_| [0.001])),
+        energy_to_add_ev: f64_column(ids().map(|i| [1e-3 * i as f64])),
         stress_sampling: ids().map(|_| 0).collect(),
     };
     let results = pb::StepResults {
         step: 123,
         compute_seconds: 0.5,
         point_id: ids().collect(),
-        stress_gpa: f64_column(ids().flat_map(|i| (0..6).map(move |k| (i as f64) * 0.01 - k as f64))),
-        potential_energy_ev: f64_column(ids().map(|i| -3.5 * i as f64)),
-        kinetic_energy_ev: f64_column(ids().map(|_| 0.04)),
-        temperature_k: f64_column(ids().map(|i| 300.0 + i as f64)),
-        lengths: f64_column(ids().flat_map(|i| (0..3).map(move |k| 18.0 + (i as f64 + k as f64) * 1e-6))),
+        stress_gpa: f64_column(ids().map(|i| std::array::from_fn::<f64, 6, _>(|k| (i as f64) * 0.01 - k as f64))),
+        potential_energy_ev: f64_column(ids().map(|i| [-3.5 * i as f64])),
+        kinetic_energy_ev: f64_column(ids().map(|_| [0.04])),
+        temperature_k: f64_column(ids().map(|i| [300.0 + i as f64])),
+        lengths: f64_column(ids().map(|i| std::array::from_fn::<f64, 3, _>(|k| 18.0 + (i as f64 + k as f64) * 1e-6))),
         neighbor_rebuilds: ids().map(|_| 2).collect(),
-        energy_shortfall_ev: f64_column(ids().map(|_| 0.0)),
+        energy_shortfall_ev: f64_column(ids().map(|_| [0.0])),
         total_steps: ids().map(|i| 1000 + i).collect(),
         wraps: ids().map(|_| 3).collect(),
         stress_sampling: ids().map(|_| 0).collect(),
