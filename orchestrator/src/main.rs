@@ -479,17 +479,19 @@ fn dispatch(cli: Cli) -> i32 {
                 println!("# points = {points}\n# grid_nodes = {nodes}\n# steps = {}\n# dt_s = {:e}", loaded.steps, loaded.dt);
                 if estimate {
                     match orchestrator::md::estimate(&loaded) {
-                        Ok(Some(e)) => println!(
-                            "# md_points = {}\n# atoms = {}\n# atom_steps = {:.3e}\n# measured_ns_per_atom_step = {:.1} (cpu back end, {} threads, this machine)\n# memory_bytes = {:.3e} ({:.0} bytes/atom measured)\n# predicted_md_wall_seconds = {:.0}",
-                            e.md_points,
-                            e.atoms,
-                            e.atom_steps,
-                            e.ns_per_atom_step,
-                            rayon::current_num_threads(),
-                            e.memory_bytes,
-                            e.bytes_per_atom,
-                            e.wall_seconds
-                        ),
+                        Ok(Some(e)) => {
+                            let threads = rayon::current_num_threads();
+                            println!(
+                                "# md_points = {}\n# atoms = {}\n# atom_steps = {:.3e}\n# measured_ns_per_atom_step = {:.1} (cpu back end, {threads} threads, this machine)\n# memory_bytes = {:.3e} ({:.0} bytes/atom measured)\n# predicted_md_wall_seconds = {:.0}",
+                                e.md_points, e.atoms, e.atom_steps, e.ns_per_atom_step, e.memory_bytes, e.bytes_per_atom, e.wall_seconds
+                            );
+                            let on: Vec<String> =
+                                [4, 16, 64, 256].iter().map(|&n| format!("{n}: {:.0}", e.wall_seconds_on(n, threads))).collect();
+                            println!(
+                                "# predicted_md_wall_seconds_on_workers = {} (workers like this machine, {threads} threads each; a box is not split; transfers not included)",
+                                on.join(", ")
+                            );
+                        }
                         Ok(None) => println!("# no md bodies: nothing to estimate beyond the continuum work above"),
                         Err(e) => {
                             eprintln!("mscale: estimate: {e:#}");

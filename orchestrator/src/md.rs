@@ -55,6 +55,18 @@ pub struct Estimate {
     pub wall_seconds: f64,
 }
 
+impl Estimate {
+    /// Predicted MD wall time (s) on `workers` workers like this machine, each running its
+    /// boxes on `threads` threads: the boxes spread in nearly equal blocks and a box is never
+    /// split, so the busiest worker runs ceil(points / workers) boxes in rounds of `threads`.
+    /// Transfers and the continuum's own time are not included.
+    pub fn wall_seconds_on(&self, workers: usize, threads: usize) -> f64 {
+        let (p, t) = (self.md_points.max(1), threads.max(1));
+        let per_worker = p.div_ceil(workers.max(1));
+        self.wall_seconds * (per_worker.div_ceil(t) * t) as f64 / p as f64
+    }
+}
+
 fn resident_bytes() -> Option<f64> {
     let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
     let pages: f64 = statm.split_whitespace().nth(1)?.parse().ok()?;
@@ -109,4 +121,29 @@ pub fn estimate(loaded: &crate::scene::LoadedScene) -> Result<Option<Estimate>> 
         memory_bytes: bytes_per_atom * atoms as f64,
         wall_seconds: atom_steps * ns_per_atom_step * 1e-9,
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Estimate;
+
+    #[test]
+    fn the_wall_time_on_n_workers_counts_whole_boxes_per_thread() {
+        let e = Estimate {
+            md_points: 100,
+            atoms: 10_800,
+            md_steps_per_box: 1000,
+            atom_steps: 1.08e7,
+            ns_per_atom_step: 500.0,
+            bytes_per_atom: 1500.0,
+            memory_bytes: 1.62e7,
+            wall_seconds: 100.0,
+        };
+        // One worker of 2 threads: the measured time itself.
+        assert_eq!(e.wall_seconds_on(1, 2), 100.0);
+        // 4 workers: 25 boxes each, 13 rounds of 2 threads = 26 box-times of the 100.
+        assert_eq!(e.wall_seconds_on(4, 2), 26.0);
+        // More workers than boxes: one box per worker still takes a round of 2 threads.
+        assert_eq!(e.wall_seconds_on(1000, 2), 2.0);
+    }
 }
