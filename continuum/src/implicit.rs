@@ -104,6 +104,8 @@ pub struct ImplicitStats {
     pub seconds_residual: f64,
     pub seconds_jacobian: f64,
     pub seconds_solve: f64,
+    /// Of `seconds_solve`: the symbolic factorisations (the rest is numeric LU and solve).
+    pub seconds_symbolic: f64,
     pub seconds_total: f64,
     /// Estimated local errors of the last step: max over the free dofs of |dt^2/12 (a^{n+1} - a^n)| (m)
     /// and, from the second step on, |dt/12 (a^{n+1} - 2 a^n + a^{n-1})| (m/s).
@@ -858,8 +860,10 @@ impl<const D: usize> Simulation<D> {
         {
             return Ok(c.lu.clone());
         }
+        let clock = Instant::now();
         let lu = SymbolicLu::try_new(sym)?;
         self.implicit.stats.symbolic_factorisations += 1;
+        self.implicit.stats.seconds_symbolic += clock.elapsed().as_secs_f64();
         self.implicit.symbolic = Some(SymbolicCache { col_ptr: sym.col_ptr().to_vec(), row_idx: sym.row_idx().to_vec(), lu: lu.clone() });
         Ok(lu)
     }

@@ -174,7 +174,13 @@ fn the_implicit_integrator_is_second_order_in_time_on_the_manufactured_solution(
     }
     for k in 1..errors.len() {
         let order: Vec<f64> = (0..3).map(|q| (errors[k - 1][q] / errors[k][q]).log2()).collect();
-        eprintln!("T / {} -> T / {}: errors {:?} -> {:?}, orders (u, v, sigma) {order:.3?}", 20 << (k - 1), 20 << k, errors[k - 1], errors[k]);
+        eprintln!(
+            "T / {} -> T / {}: errors {:?} -> {:?}, orders (u, v, sigma) {order:.3?}",
+            20 << (k - 1),
+            20 << k,
+            errors[k - 1],
+            errors[k]
+        );
         assert!(order.iter().all(|o| *o >= 1.8), "temporal order below 1.8: {order:?} ({errors:?})");
     }
 }
