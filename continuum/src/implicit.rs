@@ -24,6 +24,7 @@
 use super::*;
 use crate::closure::{ClosureBatch, Tangent, TangentIn};
 use faer::linalg::solvers::Solve;
+use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use std::ops::Range;
 use std::time::Instant;
@@ -71,8 +72,10 @@ impl Default for ImplicitOptions {
     }
 }
 
-/// What the implicit integrator did so far (summary.json `implicit`).
-#[derive(Debug, Clone, Default, serde::Serialize)]
+/// What the implicit integrator did so far (summary.json `implicit`; checkpoints carry it,
+/// and a field absent from an older checkpoint reads as its default).
+#[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct ImplicitStats {
     pub accepted_steps: u64,
     pub rejected_steps: u64,
@@ -89,6 +92,9 @@ pub struct ImplicitStats {
     /// Residual evaluations (each a full pass of every point through its closure).
     pub residual_evaluations: u64,
     pub jacobians: u64,
+    /// Symbolic LU factorisations (column ordering, elimination structure): one per change of
+    /// the Jacobian's pattern; every other Newton iteration reuses the last one.
+    pub symbolic_factorisations: u64,
     /// Residual inf-norms of the last step's Newton iterations.
     pub last_residual_history: Vec<f64>,
     /// Distance-2 colours of the last finite-difference Jacobian (0 when analytic).
@@ -98,11 +104,16 @@ pub struct ImplicitStats {
     pub seconds_residual: f64,
     pub seconds_jacobian: f64,
     pub seconds_solve: f64,
+    /// Of `seconds_solve`: the symbolic factorisations (the rest is numeric LU and solve).
+    pub seconds_symbolic: f64,
     pub seconds_total: f64,
     /// Estimated local errors of the last step: max over the free dofs of |dt^2/12 (a^{n+1} - a^n)| (m)
     /// and, from the second step on, |dt/12 (a^{n+1} - 2 a^n + a^{n-1})| (m/s).
     pub last_error_u: f64,
     pub last_error_v: f64,
+    /// Estimated local error of the deformation gradient of the last step: max over the points
+    /// and components of |dt^2/12 sum_i (a_i^{n+1} - a_i^n) (x) G_ip F_p^n| (free dofs only).
+    pub last_error_f: f64,
     /// Grid energy balance of the last step: dKE (free dofs) + stress work - constraint and body
     /// force work. The trapezoidal rule makes it vanish at R = 0, so it measures the Newton
     /// tolerance; `last_energy_scale` is the kinetic plus strain energy it is judged against.
@@ -118,9 +129,20 @@ pub struct ImplicitStats {
 pub struct Implicit {
     pub options: ImplicitOptions,
     pub stats: ImplicitStats,
-    /// a^n of the previous step per node dof (for the velocity error estimate), and its dt.
-    prev_acc: Vec<f64>,
-    prev_dt: f64,
+    /// a^n of the previous step per node dof (for the velocity error estimate; empty before the
+    /// first step), and its dt. Public so a checkpoint can carry them.
+    pub prev_acc: Vec<f64>,
+    pub prev_dt: f64,
+    /// The symbolic LU of the last Jacobian pattern, kept while the pattern is unchanged.
+    symbolic: Option<SymbolicCache>,
+}
+
+/// A symbolic sparse LU and the CSC pattern it was computed for.
+#[derive(Debug, Clone)]
+struct SymbolicCache {
+    col_ptr: Vec<usize>,
+    row_idx: Vec<usize>,
+    lu: SymbolicLu<usize>,
 }
 
 /// What Newton returns: the converged displacement, its trial state and force, the record.
@@ -165,6 +187,9 @@ pub struct Adaptive {
     pub atol_u: f64,
     /// Absolute tolerance of the nodal velocity (m/s).
     pub atol_v: f64,
+    /// Absolute tolerance of the deformation gradient (dimensionless); `None` leaves le_F out
+    /// of the error norm.
+    pub atol_f: Option<f64>,
     pub safety: f64,
     pub max_growth: f64,
     pub min_shrink: f64,
@@ -184,6 +209,7 @@ impl Adaptive {
             rtol,
             atol_u,
             atol_v,
+            atol_f: None,
             safety: 0.9,
             max_growth: 2.0,
             min_shrink: 0.2,
@@ -801,7 +827,12 @@ impl<const D: usize> Simulation<D> {
             // Linear solve J du = -R (sparse LU).
             let clock = Instant::now();
             let sym = SymbolicSparseColMatRef::new_checked(nf, nf, &s.pattern.col_ptr, None, &s.pattern.row_idx);
-            let lu = SparseColMatRef::new(sym, &vals).sp_lu().map_err(|e| SolverError::Diverged {
+            let symbolic = self.implicit_symbolic(sym).map_err(|e| SolverError::Diverged {
+                step,
+                what: format!("the Newton Jacobian's pattern could not be analysed ({e:?}; residual history {})", show(&history)),
+                cause: "out of memory for the sparse LU",
+            })?;
+            let lu = Lu::try_new_with_symbolic(symbolic, SparseColMatRef::new(sym, &vals)).map_err(|e| SolverError::Diverged {
                 step,
                 what: format!("the Newton Jacobian could not be factorised ({e:?}; residual history {})", show(&history)),
                 cause: "a singular Jacobian: a node without stiffness or mass among the unknowns",
@@ -817,6 +848,24 @@ impl<const D: usize> Simulation<D> {
             iterations += 1;
         }
         Ok(NewtonOut { u, trial, force, history, iterations, residuals, colours, times: [t_res, t_jac, t_solve] })
+    }
+
+    /// The symbolic LU of `sym`: the kept one when its pattern is the same (the numeric phase
+    /// with the same symbolic factorisation is what `sp_lu` does, so the factors are bitwise
+    /// those of a fresh `sp_lu`), else a new one, kept for the next iterations and steps.
+    fn implicit_symbolic(&mut self, sym: SymbolicSparseColMatRef<'_, usize>) -> Result<SymbolicLu<usize>, faer::sparse::FaerError> {
+        if let Some(c) = &self.implicit.symbolic
+            && c.col_ptr.as_slice() == sym.col_ptr()
+            && c.row_idx.as_slice() == sym.row_idx()
+        {
+            return Ok(c.lu.clone());
+        }
+        let clock = Instant::now();
+        let lu = SymbolicLu::try_new(sym)?;
+        self.implicit.stats.symbolic_factorisations += 1;
+        self.implicit.stats.seconds_symbolic += clock.elapsed().as_secs_f64();
+        self.implicit.symbolic = Some(SymbolicCache { col_ptr: sym.col_ptr().to_vec(), row_idx: sym.row_idx().to_vec(), lu: lu.clone() });
+        Ok(lu)
     }
 
     /// The motion bound on the converged displacement: the stencil was frozen over the step, so
@@ -911,7 +960,49 @@ impl<const D: usize> Simulation<D> {
                 }
             }
         }
-        let err = (wu.max(wv) / nf.max(1) as f64).sqrt();
+        let mut err = (wu.max(wv) / nf.max(1) as f64).sqrt();
+        // le_F,p = dt^2/12 sum_i (a_i^{n+1} - a_i^n) (x) G_ip F_p^n = le_H,p F_p^n on the frozen
+        // stencil (the step's F^{n+1} = (I + sum_i u_i (x) G_ip) F^n is linear in the nodal u, whose
+        // local error is le_u; constrained components carry none). Per point: the largest
+        // component and the WRMS sum with weights 1/(rtol |F^{n+1}| + atol_F).
+        let atol_f = ad.as_ref().and_then(|a| a.atol_f.map(|t| (a.rtol, t)));
+        let per_point: Vec<(f64, f64)> = (0..self.points.len())
+            .into_par_iter()
+            .with_min_len(CHUNK)
+            .map(|p| {
+                let (nodes, _, grads) = self.stencil.row(p);
+                let mut le_h = tensor::ZERO;
+                for (&i, g) in nodes.iter().zip(grads) {
+                    for a in 0..D {
+                        let k = i * D + a;
+                        if index_of[k] == FREE_NONE {
+                            continue;
+                        }
+                        let da = dt * dt / 12.0 * (a1[k] - a0[k]);
+                        for b in 0..D {
+                            le_h[a][b] += da * g[b];
+                        }
+                    }
+                }
+                let le_f = tensor::mul(&le_h, &self.points.def_grad[p]);
+                let (mut m, mut w) = (0.0_f64, 0.0_f64);
+                for a in 0..D {
+                    for b in 0..D {
+                        m = m.max(le_f[a][b].abs());
+                        if let Some((rtol, atol)) = atol_f {
+                            w += (le_f[a][b] / (rtol * trial.f[p][a][b].abs() + atol)).powi(2);
+                        }
+                    }
+                }
+                (m, w)
+            })
+            .collect();
+        let ef = per_point.iter().fold(0.0_f64, |m, e| m.max(e.0));
+        if atol_f.is_some() {
+            // Summed in point order (the same for any thread count).
+            let wf: f64 = per_point.iter().map(|e| e.1).sum();
+            err = err.max((wf / (self.points.len() * D * D).max(1) as f64).sqrt());
+        }
         if ad.is_some() && err > 1.0 {
             return Ok(Attempt::Rejected { err });
         }
@@ -959,6 +1050,7 @@ impl<const D: usize> Simulation<D> {
         s.seconds_total += started.elapsed().as_secs_f64();
         s.last_error_u = eu;
         s.last_error_v = ev;
+        s.last_error_f = ef;
         s.last_energy_defect = defect;
         s.last_energy_scale = ke0 + work.abs() + self.points.internal_energy.iter().map(|e| e.abs()).sum::<f64>();
         s.last_error_norm = err;

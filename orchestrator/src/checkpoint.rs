@@ -50,6 +50,20 @@ pub struct Checkpoint {
     pub points: SavedPoints,
     pub md: Option<SavedMd>,
     pub driver: DriverState,
+    /// The implicit integrator's history and record (implicit runs only; absent in older
+    /// checkpoints, which then resume without a^{n-1} and with the counts restarted).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub implicit: Option<SavedImplicit>,
+}
+
+/// What an implicit run carries past a checkpoint: a^n of the last step per nodal dof (the
+/// velocity error estimate's a^{n-1} of the next step, which the adaptive step's error norm
+/// reads), that step's dt, and the statistics summary.json reports.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SavedImplicit {
+    pub prev_acc: Vec<f64>,
+    pub prev_dt: f64,
+    pub stats: continuum::solver::implicit::ImplicitStats,
 }
 
 /// [`Totals`] with the momentum as a vector.
@@ -252,6 +266,11 @@ impl Checkpoint {
             points: SavedPoints::of(&sim.points),
             md,
             driver,
+            implicit: (sim.integrator == continuum::solver::TimeIntegrator::ImplicitTrapezoidal).then(|| SavedImplicit {
+                prev_acc: sim.implicit.prev_acc.clone(),
+                prev_dt: sim.implicit.prev_dt,
+                stats: sim.implicit.stats.clone(),
+            }),
         })
     }
 
@@ -311,6 +330,30 @@ impl Checkpoint {
             }
             (None, Some(_)) => bail!("the checkpoint has MD boxes but the scene has no md bodies"),
             (Some(_), None) => bail!("the scene has md bodies but the checkpoint has no MD boxes"),
+        }
+        let implicit = sim.integrator == continuum::solver::TimeIntegrator::ImplicitTrapezoidal;
+        match (&self.implicit, implicit) {
+            (Some(saved), true) => {
+                let dofs = sim.grid.node_count() * D;
+                ensure!(
+                    saved.prev_acc.is_empty() || saved.prev_acc.len() == dofs,
+                    "checkpoint field implicit.prev_acc has {} values, the grid has {dofs} nodal components",
+                    saved.prev_acc.len()
+                );
+                ensure!(
+                    saved.prev_dt.is_finite() && saved.prev_dt >= 0.0,
+                    "checkpoint field implicit.prev_dt = {} is not a finite time step",
+                    saved.prev_dt
+                );
+                sim.implicit.prev_acc = saved.prev_acc.clone();
+                sim.implicit.prev_dt = saved.prev_dt;
+                sim.implicit.stats = saved.stats.clone();
+            }
+            (None, true) => tracing::warn!(
+                "the checkpoint predates the implicit integrator's saved state: the first step after the resume has no velocity error estimate (no a^(n-1)) and the implicit counts restart, so an adaptive run may take other steps than an uninterrupted one"
+            ),
+            (Some(_), false) => bail!("the checkpoint holds implicit-integrator state but the scene's integrator is explicit"),
+            (None, false) => {}
         }
         sim.points = points;
         sim.time = self.time;
@@ -521,6 +564,7 @@ mod tests {
             points: SavedPoints::of(&p),
             md: None,
             driver: DriverState::default(),
+            implicit: None,
         }
     }
 

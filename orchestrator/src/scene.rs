@@ -471,6 +471,10 @@ pub struct AdaptiveSpec {
     pub atol_displacement: f64,
     /// Absolute tolerance of the nodal velocity (m/s).
     pub atol_velocity: f64,
+    /// Absolute tolerance of the deformation gradient (dimensionless): when given, the WRMS
+    /// norm also takes le_F (every point's F components, weights 1/(rtol |F| + atol)).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub atol_deformation: Option<f64>,
     /// dt_new = dt min(max_growth, max(min_shrink, safety err^-1/3)).
     #[serde(default = "default_safety")]
     pub safety: f64,

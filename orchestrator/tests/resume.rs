@@ -57,7 +57,28 @@ fn same_state(a: &Value, b: &Value) {
     for k in ["energy_final", "energy_drift", "momentum_drift", "momentum_final", "wall_impulse"] {
         assert_eq!(a["conservation"][k], b["conservation"][k], "conservation.{k} differs");
     }
+    // Implicit runs: the counts and the last step's estimates carry over the checkpoint too.
+    if a.get("implicit").is_some() {
+        for k in IMPLICIT_KEYS {
+            assert_eq!(a["implicit"][k], b["implicit"][k], "implicit.{k} differs");
+        }
+    }
 }
+
+/// summary.json `implicit` keys that do not depend on a stop and resume (not the timings).
+const IMPLICIT_KEYS: [&str; 11] = [
+    "accepted_steps",
+    "rejected_steps",
+    "rejected_for_error",
+    "newton_iterations",
+    "residual_evaluations",
+    "jacobians",
+    "last_error_u",
+    "last_error_v",
+    "last_error_f",
+    "last_error_norm",
+    "last_dt",
+];
 
 /// Runs `scene` once straight through and once with checkpoints; resumes a copy of the
 /// checkpointed run from its newest checkpoint and another copy from the previous one (the
@@ -128,6 +149,52 @@ fn md_run_resumes_to_the_same_digest() {
     // 5 steps of 6 boxes; checkpoints after steps 2 and 4.
     let s = resume_matches(MD_SMALL, &[], "2");
     provenance_is_truthful(&s, "continuum f64, md double");
+}
+
+/// Issue 18: an implicit run with adaptive steps resumes to the digest and the implicit counts
+/// of an uninterrupted one (the checkpoint carries a^(n-1) and its dt, which the velocity error
+/// estimate of the next step, hence the error norm and the next dt, read, and the statistics).
+/// A checkpoint without that state (as written before it was saved) still loads, with a
+/// warning, and its run then ends in another state.
+#[test]
+fn implicit_adaptive_run_resumes_to_the_same_digest() {
+    let sets = [
+        "scheme.integrator=\"implicit-trapezoidal\"",
+        // le_v controls the step (atol_displacement = 1 m takes le_u out of the norm; le_F at
+        // rtol |F| ~ 1e-3 is far below it), so the state a^(n-1) decides the steps after a resume.
+        "scheme.adaptive={ rtol = 1e-3, atol_displacement = 1, atol_velocity = 1e-6, atol_deformation = 1e-6 }",
+        "scheme.cfl=0.01",
+        "reference.amplitude=1e-3",
+        "output.snapshots=2",
+        "output.plots=false",
+    ];
+    // 47 accepted steps (18 rejected); checkpoints after steps 30 and 40 are kept.
+    let reference = resume_matches("../scenes/mms-1d.toml", &sets, "10");
+    let im = &reference["implicit"];
+    assert!(im["accepted_steps"].as_u64().unwrap() > 20, "{im}");
+    assert!(im["last_error_f"].as_f64().unwrap() > 0.0, "le_F is reported: {im}");
+
+    // The same resume from a checkpoint stripped of the implicit state.
+    let tmp = tempfile::tempdir().unwrap();
+    let (ckpt, old) = (tmp.path().join("ckpt"), tmp.path().join("old"));
+    let mut args: Vec<&str> = vec!["run", "../scenes/mms-1d.toml", "--out", ckpt.to_str().unwrap(), "--checkpoint-every", "10"];
+    for s in &sets {
+        args.extend(["--set", s]);
+    }
+    ok(&args);
+    copy_dir(&ckpt, &old);
+    std::fs::remove_file(old.join("summary.json")).unwrap();
+    let newest = checkpoints(&old).pop().unwrap();
+    let mut ck: orchestrator::checkpoint::Checkpoint = orchestrator::checkpoint::decode(&std::fs::read(&newest).unwrap()).unwrap();
+    assert!(ck.implicit.as_ref().is_some_and(|i| !i.prev_acc.is_empty()), "an implicit checkpoint carries a^(n-1)");
+    ck.implicit = None;
+    std::fs::write(&newest, orchestrator::checkpoint::encode(&ck).unwrap()).unwrap();
+    let out = ok(&["run", "--resume", old.to_str().unwrap()]);
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(log.contains("predates the implicit integrator's saved state"), "{log}");
+    let s = summary(&old);
+    assert_eq!(s["status"], "completed");
+    assert_ne!(s["state_digest"], reference["state_digest"], "without a^(n-1) the adaptive steps differ after the resume");
 }
 
 /// Starts `mscale ARGS` (a run into `dir` with checkpoints), sends SIGTERM once its first

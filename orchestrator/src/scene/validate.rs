@@ -218,6 +218,7 @@ impl Scene {
                 rtol: a.rtol,
                 atol_u: a.atol_displacement,
                 atol_v: a.atol_velocity,
+                atol_f: a.atol_deformation,
                 safety: a.safety,
                 max_growth: a.max_growth,
                 min_shrink: a.min_shrink,
@@ -1284,6 +1285,9 @@ fn validate_adaptive(loc: &Locator<'_>, a: &crate::scene::AdaptiveSpec) -> Resul
         "the absolute displacement tolerance (m) must be finite and positive",
     )?;
     check("atol_velocity", a.atol_velocity, a.atol_velocity > 0.0, "the absolute velocity tolerance (m/s) must be finite and positive")?;
+    if let Some(t) = a.atol_deformation {
+        check("atol_deformation", t, t > 0.0, "the absolute deformation-gradient tolerance must be finite and positive (or absent)")?;
+    }
     check("safety", a.safety, a.safety > 0.0 && a.safety <= 1.0, "the safety factor must lie in (0, 1]")?;
     check("max_growth", a.max_growth, a.max_growth >= 1.0, "the largest growth of a step must be finite and at least 1")?;
     check("min_shrink", a.min_shrink, a.min_shrink > 0.0 && a.min_shrink < 1.0, "the smallest shrink factor must lie in (0, 1)")?;
