@@ -184,3 +184,21 @@ fn the_implicit_integrator_is_second_order_in_time_on_the_manufactured_solution(
         assert!(order.iter().all(|o| *o >= 1.8), "temporal order below 1.8: {order:?} ({errors:?})");
     }
 }
+
+/// Every tolerance of `scheme.adaptive` is refused when it is not finite and positive, naming
+/// the key and the value (the optional `atol_deformation` too).
+#[test]
+fn bad_adaptive_tolerances_are_refused_naming_the_key() {
+    let cases = [
+        ("atol_deformation", "rtol = 1e-3, atol_displacement = 1e-9, atol_velocity = 1e-6, atol_deformation = -1e-6"),
+        ("atol_deformation", "rtol = 1e-3, atol_displacement = 1e-9, atol_velocity = 1e-6, atol_deformation = nan"),
+        ("rtol", "rtol = 0.0, atol_displacement = 1e-9, atol_velocity = 1e-6"),
+        ("atol_velocity", "rtol = 1e-3, atol_displacement = 1e-9, atol_velocity = inf"),
+    ];
+    for (key, table) in cases {
+        let sets = vec![IMPLICIT.to_string(), format!("scheme.adaptive={{ {table} }}")];
+        let Err(e) = scene::load(&scene_path("mms-1d.toml"), &sets) else { panic!("{table} was accepted") };
+        let msg = e.to_string();
+        assert!(msg.contains(&format!("scheme.adaptive.{key}")) && msg.contains("finite and positive"), "{table}: {msg}");
+    }
+}
