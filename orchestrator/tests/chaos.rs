@@ -483,7 +483,7 @@ fn chaos_reduced_12_workers_15_jobs() {
 }
 
 #[test]
-#[ignore = "heavy: 64 worker processes and 100 jobs, twice (about N minutes on the 2-core dev machine); run with --ignored --nocapture"]
+#[ignore = "heavy: 64 worker processes and 100 jobs, twice (about 95 s on the loaded 2-core dev machine); run with --ignored --nocapture chaos_full"]
 fn chaos_full() {
     chaos(Params { workers: 64, jobs: 100, seed: 2021, kills: 24, stops: 16, max_workers_per_job: 8, limit_min: 30 });
 }
