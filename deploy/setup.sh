@@ -153,14 +153,27 @@ slurm_stop() {
   echo "setup: Slurm cluster stopped (state kept in $SLURM_DIR)" >&2
 }
 
+# cargo-afl (AFL++ built from its own sources with the C compiler, on stable Rust) for the
+# coverage-guided fuzz targets of fuzz/ (scripts/afl.sh).
+afl_install() {
+  command -v cc >/dev/null || need_apt build-essential
+  if ! command -v cargo-afl >/dev/null; then
+    cargo install cargo-afl --locked --version 0.18.2 >&2
+  fi
+  # AFL++ itself is built per toolchain on first use; `config --build` does it now.
+  cargo afl --version >/dev/null 2>&1 || cargo afl config --build >&2
+  echo "setup: $(cargo afl --version)" >&2
+}
+
 want="${1:-none}"
 case "$want" in
   none)
-    echo "setup: the default build needs only cargo; optional: nvrtc, lammps, mpi, browser, python, slurm, slurm-stop, all" ;;
+    echo "setup: the default build needs only cargo; optional: nvrtc, lammps, mpi, browser, python, slurm, slurm-stop, afl, all" ;;
   all|nvrtc|lammps|mpi|browser|python) ;;
   slurm) slurm_start; exit 0 ;;
   slurm-stop) slurm_stop; exit 0 ;;
-  *) echo "setup: unknown component '$want' (expected nvrtc, lammps, mpi, browser, python, slurm, slurm-stop or all)" >&2; exit 2 ;;
+  afl) afl_install; exit 0 ;;
+  *) echo "setup: unknown component '$want' (expected nvrtc, lammps, mpi, browser, python, slurm, slurm-stop, afl or all)" >&2; exit 2 ;;
 esac
 if [ "$want" = lammps ] || [ "$want" = all ]; then
   need_apt lammps lammps-data

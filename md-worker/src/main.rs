@@ -28,7 +28,9 @@ enum Cmd {
         /// Address to listen on, e.g. 127.0.0.1:50051 or 0.0.0.0:50051.
         #[arg(long, default_value = "127.0.0.1:50051")]
         listen: String,
-        /// auto, cpu or cuda (cuda needs the `cuda` feature and a device).
+        /// auto, cpu or cuda (cuda needs the `cuda` feature and a device); `null` serves the
+        /// null back end (no MD: zero stress, for coupling and orchestrator benchmarks and
+        /// tests; needs --throughput).
         #[arg(long, default_value = "auto")]
         device: String,
         /// Worker threads for the cpu back end (default: all cores).
@@ -392,7 +394,14 @@ fn serve(listen: &str, device: &str, threads: Option<usize>, metrics: Option<&st
         "auto" if ranks > 1 => "cpu",
         d => d,
     };
-    let backend = match md_worker::device::resolve_device(device) {
+    if device == "null" && join.throughput.is_none() {
+        return Err(bad("--device null needs --throughput (the null back end does no MD whose throughput could be measured)"));
+    }
+    let backend = match device {
+        "null" => Ok("null"),
+        d => md_worker::device::resolve_device(d),
+    };
+    let backend = match backend {
         Ok(d) => d,
         Err(MdError::Device(why)) => return Err(bad(format!("--device {device}: {why}"))),
         Err(_) => return Err(bad(format!("--device {device:?}: expected auto, cpu or cuda"))),
@@ -409,6 +418,7 @@ fn serve(listen: &str, device: &str, threads: Option<usize>, metrics: Option<&st
     let nthreads = threads.unwrap_or_else(rayon::current_num_threads);
     let (backend, device) = match backend {
         "cuda" => ("cuda", "cuda".to_string()),
+        "null" => ("null", "null (no MD)".to_string()),
         _ if ranks > 1 => ("mpi", format!("cpu (mpi {ranks} ranks x {nthreads} threads)")),
         b => (b, format!("cpu ({nthreads} threads)")),
     };

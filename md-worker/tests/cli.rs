@@ -358,3 +358,11 @@ fn direct_gives_the_same_bytes_for_any_thread_count() {
         assert!(got == one, "--threads {t} differs from --threads 1");
     }
 }
+
+#[test]
+fn serve_on_the_null_device_needs_a_throughput() {
+    let out = md_worker_within(60, &["serve", "--listen", "127.0.0.1:0", "--device", "null"]);
+    let err = stderr_of(&out);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--device null needs --throughput"), "{err}");
+}
