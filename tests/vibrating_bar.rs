@@ -7,16 +7,16 @@ use mscale_testkit::{prebuilt, repo, summary};
 use std::process::Command;
 
 fn errors(sets: &[&str]) -> (f64, f64) {
-    let out = tempfile::tempdir().unwrap();
+    let out = tempfile::tempdir().expect("a temporary directory");
     let mut cmd = Command::new(prebuilt("mscale", "orchestrator"));
     cmd.current_dir(repo()).args(["run", "scenes/vibrating-bar-1d.toml", "--out"]).arg(out.path());
     for s in sets {
         cmd.args(["--set", s]);
     }
-    let o = cmd.output().unwrap();
+    let o = cmd.output().expect("mscale runs");
     assert!(o.status.success(), "{sets:?}: {}", String::from_utf8_lossy(&o.stderr));
     let e = &summary(out.path())["errors"];
-    (e["displacement_l2"].as_f64().unwrap(), e["stress_l2"].as_f64().unwrap())
+    (e["displacement_l2"].as_f64().expect("displacement_l2"), e["stress_l2"].as_f64().expect("stress_l2"))
 }
 
 #[test]

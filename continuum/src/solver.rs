@@ -14,9 +14,9 @@ use crate::shape::{self, Block, OutsideGrid, SchemeKind, Stencil, StencilPart};
 use crate::tensor::{self, Mat3};
 use rayon::prelude::*;
 
+mod corrected;
 #[path = "implicit.rs"]
 pub mod implicit;
-mod corrected;
 mod impm;
 mod verlet;
 

@@ -22,13 +22,13 @@
 //! - What each reproduces (as the nodal derivative -sum_p G~_ip y_p / W_i): "constant" gives 0
 //!   for a constant field on any point set, "linear" the exact slope of a linear field on any
 //!   point set, and of a quadratic only where sum_p G~_ip (x_p - X_i)^2 = 0 (symmetric points).
+//!
 //! The velocity gradient stays the plain sum_i v_i phi'_i(x_p) (the thesis corrects the force).
 //! Caveats (notes A.4): a free-surface node loses the traction-free condition (a constant
-//! stress gives it no force), and sum_i f_i != 0, so momentum is not conserved (measured in
-//! tests/schemes.rs).
+//! stress gives it no force), and sum_i f_i != 0, so momentum is not conserved (its drift is
+//! not yet measured in tests/schemes.rs).
 
 use super::*;
-use crate::grid::Face;
 
 /// The gradient the nodal force uses (`scheme.gradient_correction`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -116,14 +116,20 @@ impl<const D: usize> Simulation<D> {
         if self.gradient_correction == GradientCorrection::None {
             return Ok(());
         }
-        correction_factors(&self.grid, &self.stencil, &self.points.x, self.gradient_correction, &mut self.node_correction)
-            .map_err(|what| SolverError::Diverged { step, what, cause: "too few points near the node: use gradient_correction = \"constant\" or more points per cell" })
+        correction_factors(&self.grid, &self.stencil, &self.points.x, self.gradient_correction, &mut self.node_correction).map_err(|what| {
+            SolverError::Diverged {
+                step,
+                what,
+                cause: "too few points near the node: use gradient_correction = \"constant\" or more points per cell",
+            }
+        })
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::grid::Face;
 
     /// Hat-function rows of 1D points on `cells` cells of width h from 0.
     fn hat_stencil(h: f64, cells: usize, x: &[f64]) -> (Grid<1>, Stencil<1>, Vec<[f64; 1]>) {
