@@ -14,10 +14,13 @@ use crate::shape::{self, Block, OutsideGrid, SchemeKind, Stencil, StencilPart};
 use crate::tensor::{self, Mat3};
 use rayon::prelude::*;
 
+mod corrected;
 #[path = "implicit.rs"]
 pub mod implicit;
 mod impm;
 mod verlet;
+
+pub use corrected::{GradientCorrection, correction_factors};
 
 /// Artificial viscosity added to the closure's stress in compression.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -153,6 +156,10 @@ pub struct Simulation<const D: usize> {
     pub diffusion: Option<crate::diffusion::Diffusion<D>>,
     /// Options and per-step record of the implicit integrator (unused by the explicit ones).
     pub implicit: implicit::Implicit,
+    /// Corrected derivatives in the nodal force (1D; see `solver/corrected.rs`); none by default.
+    pub gradient_correction: GradientCorrection,
+    /// Per node (r_i, k_i) of the gradient correction of the current stencil.
+    node_correction: Vec<[f64; 2]>,
     stencil: Stencil<D>,
     node_mass: Vec<f64>,
     node_force: Vec<[f64; D]>,
@@ -222,6 +229,8 @@ impl<const D: usize> Simulation<D> {
             prescribed_scalar_rate: Vec::new(),
             diffusion: None,
             implicit: implicit::Implicit::default(),
+            gradient_correction: GradientCorrection::None,
+            node_correction: Vec::new(),
             grid,
             points,
             scheme,
@@ -314,6 +323,7 @@ impl<const D: usize> Simulation<D> {
         let dt = self.dt;
         self.build_stencil()
             .map_err(|o| stencil_error(step, &o, "time step too large or a domain sheared past its limit (use cpdi1 or ddmp)"))?;
+        self.correct_gradients(step)?;
         let c = self.wave_speed();
         if self.scheme == SchemeKind::Impm {
             self.impm_grid(step)?;
@@ -455,6 +465,7 @@ impl<const D: usize> Simulation<D> {
     /// Step 5: f_i = -sum_p V_p (sigma_p + q_p) . G_ip, then the distribution (7.4)-(7.6).
     fn nodal_forces(&mut self) {
         let (st, pts, body, t) = (&self.stencil, &self.points, &self.body_force, self.time);
+        let corr = if self.gradient_correction == GradientCorrection::None { None } else { Some(self.node_correction.as_slice()) };
         self.scatter.run_tiled(
             &self.tiles,
             self.grid.node_count(),
@@ -468,6 +479,11 @@ impl<const D: usize> Simulation<D> {
                     let b = body.as_ref().map(|f| f(&pts.x0[p], t));
                     let (nodes, weights, grads) = st.row(p);
                     for ((&i, g), &sw) in nodes.iter().zip(grads).zip(weights) {
+                        // Corrected derivatives (1D): G~_ip = k_i (G_ip - S_ip r_i).
+                        let g = &match corr {
+                            Some(c) => std::array::from_fn::<f64, D, _>(|b| c[i][1] * (g[b] - sw * c[i][0])),
+                            None => *g,
+                        };
                         let slot = w.slot(i);
                         if let Some(b) = b {
                             for a in 0..D {

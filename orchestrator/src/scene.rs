@@ -446,6 +446,12 @@ pub struct Scheme {
     /// (battery thesis 5.24-5.26).
     #[serde(default = "default_flip_fraction")]
     pub flip_fraction: f64,
+    /// Corrected derivatives in the nodal force (battery thesis 4.21-4.29, 1D): `none`
+    /// (default), `constant` (a constant stress gives no nodal force) or `linear` (a linear
+    /// stress gives the exact nodal force); see continuum `solver/corrected.rs`. Written only
+    /// when not none.
+    #[serde(default, with = "names::named", skip_serializing_if = "is_no_correction")]
+    pub gradient_correction: continuum::solver::GradientCorrection,
     /// Newton Jacobian of `implicit-trapezoidal`: `analytic` (the closures' material tangents)
     /// or `finite-difference` (coloured forward differences). Written only when not analytic.
     #[serde(default, with = "names::named", skip_serializing_if = "is_analytic")]
@@ -520,6 +526,10 @@ fn is_one(v: &f64) -> bool {
 
 fn default_flip_fraction() -> f64 {
     1.0
+}
+
+fn is_no_correction(c: &continuum::solver::GradientCorrection) -> bool {
+    *c == continuum::solver::GradientCorrection::None
 }
 
 fn is_analytic(j: &continuum::solver::implicit::JacobianKind) -> bool {

@@ -130,6 +130,7 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
         .with_small_mass_fraction(scene.small_mass_fraction);
     sim.integrator = scene.integrator;
     sim.flip_fraction = scene.flip_fraction;
+    sim.gradient_correction = scene.gradient_correction;
     if let Some(m) = scene.manufactured {
         sim.body_force = Some(Arc::new(move |x0: &[f64; D], t: f64| m.body_force(x0, t)));
     }

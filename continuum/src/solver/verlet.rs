@@ -30,6 +30,7 @@ impl<const D: usize> Simulation<D> {
         let dt = self.dt;
         let cause = "time step too large or a domain sheared past its limit (use cpdi1 or ddmp)";
         self.build_stencil().map_err(|o| stencil_error(step, &o, cause))?;
+        self.correct_gradients(step)?;
         let c = self.wave_speed();
         self.map_velocities(step)?;
         self.nodal_forces();
@@ -39,6 +40,7 @@ impl<const D: usize> Simulation<D> {
         // Drift with v^{n+1/2} and the first half of the FLIP increment.
         self.move_points();
         self.build_stencil().map_err(|o| stencil_error(step, &o, cause))?;
+        self.correct_gradients(step)?;
         self.velocity_gradients();
         let half = 0.5 * dt;
         self.points.vel_grad.par_iter_mut().zip(l_old.par_iter()).with_min_len(CHUNK).for_each(|(l1, l0)| {

@@ -99,6 +99,15 @@ impl SceneName for continuum::solver::TimeIntegrator {
     }
 }
 
+impl SceneName for continuum::solver::GradientCorrection {
+    const FIELD: &'static str = "gradient_correction";
+    const NAMES: &'static [(&'static str, Self)] = &[
+        ("none", continuum::solver::GradientCorrection::None),
+        ("constant", continuum::solver::GradientCorrection::Constant),
+        ("linear", continuum::solver::GradientCorrection::Linear),
+    ];
+}
+
 impl SceneName for continuum::solver::implicit::JacobianKind {
     const FIELD: &'static str = "jacobian";
     const NAMES: &'static [(&'static str, Self)] = &[

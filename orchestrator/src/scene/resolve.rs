@@ -29,6 +29,8 @@ pub struct ResolvedScene {
     pub integrator: TimeIntegrator,
     /// PIC/FLIP blend in [0, 1] (1: FLIP).
     pub flip_fraction: f64,
+    /// `scheme.gradient_correction` (1D explicit point-weight schemes only).
+    pub gradient_correction: continuum::solver::GradientCorrection,
     pub jacobian: continuum::solver::implicit::JacobianKind,
     /// Adaptive implicit steps (end time set), and the motion bound of a step in cells.
     pub adaptive: Option<continuum::solver::implicit::Adaptive>,

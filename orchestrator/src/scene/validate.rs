@@ -213,6 +213,7 @@ impl Scene {
             },
             integrator: s.integrator,
             flip_fraction: s.flip_fraction,
+            gradient_correction: s.gradient_correction,
             jacobian: s.jacobian,
             adaptive: s.adaptive.as_ref().map(|a| continuum::solver::implicit::Adaptive {
                 rtol: a.rtol,
@@ -695,6 +696,27 @@ impl Scene {
                 s.flip_fraction,
                 "the Stormer-Verlet step updates the point velocities by FLIP only (its two half kicks): leave flip_fraction at 1",
             ));
+        }
+        if s.gradient_correction != continuum::solver::GradientCorrection::None {
+            let name = format!("{:?}", s.gradient_correction.scene_name());
+            let why = if dim != 1 {
+                Some(format!("corrected derivatives are 1D (battery thesis 4.21-4.29); a {dim}D scene allows only \"none\""))
+            } else if !matches!(
+                kind,
+                SchemeKind::Mpm | SchemeKind::Ugimp | SchemeKind::Cpgimp | SchemeKind::Cpdi | SchemeKind::Cpdi1 | SchemeKind::Cpdi2
+            ) {
+                Some(format!(
+                    "`{}` has its own gradient (DDMP's reconstruction or an MLS map); corrected derivatives apply to mpm, ugimp, cpgimp, cpdi, cpdi1, cpdi2",
+                    kind.name()
+                ))
+            } else if s.integrator == continuum::solver::TimeIntegrator::ImplicitTrapezoidal {
+                Some("the implicit integrator assembles its own forces and tangents: use an explicit integrator or \"none\"".to_string())
+            } else {
+                None
+            };
+            if let Some(why) = why {
+                return Err(loc.err("scheme.gradient_correction", name, why));
+            }
         }
         if !(s.small_mass_fraction.is_finite() && (0.0..1.0).contains(&s.small_mass_fraction)) {
             return Err(loc.err("scheme.small_mass_fraction", s.small_mass_fraction, "must lie in [0, 1)"));
