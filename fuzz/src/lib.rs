@@ -127,7 +127,6 @@ fn u3() -> &'static md_worker::Potential {
 /// A LAMMPS data file, as `md-worker eval` and `run` read it.
 pub fn lammps(data: &[u8]) {
     use md_worker::data::DataFile;
-    use md_worker::{BoxSpec, InitialAtoms, LatticeKind};
     let pot = u3();
     let Ok(d) = DataFile::parse(&String::from_utf8_lossy(data), "fuzz.data") else { return };
     let again = DataFile::parse(&d.to_text("again"), "again").unwrap_or_else(|e| panic!("written data does not read back: {e}"));
@@ -136,14 +135,7 @@ pub fn lammps(data: &[u8]) {
         return;
     }
     let masses: Vec<f64> = (0..pot.n_elements()).map(|e| pot.mass(e)).collect();
-    let mut s = BoxSpec::lattice(0, LatticeKind::Fcc, 1.0, [1, 1, 1]);
-    s.atoms = InitialAtoms::Explicit {
-        lo: d.lo,
-        lengths: d.lengths,
-        types: d.types.iter().map(|t| t - 1).collect(),
-        x: d.x.clone(),
-        v: d.v.clone(),
-    };
+    let s = d.box_spec(0);
     if let Ok(st) = md_worker::backend::prepare_box(pot, &masses, &s) {
         assert!(st.meta.pe.is_finite(), "a box was built with a non-finite energy");
     }

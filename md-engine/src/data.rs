@@ -1,7 +1,9 @@
 //! LAMMPS data files (`atom_style atomic`, orthogonal boxes, optional `Masses` and
 //! `Velocities`) and LAMMPS text dumps (readable by OVITO).
 
+use crate::backend::{BoxSpec, InitialAtoms, PointId};
 use crate::error::MdError;
+use crate::lattice::LatticeKind;
 use std::fmt::Write as _;
 
 /// Atoms of a LAMMPS data file, sorted by atom id.
@@ -215,6 +217,20 @@ impl DataFile {
             v,
             masses,
         })
+    }
+
+    /// A box spec of point `id` holding exactly these atoms (types 1.. become the potential's
+    /// elements 0.., velocities kept), the other settings those of `BoxSpec::lattice`.
+    pub fn box_spec(&self, id: PointId) -> BoxSpec {
+        let mut s = BoxSpec::lattice(id, LatticeKind::Fcc, 1.0, [1, 1, 1]);
+        s.atoms = InitialAtoms::Explicit {
+            lo: self.lo,
+            lengths: self.lengths,
+            types: self.types.iter().map(|t| t - 1).collect(),
+            x: self.x.clone(),
+            v: self.v.clone(),
+        };
+        s
     }
 
     /// LAMMPS data-file text (%.17g, round-trips exactly).

@@ -7,7 +7,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 use md_worker::data::{DataFile, dump_frame};
 use md_worker::kernel;
-use md_worker::{BoxResult, BoxSpec, BoxWork, DeformMode, InitialAtoms, LatticeKind, MdBackend, MdError, Potential, backend_by_name};
+use md_worker::{BoxResult, BoxSpec, BoxWork, DeformMode, LatticeKind, MdBackend, MdError, Potential, backend_by_name};
 use serde_json::json;
 use std::io::Write;
 use std::path::PathBuf;
@@ -175,14 +175,7 @@ fn load(potential: &std::path::Path, data: &std::path::Path, mode: DeformMode) -
     if let Some(t) = d.types.iter().find(|&&t| t as usize > pot.n_elements()) {
         return Err(bad(format!("{}: atom type {t}, but {} has {} element(s)", data.display(), potential.display(), pot.n_elements())));
     }
-    let mut spec = BoxSpec::lattice(0, LatticeKind::Fcc, 1.0, [1, 1, 1]);
-    spec.atoms = InitialAtoms::Explicit {
-        lo: d.lo,
-        lengths: d.lengths,
-        types: d.types.iter().map(|t| t - 1).collect(),
-        x: d.x.clone(),
-        v: d.v.clone(),
-    };
+    let mut spec = d.box_spec(0);
     spec.mode = mode;
     Ok((pot, d, spec))
 }

@@ -11,7 +11,7 @@
 mod common;
 use common::*;
 use md_worker::data::DataFile;
-use md_worker::{BoxResult, BoxSpec, BoxWork, InitialAtoms, LatticeKind, MdBackend, Potential, ReferenceBackend};
+use md_worker::{BoxResult, BoxSpec, BoxWork, LatticeKind, MdBackend, Potential, ReferenceBackend};
 use mscale_testkit::fuzz::Budget;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha20Rng;
@@ -249,14 +249,7 @@ fn fuzz_lammps_data_files() {
         assert_eq!((&again.ids, &again.x, &again.v), (&d.ids, &d.x, &d.v));
         // And goes into the engine as `md-worker eval` puts it (types beyond the potential's
         // elements are refused there).
-        let mut s = BoxSpec::lattice(0, LatticeKind::Fcc, 1.0, [1, 1, 1]);
-        s.atoms = InitialAtoms::Explicit {
-            lo: d.lo,
-            lengths: d.lengths,
-            types: d.types.iter().map(|t| t - 1).collect(),
-            x: d.x.clone(),
-            v: d.v.clone(),
-        };
+        let s = d.box_spec(0);
         if let Ok(st) = md_worker::backend::prepare_box(&pot, &masses, &s) {
             assert!(st.meta.pe.is_finite(), "a box was built with a non-finite energy");
         }

@@ -3,7 +3,7 @@
 #![allow(dead_code, clippy::unwrap_used)]
 
 use md_worker::data::DataFile;
-use md_worker::{BoxSpec, CpuBackend, DeformMode, InitialAtoms, MdBackend, Potential, ReferenceBackend};
+use md_worker::{BoxSpec, CpuBackend, DeformMode, MdBackend, Potential, ReferenceBackend};
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -105,14 +105,7 @@ pub fn golden(name: &str) -> Golden {
 /// A box spec holding exactly the atoms of a data file (velocities kept).
 pub fn spec_from_data(id: u64, file: &str) -> (BoxSpec, DataFile) {
     let d = DataFile::read(&crate_dir().join("tests/golden").join(file)).unwrap();
-    let mut s = BoxSpec::lattice(id, md_worker::LatticeKind::Fcc, 1.0, [1, 1, 1]);
-    s.atoms = InitialAtoms::Explicit {
-        lo: d.lo,
-        lengths: d.lengths,
-        types: d.types.iter().map(|t| t - 1).collect(),
-        x: d.x.clone(),
-        v: d.v.clone(),
-    };
+    let mut s = d.box_spec(id);
     s.mode = DeformMode::Affine;
     (s, d)
 }
