@@ -321,6 +321,18 @@ fn mode_state(cells: usize, wdt: f64, amp: f64, phase: f64) -> (Simulation<1>, f
     (s, w, ch)
 }
 
+/// The points' projection on mode one, sin(pi X): of their displacement (`disp`) or velocity.
+fn amp_of(s: &Simulation<1>, disp: bool) -> f64 {
+    let pts = &s.points;
+    let (mut num, mut den) = (0.0, 0.0);
+    for p in 0..pts.len() {
+        let phi = (PI * pts.x0[p][0]).sin();
+        num += if disp { pts.x[p][0] - pts.x0[p][0] } else { pts.v[p][0] } * phi;
+        den += phi * phi;
+    }
+    num / den
+}
+
 /// Issue test: after one step from the exact state, estimate / true local error -> 1 as dt
 /// falls, for the displacement (dt^2/12 (a^{n+1} - a^n)) and the velocity
 /// (dt/12 (a^{n+1} - 2 a^n + a^{n-1}), the corrected (5.100); the printed 1/6 would give 2).
@@ -328,16 +340,6 @@ fn mode_state(cells: usize, wdt: f64, amp: f64, phase: f64) -> (Simulation<1>, f
 /// (which has a^{n-1}) from the state step 1 reached, against that state's exact evolution.
 #[test]
 fn local_error_estimates_match_the_true_local_errors() {
-    let amp_of = |s: &Simulation<1>, disp: bool| {
-        let pts = &s.points;
-        let (mut num, mut den) = (0.0, 0.0);
-        for p in 0..pts.len() {
-            let phi = (PI * pts.x0[p][0]).sin();
-            num += if disp { pts.x[p][0] - pts.x0[p][0] } else { pts.v[p][0] } * phi;
-            den += phi * phi;
-        }
-        num / den
-    };
     let mut ratios = Vec::new();
     for wdt in [0.2, 0.1, 0.05] {
         let (mut s, w, ch) = mode_state(2000, wdt, 1e-7, PI / 4.0 - wdt);
@@ -380,16 +382,6 @@ fn the_deformation_gradient_error_estimate_matches_the_true_local_error() {
         let cells = 200;
         let (mut s, w, ch) = mode_state(cells, wdt, 1e-7, PI / 4.0 - wdt);
         let dt = s.dt;
-        let amp_of = |s: &Simulation<1>, disp: bool| {
-            let pts = &s.points;
-            let (mut num, mut den) = (0.0, 0.0);
-            for p in 0..pts.len() {
-                let phi = (PI * pts.x0[p][0]).sin();
-                num += if disp { pts.x[p][0] - pts.x0[p][0] } else { pts.v[p][0] } * phi;
-                den += phi * phi;
-            }
-            num / den
-        };
         let (d0, w0) = (amp_of(&s, true) / ch, ch * amp_of(&s, false));
         let f0: Vec<f64> = s.points.def_grad.iter().map(|f| f[0][0]).collect();
         s.step().expect("step");
