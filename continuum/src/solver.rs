@@ -164,6 +164,12 @@ pub struct Simulation<const D: usize> {
     node_mass: Vec<f64>,
     node_force: Vec<[f64; D]>,
     node_v: Vec<[f64; D]>,
+    /// What the PIC share of `move_points` starts from (filled only for `flip_fraction` < 1,
+    /// by whatever maps the step's nodal velocity, and used once): the mapped velocity with the
+    /// boundary conditions but before the small-mass average (7.7), and the wall impulse of
+    /// that projection.
+    pic_base: Vec<[f64; D]>,
+    pic_wall: ([f64; D], f64),
     node_v_lagrangian: Vec<[f64; D]>,
     body_ranges: Vec<std::ops::Range<usize>>,
     /// Per body (1D), point indices sorted by initial position, for the neighbour-gap guard.
@@ -250,6 +256,8 @@ impl<const D: usize> Simulation<D> {
             node_mass: vec![0.0; n],
             node_force: vec![[0.0; D]; n],
             node_v: vec![[0.0; D]; n],
+            pic_base: Vec::new(),
+            pic_wall: ([0.0; D], 0.0),
             node_v_lagrangian: vec![[0.0; D]; n],
             body_ranges,
             order_1d,
@@ -431,10 +439,13 @@ impl<const D: usize> Simulation<D> {
             *m = f[0];
             *v = if f[0] > floor { std::array::from_fn(|a| f[1 + a] / f[0]) } else { [0.0; D] };
         });
+        // The PIC share interpolates velocities, not increments: it must see the momentum the
+        // points brought, not the small-mass average below.
+        self.set_pic_base();
         if self.small_mass > 0.0 && self.node_mass.iter().any(|&m| m > floor && m <= self.small_mass) {
             // (7.7) read as an average: a light node takes the sqrt(m)-weighted mean velocity of
             // the nodes sharing a cell with it (itself included). Its lumped mass is kept, so the
-            // FLIP update (3.13) still conserves momentum.
+            // FLIP update (3.13) still conserves momentum (and PIC reads `pic_base`).
             let (grid, mass, eps, old) = (&self.grid, &self.node_mass, self.small_mass, self.node_v.clone());
             self.node_v.par_iter_mut().enumerate().for_each(|(i, v)| {
                 if !(mass[i] > floor && mass[i] <= eps) {
@@ -456,6 +467,14 @@ impl<const D: usize> Simulation<D> {
         let mass = std::mem::take(&mut self.node_mass);
         self.grid.apply_boundaries(&mass, &mut self.node_v);
         self.node_mass = mass;
+    }
+
+    /// For a PIC share: `pic_base` = `node_v` with the boundary conditions, and their impulse.
+    fn set_pic_base(&mut self) {
+        if self.flip_fraction < 1.0 {
+            self.pic_base.clone_from(&self.node_v);
+            self.pic_wall = self.grid.apply_boundaries(&self.node_mass, &mut self.pic_base);
+        }
     }
 
     fn empty_floor(&self) -> f64 {
@@ -713,6 +732,17 @@ impl<const D: usize> Simulation<D> {
         let old = self.old_velocity_weight();
         let beta = self.flip_fraction;
         let (st, dt, grid) = (&self.stencil, self.dt, &self.grid);
+        // The PIC share starts from the mapped momentum (`pic_base`), so it carries exactly the
+        // nodes' momentum plus the impulses; where nothing mapped one this step, from v^L.
+        let base = std::mem::take(&mut self.pic_base);
+        let pic_base = beta < 1.0 && base.len() == self.node_v.len();
+        if pic_base {
+            let (added, magnitude) = self.pic_wall;
+            self.wall_impulse_magnitude += (1.0 - beta) * magnitude;
+            for a in 0..D {
+                self.wall_impulse[a] += (1.0 - beta) * added[a];
+            }
+        }
         let (nv, nvl) = (&self.node_v, &self.node_v_lagrangian);
         let pts = &mut self.points;
         let track = self.scheme.tracks_corners();
@@ -729,7 +759,9 @@ impl<const D: usize> Simulation<D> {
                         for a in 0..D {
                             dv[a] += w * (nvl[i][a] - nv[i][a]);
                             vbar[a] += w * ((1.0 - old) * nvl[i][a] + old * nv[i][a]);
-                            pic[a] += w * nvl[i][a];
+                            // v^L + (base - v): v^L itself, bit for bit, wherever the
+                            // small-mass average did not move v.
+                            pic[a] += w * if pic_base { nvl[i][a] + (base[i][a] - nv[i][a]) } else { nvl[i][a] };
                         }
                     }
                     let before = xs[k];
@@ -771,6 +803,9 @@ impl<const D: usize> Simulation<D> {
                 }
             },
         );
+        // Used once: the next step maps its own (the buffer is kept).
+        self.pic_base = base;
+        self.pic_base.clear();
     }
 
     /// Stops a run that is going wrong, naming the particle, the quantity and the likely cause.

@@ -135,6 +135,8 @@ impl<const D: usize> Simulation<D> {
         for (k, &i) in active.iter().enumerate() {
             self.node_v[i] = std::array::from_fn(|a| table.apply(k, &comps[a]));
         }
+        // A PIC share starts from this map (the same projection below, and its impulse).
+        self.set_pic_base();
         let mass = std::mem::take(&mut self.node_mass);
         self.grid.apply_boundaries(&mass, &mut self.node_v);
         self.node_mass = mass;
