@@ -18,9 +18,11 @@ mod corrected;
 #[path = "implicit.rs"]
 pub mod implicit;
 mod impm;
+mod nullspace;
 mod verlet;
 
 pub use corrected::{GradientCorrection, correction_factors};
+pub use nullspace::{NullspaceFilter, SVD_MAX_POINTS, global_svd_filter, local_filter};
 
 /// Artificial viscosity added to the closure's stress in compression.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -160,6 +162,9 @@ pub struct Simulation<const D: usize> {
     pub gradient_correction: GradientCorrection,
     /// Per node (r_i, k_i) of the gradient correction of the current stencil.
     node_correction: Vec<[f64; 2]>,
+    /// Nullspace filter on the point velocity gradient (see `solver/nullspace.rs`); none by
+    /// default.
+    pub nullspace_filter: NullspaceFilter,
     stencil: Stencil<D>,
     node_mass: Vec<f64>,
     node_force: Vec<[f64; D]>,
@@ -231,6 +236,7 @@ impl<const D: usize> Simulation<D> {
             implicit: implicit::Implicit::default(),
             gradient_correction: GradientCorrection::None,
             node_correction: Vec::new(),
+            nullspace_filter: NullspaceFilter::None,
             grid,
             points,
             scheme,
@@ -329,12 +335,14 @@ impl<const D: usize> Simulation<D> {
             self.impm_grid(step)?;
             self.lagrangian_update(step, c)?;
             self.velocity_gradients();
+            self.filter_velocity_gradients(step)?;
             self.advance_scalar(step)?;
             self.deform_and_stress(step, c)?;
         } else if self.integrator == TimeIntegrator::Usf {
             self.map_velocities(step)?;
             // Update stress first: strain rate from the mapped v^n, then forces from the new stress.
             self.velocity_gradients();
+            self.filter_velocity_gradients(step)?;
             self.advance_scalar(step)?;
             self.deform_and_stress(step, c)?;
             self.nodal_forces();
@@ -344,6 +352,7 @@ impl<const D: usize> Simulation<D> {
             self.nodal_forces();
             self.lagrangian_update(step, c)?;
             self.velocity_gradients();
+            self.filter_velocity_gradients(step)?;
             self.advance_scalar(step)?;
             self.deform_and_stress(step, c)?;
         }

@@ -452,6 +452,13 @@ pub struct Scheme {
     /// when not none.
     #[serde(default, with = "names::named", skip_serializing_if = "is_no_correction")]
     pub gradient_correction: continuum::solver::GradientCorrection,
+    /// Nullspace filter on the point velocity gradient (battery thesis 4.50-4.92): `none`
+    /// (default), `local` (one more particle -> node -> particle cycle of the gradient, any
+    /// dimension) or `global-svd` (projection onto the row space of the point-to-node map, 1D
+    /// reference runs of at most 2000 points); see continuum `solver/nullspace.rs`. Written
+    /// only when not none.
+    #[serde(default, with = "names::named", skip_serializing_if = "is_no_filter")]
+    pub nullspace_filter: continuum::solver::NullspaceFilter,
     /// Newton Jacobian of `implicit-trapezoidal`: `analytic` (the closures' material tangents)
     /// or `finite-difference` (coloured forward differences). Written only when not analytic.
     #[serde(default, with = "names::named", skip_serializing_if = "is_analytic")]
@@ -530,6 +537,10 @@ fn default_flip_fraction() -> f64 {
 
 fn is_no_correction(c: &continuum::solver::GradientCorrection) -> bool {
     *c == continuum::solver::GradientCorrection::None
+}
+
+fn is_no_filter(f: &continuum::solver::NullspaceFilter) -> bool {
+    *f == continuum::solver::NullspaceFilter::None
 }
 
 fn is_analytic(j: &continuum::solver::implicit::JacobianKind) -> bool {
