@@ -21,7 +21,7 @@ mod impm;
 mod nullspace;
 mod verlet;
 
-pub use corrected::{GradientCorrection, correction_factors};
+pub use corrected::{GradientCorrection, NodeCorrection, correction_factors};
 pub use nullspace::{NullspaceFilter, SVD_MAX_POINTS, global_svd_filter, local_filter};
 
 /// Artificial viscosity added to the closure's stress in compression.
@@ -158,10 +158,10 @@ pub struct Simulation<const D: usize> {
     pub diffusion: Option<crate::diffusion::Diffusion<D>>,
     /// Options and per-step record of the implicit integrator (unused by the explicit ones).
     pub implicit: implicit::Implicit,
-    /// Corrected derivatives in the nodal force (1D; see `solver/corrected.rs`); none by default.
+    /// Corrected derivatives in the nodal force (see `solver/corrected.rs`); none by default.
     pub gradient_correction: GradientCorrection,
-    /// Per node (r_i, k_i) of the gradient correction of the current stencil.
-    node_correction: Vec<[f64; 2]>,
+    /// Per node the gradient correction of the current stencil.
+    node_correction: Vec<NodeCorrection<D>>,
     /// Nullspace filter on the point velocity gradient (see `solver/nullspace.rs`); none by
     /// default.
     pub nullspace_filter: NullspaceFilter,
@@ -488,9 +488,9 @@ impl<const D: usize> Simulation<D> {
                     let b = body.as_ref().map(|f| f(&pts.x0[p], t));
                     let (nodes, weights, grads) = st.row(p);
                     for ((&i, g), &sw) in nodes.iter().zip(grads).zip(weights) {
-                        // Corrected derivatives (1D): G~_ip = k_i (G_ip - S_ip r_i).
+                        // Corrected derivatives: G~_ip = A_i (G_ip - S_ip r_i).
                         let g = &match corr {
-                            Some(c) => std::array::from_fn::<f64, D, _>(|b| c[i][1] * (g[b] - sw * c[i][0])),
+                            Some(c) => c[i].apply(g, sw),
                             None => *g,
                         };
                         let slot = w.slot(i);

@@ -446,10 +446,10 @@ pub struct Scheme {
     /// (battery thesis 5.24-5.26).
     #[serde(default = "default_flip_fraction")]
     pub flip_fraction: f64,
-    /// Corrected derivatives in the nodal force (battery thesis 4.21-4.29, 1D): `none`
-    /// (default), `constant` (a constant stress gives no nodal force) or `linear` (a linear
-    /// stress gives the exact nodal force); see continuum `solver/corrected.rs`. Written only
-    /// when not none.
+    /// Corrected derivatives in the nodal force (battery thesis 4.21-4.29; its RKPM-style
+    /// extension in 2D/3D): `none` (default), `constant` (a constant stress gives no nodal
+    /// force) or `linear` (a linear stress gives the exact nodal force); see continuum
+    /// `solver/corrected.rs`. Written only when not none.
     #[serde(default, with = "names::named", skip_serializing_if = "is_no_correction")]
     pub gradient_correction: continuum::solver::GradientCorrection,
     /// Nullspace filter on the point velocity gradient (battery thesis 4.50-4.92): `none`

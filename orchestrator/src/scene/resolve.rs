@@ -29,7 +29,7 @@ pub struct ResolvedScene {
     pub integrator: TimeIntegrator,
     /// PIC/FLIP blend in [0, 1] (1: FLIP).
     pub flip_fraction: f64,
-    /// `scheme.gradient_correction` (1D explicit point-weight schemes only).
+    /// `scheme.gradient_correction` (explicit point-weight schemes only).
     pub gradient_correction: continuum::solver::GradientCorrection,
     /// `scheme.nullspace_filter` (explicit stencil schemes; global-svd 1D only).
     pub nullspace_filter: continuum::solver::NullspaceFilter,

@@ -700,9 +700,7 @@ impl Scene {
         }
         if s.gradient_correction != continuum::solver::GradientCorrection::None {
             let name = format!("{:?}", s.gradient_correction.scene_name());
-            let why = if dim != 1 {
-                Some(format!("corrected derivatives are 1D (battery thesis 4.21-4.29); a {dim}D scene allows only \"none\""))
-            } else if !matches!(
+            let why = if !matches!(
                 kind,
                 SchemeKind::Mpm | SchemeKind::Ugimp | SchemeKind::Cpgimp | SchemeKind::Cpdi | SchemeKind::Cpdi1 | SchemeKind::Cpdi2
             ) {
