@@ -1,5 +1,7 @@
 //! Corrected derivatives of the battery thesis's partition-of-unity mapping (B 4.14-4.29; notes
-//! A.4 with its errata), 1D, as an option on the nodal force of the explicit schemes.
+//! A.4 with its errata), as an option on the nodal force of the explicit schemes; 1D as in the
+//! thesis, and in 2D/3D the RKPM-style extension the notes mark as proposed (see
+//! [`correction_factors`]: the scalar k_i becomes the matrix A_i = -W_i M_i^-T).
 //!
 //! Derivation (recorded because the print has sign and scale errata). With the plain weights
 //! phi_ip = phi_i(x_p), W_i = sum_p phi_ip, W'_i = sum_p phi'_ip and S*_ip = phi_ip / W_i:
