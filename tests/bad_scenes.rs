@@ -128,6 +128,34 @@ const CASES: &[(&str, &str, &str, &[&str], &[&str])] = &[
         &["scheme.method=\"mpm\"", "scheme.integrator=\"implicit-trapezoidal\"", "scheme.gradient_correction=\"constant\""],
         &["`scheme.gradient_correction` = \"constant\"", "the implicit integrator assembles its own forces"],
     ),
+    (
+        "unknown nullspace filter",
+        "",
+        "",
+        &["scheme.nullspace_filter=\"svd\""],
+        &["`scheme.nullspace_filter` = \"svd\"", "\"none\", \"local\", \"global-svd\""],
+    ),
+    (
+        "nullspace filter on impm",
+        "",
+        "",
+        &["scheme.method=\"impm\"", "scheme.integrator=\"leapfrog\"", "scheme.nullspace_filter=\"local\""],
+        &["`scheme.nullspace_filter` = \"local\"", "`impm` maps velocities to the nodes by MLS", "apply to mpm, ugimp"],
+    ),
+    (
+        "nullspace filter with the implicit integrator",
+        "",
+        "",
+        &["scheme.method=\"mpm\"", "scheme.integrator=\"implicit-trapezoidal\"", "scheme.nullspace_filter=\"global-svd\""],
+        &["`scheme.nullspace_filter` = \"global-svd\"", "the implicit integrator computes its velocity gradients"],
+    ),
+    (
+        "global SVD filter on too many points",
+        "",
+        "",
+        &["scheme.particles_per_cell=41", "scheme.nullspace_filter=\"global-svd\""],
+        &["`scheme.nullspace_filter` = \"global-svd\"", "at most 2000 points", "= 2050: use \"local\""],
+    ),
     ("bad override value", "", "", &["bodies.left.density=-3"], &["--set bodies.left.density=-3", "`bodies.left.density` = -3"]),
     ("override of an unknown key", "", "", &["scheme.colour=blue"], &["unknown field `colour`"]),
     ("override through a value", "", "", &["scheme.method.name=x"], &["--set scheme.method.name=x", "is a value, not a table"]),
@@ -306,4 +334,22 @@ fn every_bad_direct_md_reference_is_refused_with_its_message() {
     assert!(r.profile.is_absolute() && r.profile.ends_with("tests/golden/cu-shock-1d/direct-bar.csv"), "{}", r.profile.display());
     assert_eq!(r.component, "sxx");
     assert!(loaded.files.contains(&r.profile));
+}
+
+#[test]
+fn the_global_svd_filter_is_refused_in_2d_and_the_local_one_is_read_back() {
+    let path = repo().join("scenes/mms-2d.toml");
+    let e = scene::load(&path, &["scheme.nullspace_filter=\"global-svd\"".to_string()]).expect_err("refused").to_string();
+    for f in ["`scheme.nullspace_filter` = \"global-svd\"", "for 1D reference runs", "a 2D scene allows \"none\" or \"local\""] {
+        assert!(e.contains(f), "message lacks `{f}`: {e}");
+    }
+    let loaded = scene::load(&path, &["scheme.nullspace_filter=\"local\"".to_string()]).expect("local is allowed in 2D");
+    assert_eq!(format!("{:?}", loaded.resolved.nullspace_filter), "Local");
+    let text = loaded.scene.to_toml();
+    assert!(text.contains("nullspace_filter = \"local\""), "{text}");
+    let again = scene::parse("resolved.toml", &text, &[], &repo(), "x").expect("resolved scene is valid");
+    assert_eq!(again.scene, loaded.scene);
+    // Not written when none (so existing scenes' resolved TOML and digests do not move).
+    let plain = scene::load(&path, &[]).expect("valid");
+    assert!(!plain.scene.to_toml().contains("nullspace_filter"));
 }

@@ -18,9 +18,11 @@ mod corrected;
 #[path = "implicit.rs"]
 pub mod implicit;
 mod impm;
+mod nullspace;
 mod verlet;
 
-pub use corrected::{GradientCorrection, correction_factors};
+pub use corrected::{GradientCorrection, NodeCorrection, correction_factors};
+pub use nullspace::{NullspaceFilter, SVD_MAX_POINTS, global_svd_filter, local_filter};
 
 /// Artificial viscosity added to the closure's stress in compression.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -156,10 +158,13 @@ pub struct Simulation<const D: usize> {
     pub diffusion: Option<crate::diffusion::Diffusion<D>>,
     /// Options and per-step record of the implicit integrator (unused by the explicit ones).
     pub implicit: implicit::Implicit,
-    /// Corrected derivatives in the nodal force (1D; see `solver/corrected.rs`); none by default.
+    /// Corrected derivatives in the nodal force (see `solver/corrected.rs`); none by default.
     pub gradient_correction: GradientCorrection,
-    /// Per node (r_i, k_i) of the gradient correction of the current stencil.
-    node_correction: Vec<[f64; 2]>,
+    /// Per node the gradient correction of the current stencil.
+    node_correction: Vec<NodeCorrection<D>>,
+    /// Nullspace filter on the point velocity gradient (see `solver/nullspace.rs`); none by
+    /// default.
+    pub nullspace_filter: NullspaceFilter,
     stencil: Stencil<D>,
     node_mass: Vec<f64>,
     node_force: Vec<[f64; D]>,
@@ -237,6 +242,7 @@ impl<const D: usize> Simulation<D> {
             implicit: implicit::Implicit::default(),
             gradient_correction: GradientCorrection::None,
             node_correction: Vec::new(),
+            nullspace_filter: NullspaceFilter::None,
             grid,
             points,
             scheme,
@@ -337,12 +343,14 @@ impl<const D: usize> Simulation<D> {
             self.impm_grid(step)?;
             self.lagrangian_update(step, c)?;
             self.velocity_gradients();
+            self.filter_velocity_gradients(step)?;
             self.advance_scalar(step)?;
             self.deform_and_stress(step, c)?;
         } else if self.integrator == TimeIntegrator::Usf {
             self.map_velocities(step)?;
             // Update stress first: strain rate from the mapped v^n, then forces from the new stress.
             self.velocity_gradients();
+            self.filter_velocity_gradients(step)?;
             self.advance_scalar(step)?;
             self.deform_and_stress(step, c)?;
             self.nodal_forces();
@@ -352,6 +360,7 @@ impl<const D: usize> Simulation<D> {
             self.nodal_forces();
             self.lagrangian_update(step, c)?;
             self.velocity_gradients();
+            self.filter_velocity_gradients(step)?;
             self.advance_scalar(step)?;
             self.deform_and_stress(step, c)?;
         }
@@ -498,9 +507,9 @@ impl<const D: usize> Simulation<D> {
                     let b = body.as_ref().map(|f| f(&pts.x0[p], t));
                     let (nodes, weights, grads) = st.row(p);
                     for ((&i, g), &sw) in nodes.iter().zip(grads).zip(weights) {
-                        // Corrected derivatives (1D): G~_ip = k_i (G_ip - S_ip r_i).
+                        // Corrected derivatives: G~_ip = A_i (G_ip - S_ip r_i).
                         let g = &match corr {
-                            Some(c) => std::array::from_fn::<f64, D, _>(|b| c[i][1] * (g[b] - sw * c[i][0])),
+                            Some(c) => c[i].apply(g, sw),
                             None => *g,
                         };
                         let slot = w.slot(i);

@@ -446,12 +446,19 @@ pub struct Scheme {
     /// (battery thesis 5.24-5.26).
     #[serde(default = "default_flip_fraction")]
     pub flip_fraction: f64,
-    /// Corrected derivatives in the nodal force (battery thesis 4.21-4.29, 1D): `none`
-    /// (default), `constant` (a constant stress gives no nodal force) or `linear` (a linear
-    /// stress gives the exact nodal force); see continuum `solver/corrected.rs`. Written only
-    /// when not none.
+    /// Corrected derivatives in the nodal force (battery thesis 4.21-4.29; its RKPM-style
+    /// extension in 2D/3D): `none` (default), `constant` (a constant stress gives no nodal
+    /// force) or `linear` (a linear stress gives the exact nodal force); see continuum
+    /// `solver/corrected.rs`. Written only when not none.
     #[serde(default, with = "names::named", skip_serializing_if = "is_no_correction")]
     pub gradient_correction: continuum::solver::GradientCorrection,
+    /// Nullspace filter on the point velocity gradient (battery thesis 4.50-4.92): `none`
+    /// (default), `local` (one more particle -> node -> particle cycle of the gradient, any
+    /// dimension) or `global-svd` (projection onto the row space of the point-to-node map, 1D
+    /// reference runs of at most 2000 points); see continuum `solver/nullspace.rs`. Written
+    /// only when not none.
+    #[serde(default, with = "names::named", skip_serializing_if = "is_no_filter")]
+    pub nullspace_filter: continuum::solver::NullspaceFilter,
     /// Newton Jacobian of `implicit-trapezoidal`: `analytic` (the closures' material tangents)
     /// or `finite-difference` (coloured forward differences). Written only when not analytic.
     #[serde(default, with = "names::named", skip_serializing_if = "is_analytic")]
@@ -530,6 +537,10 @@ fn default_flip_fraction() -> f64 {
 
 fn is_no_correction(c: &continuum::solver::GradientCorrection) -> bool {
     *c == continuum::solver::GradientCorrection::None
+}
+
+fn is_no_filter(f: &continuum::solver::NullspaceFilter) -> bool {
+    *f == continuum::solver::NullspaceFilter::None
 }
 
 fn is_analytic(j: &continuum::solver::implicit::JacobianKind) -> bool {

@@ -131,6 +131,7 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
     sim.integrator = scene.integrator;
     sim.flip_fraction = scene.flip_fraction;
     sim.gradient_correction = scene.gradient_correction;
+    sim.nullspace_filter = scene.nullspace_filter;
     if let Some(m) = scene.manufactured {
         sim.body_force = Some(Arc::new(move |x0: &[f64; D], t: f64| m.body_force(x0, t)));
     }

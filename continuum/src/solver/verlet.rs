@@ -36,12 +36,14 @@ impl<const D: usize> Simulation<D> {
         self.nodal_forces();
         self.half_kick(step, c)?;
         self.velocity_gradients();
+        self.filter_velocity_gradients(step)?;
         let l_old = self.points.vel_grad.clone();
         // Drift with v^{n+1/2} and the first half of the FLIP increment.
         self.move_points();
         self.build_stencil().map_err(|o| stencil_error(step, &o, cause))?;
         self.correct_gradients(step)?;
         self.velocity_gradients();
+        self.filter_velocity_gradients(step)?;
         let half = 0.5 * dt;
         self.points.vel_grad.par_iter_mut().zip(l_old.par_iter()).with_min_len(CHUNK).for_each(|(l1, l0)| {
             let lhs = tensor::add_scaled(&tensor::IDENTITY, l1, -half);

@@ -108,6 +108,15 @@ impl SceneName for continuum::solver::GradientCorrection {
     ];
 }
 
+impl SceneName for continuum::solver::NullspaceFilter {
+    const FIELD: &'static str = "nullspace_filter";
+    const NAMES: &'static [(&'static str, Self)] = &[
+        ("none", continuum::solver::NullspaceFilter::None),
+        ("local", continuum::solver::NullspaceFilter::Local),
+        ("global-svd", continuum::solver::NullspaceFilter::GlobalSvd),
+    ];
+}
+
 impl SceneName for continuum::solver::implicit::JacobianKind {
     const FIELD: &'static str = "jacobian";
     const NAMES: &'static [(&'static str, Self)] = &[

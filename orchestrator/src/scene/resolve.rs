@@ -29,8 +29,10 @@ pub struct ResolvedScene {
     pub integrator: TimeIntegrator,
     /// PIC/FLIP blend in [0, 1] (1: FLIP).
     pub flip_fraction: f64,
-    /// `scheme.gradient_correction` (1D explicit point-weight schemes only).
+    /// `scheme.gradient_correction` (explicit point-weight schemes only).
     pub gradient_correction: continuum::solver::GradientCorrection,
+    /// `scheme.nullspace_filter` (explicit stencil schemes; global-svd 1D only).
+    pub nullspace_filter: continuum::solver::NullspaceFilter,
     pub jacobian: continuum::solver::implicit::JacobianKind,
     /// Adaptive implicit steps (end time set), and the motion bound of a step in cells.
     pub adaptive: Option<continuum::solver::implicit::Adaptive>,

@@ -214,6 +214,7 @@ impl Scene {
             integrator: s.integrator,
             flip_fraction: s.flip_fraction,
             gradient_correction: s.gradient_correction,
+            nullspace_filter: s.nullspace_filter,
             jacobian: s.jacobian,
             adaptive: s.adaptive.as_ref().map(|a| continuum::solver::implicit::Adaptive {
                 rtol: a.rtol,
@@ -699,9 +700,7 @@ impl Scene {
         }
         if s.gradient_correction != continuum::solver::GradientCorrection::None {
             let name = format!("{:?}", s.gradient_correction.scene_name());
-            let why = if dim != 1 {
-                Some(format!("corrected derivatives are 1D (battery thesis 4.21-4.29); a {dim}D scene allows only \"none\""))
-            } else if !matches!(
+            let why = if !matches!(
                 kind,
                 SchemeKind::Mpm | SchemeKind::Ugimp | SchemeKind::Cpgimp | SchemeKind::Cpdi | SchemeKind::Cpdi1 | SchemeKind::Cpdi2
             ) {
@@ -716,6 +715,33 @@ impl Scene {
             };
             if let Some(why) = why {
                 return Err(loc.err("scheme.gradient_correction", name, why));
+            }
+        }
+        if s.nullspace_filter != continuum::solver::NullspaceFilter::None {
+            use continuum::solver::NullspaceFilter;
+            let name = format!("{:?}", s.nullspace_filter.scene_name());
+            let points = self.domain.cells.iter().product::<usize>().saturating_mul(s.particles_per_cell.saturating_pow(dim as u32));
+            let why = if matches!(kind, SchemeKind::Impm | SchemeKind::CpdiImproved) {
+                Some(format!(
+                    "`{}` maps velocities to the nodes by MLS, whose nullspace these filters do not address; the filters apply to mpm, ugimp, cpgimp, cpdi, cpdi1, cpdi2, ddmp, ddmp-subpoints",
+                    kind.name()
+                ))
+            } else if s.integrator == continuum::solver::TimeIntegrator::ImplicitTrapezoidal {
+                Some("the implicit integrator computes its velocity gradients inside the Newton iteration: use an explicit integrator or \"none\"".to_string())
+            } else if s.nullspace_filter == NullspaceFilter::GlobalSvd && dim != 1 {
+                Some(format!(
+                    "the global SVD filter is for 1D reference runs (battery thesis 4.73, O(points^3) a step); a {dim}D scene allows \"none\" or \"local\""
+                ))
+            } else if s.nullspace_filter == NullspaceFilter::GlobalSvd && points > continuum::solver::SVD_MAX_POINTS {
+                Some(format!(
+                    "the global SVD filter takes at most {} points (one dense SVD a step); domain.cells x particles_per_cell = {points}: use \"local\"",
+                    continuum::solver::SVD_MAX_POINTS
+                ))
+            } else {
+                None
+            };
+            if let Some(why) = why {
+                return Err(loc.err("scheme.nullspace_filter", name, why));
             }
         }
         if !(s.small_mass_fraction.is_finite() && (0.0..1.0).contains(&s.small_mass_fraction)) {
