@@ -28,6 +28,7 @@ pub mod silicon;
 pub mod solver;
 pub mod stability;
 pub mod tensor;
+pub mod tlmpm;
 
 pub use closure::{Closure, ClosureBatch, ClosureError};
 pub use grid::{Face, Grid};

@@ -210,8 +210,34 @@ impl Closure for ChemoPlasticClosure {
     }
 }
 
+/// The ramped start of a prescribed lithiation rate (`[lithiation] ramp_time`): the rate is
+/// r s(t) with s(t) = (1 - cos(pi t / T)) / 2 for t < T and 1 after (continuous with its first
+/// derivative at both ends, so the start launches no step in the acceleration). Returns the
+/// integral of s from 0 to `t`, so the concentration added by time t is r times it exactly:
+/// t / 2 - T sin(pi t / T) / (2 pi) up to T, T / 2 + (t - T) after. `ramp <= 0`: no ramp (t).
+pub fn ramp_integral(t: f64, ramp: f64) -> f64 {
+    if ramp <= 0.0 {
+        return t;
+    }
+    if t >= ramp {
+        return 0.5 * ramp + (t - ramp);
+    }
+    let t = t.max(0.0);
+    0.5 * t - ramp * (std::f64::consts::PI * t / ramp).sin() / (2.0 * std::f64::consts::PI)
+}
+
+/// The mean of the ramp factor over the step [t, t + dt] (exact: the difference of
+/// [`ramp_integral`]); 1 without a ramp or once it is over, bitwise.
+pub fn ramp_factor(t: f64, dt: f64, ramp: f64) -> f64 {
+    if ramp <= 0.0 || t >= ramp {
+        return 1.0;
+    }
+    (ramp_integral(t + dt, ramp) - ramp_integral(t, ramp)) / dt
+}
+
 #[cfg(test)]
 mod tests {
+
     use super::*;
 
     const SI: ChemoPlastic = ChemoPlastic::SILICON;
@@ -371,5 +397,25 @@ mod tests {
         assert_eq!(ep, 0.01);
         // The stress itself did rotate (by about 2 rad).
         assert!((s[0][0] - sigma_bar[0][0]).abs() > 0.05e9, "{s:?}");
+    }
+
+    #[test]
+    fn the_ramp_integrates_to_the_rate_times_its_integral() {
+        let ramp = 2.0;
+        assert_eq!(ramp_factor(0.3, 0.1, 0.0), 1.0);
+        assert_eq!(ramp_factor(2.0, 0.1, ramp), 1.0);
+        assert_eq!(ramp_integral(1.7, 0.0), 1.7);
+        // Summed step factors reproduce the integral at any step size.
+        let dt = 0.013;
+        let (mut t, mut sum) = (0.0, 0.0);
+        for _ in 0..300 {
+            sum += dt * ramp_factor(t, dt, ramp);
+            t += dt;
+        }
+        assert!((sum - ramp_integral(t, ramp)).abs() < 1e-12, "{sum} vs {}", ramp_integral(t, ramp));
+        assert!((ramp_integral(ramp, ramp) - 1.0).abs() < 1e-15 && (ramp_integral(3.0, ramp) - 2.0).abs() < 1e-15);
+        // s(t) = (1 - cos(pi t / T)) / 2: midpoint 1/2, slope 0 at both ends.
+        let s = |t: f64| (ramp_integral(t + 1e-6, ramp) - ramp_integral(t - 1e-6, ramp)) / 2e-6;
+        assert!((s(1.0) - 0.5).abs() < 1e-9 && s(1e-3).abs() < 1e-5 && (s(ramp - 1e-3) - 1.0).abs() < 1e-5);
     }
 }

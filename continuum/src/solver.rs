@@ -154,6 +154,9 @@ pub struct Simulation<const D: usize> {
     /// Prescribed rate of every point's scalar field (1/s; a uniform lithiation), empty for
     /// none. Used only when the points carry a scalar field ([`Particles::with_fields`]).
     pub prescribed_scalar_rate: Vec<f64>,
+    /// Ramp time of the prescribed rate (s; 0: none, the rate applies from the start): the
+    /// rate is scaled by [`crate::silicon::ramp_factor`] over each step.
+    pub prescribed_ramp: f64,
     /// Diffusion of the scalar field (see [`crate::diffusion`]); none by default.
     pub diffusion: Option<crate::diffusion::Diffusion<D>>,
     /// Options and per-step record of the implicit integrator (unused by the explicit ones).
@@ -238,6 +241,7 @@ impl<const D: usize> Simulation<D> {
             integrator: TimeIntegrator::Dhakal,
             flip_fraction: 1.0,
             prescribed_scalar_rate: Vec::new(),
+            prescribed_ramp: 0.0,
             diffusion: None,
             implicit: implicit::Implicit::default(),
             gradient_correction: GradientCorrection::None,
@@ -628,8 +632,10 @@ impl<const D: usize> Simulation<D> {
             return Ok(());
         }
         let (dt, given) = (self.dt, &self.prescribed_scalar_rate);
+        let ramp = crate::silicon::ramp_factor(self.time, dt, self.prescribed_ramp);
+        let given_at = |p: usize| given.get(p).map_or(0.0, |r| if ramp == 1.0 { *r } else { r * ramp });
         for p in 0..pts.scalar.len() {
-            pts.scalar_rate[p] = given.get(p).copied().unwrap_or(0.0);
+            pts.scalar_rate[p] = given_at(p);
         }
         if let Some(d) = self.diffusion.as_mut() {
             d.step(&self.grid, self.scheme, &self.stencil, pts, dt).map_err(|o| SolverError::Diverged {
@@ -639,7 +645,7 @@ impl<const D: usize> Simulation<D> {
             })?;
         }
         for p in 0..pts.scalar.len() {
-            pts.scalar[p] += dt * given.get(p).copied().unwrap_or(0.0);
+            pts.scalar[p] += dt * given_at(p);
         }
         if let Some(p) = pts.scalar.iter().position(|c| !c.is_finite()) {
             return Err(SolverError::Diverged {

@@ -704,7 +704,8 @@ impl QuasiStatic {
         let num = |v: f64| if v.is_finite() { serde_json::json!(v) } else { Value::Null };
         serde_json::json!({
             "density_scaling": self.density_scaling,
-            "measure": "kinetic / elastic energy of the points (elastic = sum V (p^2/(2K) + s:s/(4G))), max over the steps after 10 acoustic transits",
+            "measure": "kinetic / elastic energy of the points (elastic = sum V (p^2/(2K) + s:s/(4G))), max over the steps after 10 acoustic transits (after the lithiation ramp and 10 transits with a ramp)",
+            "scored_after_s": num(self.score_after_s),
             "max_kinetic_over_elastic": num(self.max_ratio),
             "max_at_s": num(self.max_ratio_at),
             "final_kinetic_over_elastic": num(self.final_ratio),

@@ -214,6 +214,16 @@ pub struct Lithiation {
     /// up to `scheme.end_time`.
     #[serde(default)]
     pub uniform_rate: f64,
+    /// Ramp time (s) of the uniform rate: the rate rises as (1 - cos(pi t / T)) / 2 over
+    /// [0, T] and is full after (`continuum::silicon::ramp_integral`), so the start launches
+    /// no thickness mode; 0 (the default): the full rate from the first step. Every lithiated
+    /// body of a scene has the same ramp.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub ramp_time: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 fn default_temperature() -> f64 {
@@ -932,11 +942,31 @@ end_time = 1e-12
         let sets = vec!["bodies.bar.initial_strain=[-0.2, 0.0, 0.0]".to_string(), "scheme.timestep=1.5e-3".to_string()];
         let l = parse("heat-1d.toml", &heat, &sets, &base, "heat-1d").unwrap();
         assert!((l.resolved.diffusion.as_ref().unwrap().bound - 1.5625e-3).abs() < 1e-15);
+        // The 2D heat plate (Table 6.2): the 2D bound h^2 / (4 K); the series needs one value on
+        // all four faces.
+        let plate = read("heat-2d.toml");
+        let l = parse("heat-2d.toml", &plate, &[], &base, "heat-2d").unwrap();
+        assert!((l.resolved.diffusion.as_ref().unwrap().bound - 6.25e-4).abs() < 1e-15);
+        let sets = vec!["diffusion.y_max={ value = 0.5 }".to_string()];
+        let e = parse("heat-2d.toml", &plate, &sets, &base, "heat-2d").map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("reference.solution") && e.contains("the same value on all four faces"), "{e}");
         let film = read("si-thin-film.toml");
         let l = parse("si-thin-film.toml", &film, &[], &base, "si-thin-film").unwrap();
         let Law::HypoelasticPlastic(law) = &l.resolved.bodies[0].law else { panic!("the film's law") };
         assert_eq!(*law, continuum::silicon::ChemoPlastic::SILICON);
         assert_eq!(l.resolved.bodies[0].lithiation, Some((0.0, 1.0e7)));
+        assert_eq!(l.resolved.bodies[0].lithiation_ramp, 0.0, "no ramp by default");
+        // A ramp: the concentration reached is rate x (end - ramp / 2), so a rate that would
+        // overshoot c = 1 without it can fit with it.
+        let sets = vec!["bodies.film.lithiation.uniform_rate=6e7".to_string()];
+        let e = parse("si-thin-film.toml", &film, &sets, &base, "si-thin-film").map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("lithiation.uniform_rate") && e.contains("reaches c = 1.2"), "{e}");
+        let sets = vec!["bodies.film.lithiation.uniform_rate=6e7".to_string(), "bodies.film.lithiation.ramp_time=1.6e-8".to_string()];
+        let l = parse("si-thin-film.toml", &film, &sets, &base, "si-thin-film").unwrap();
+        assert_eq!(l.resolved.bodies[0].lithiation_ramp, 1.6e-8);
+        let sets = vec!["bodies.film.lithiation.ramp_time=-1".to_string()];
+        let e = parse("si-thin-film.toml", &film, &sets, &base, "si-thin-film").map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("bodies.film.lithiation.ramp_time") && e.contains("finite and >= 0"), "{e}");
     }
 
     #[test]

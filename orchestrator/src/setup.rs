@@ -148,6 +148,8 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
     if !sim.points.scalar.is_empty() {
         let body = sim.points.body.clone();
         sim.prescribed_scalar_rate = body.iter().map(|&b| scene.bodies[b as usize].lithiation.map_or(0.0, |l| l.1)).collect();
+        // One ramp for the scene (the validator makes every lithiated body's the same).
+        sim.prescribed_ramp = scene.bodies.iter().map(|b| b.lithiation_ramp).fold(0.0, f64::max);
     }
     sim.implicit.options.jacobian = scene.jacobian;
     sim.implicit.options.adaptive = scene.adaptive.clone();

@@ -90,6 +90,8 @@ pub struct ResolvedBody {
     pub points: usize,
     /// (initial concentration, uniform rate (1/s)) of a lithiated body.
     pub lithiation: Option<(f64, f64)>,
+    /// Ramp time (s) of the lithiation rate (0: none).
+    pub lithiation_ramp: f64,
 }
 
 /// A body's closure with its parameters.

@@ -194,6 +194,7 @@ impl Scene {
                     law,
                     points: *points,
                     lithiation: body.lithiation.as_ref().map(|l| (l.initial, l.uniform_rate)),
+                    lithiation_ramp: body.lithiation.as_ref().map_or(0.0, |l| l.ramp_time),
                 }
             })
             .collect();
@@ -398,6 +399,8 @@ impl Scene {
     ) -> Result<(f64, Option<PathBuf>, Option<Measured>), SceneError> {
         let dim = self.domain.dimension;
         let (dmin, dmax) = (self.domain.min.clone(), self.domain.max.clone());
+        let ramps: Vec<(String, f64)> =
+            self.bodies.iter().filter_map(|(n, o)| o.lithiation.as_ref().map(|l| (n.clone(), l.ramp_time))).collect();
         let Some(b) = self.bodies.get_mut(name) else { return Ok((0.0, None, None)) };
         let k = |f: &str| format!("bodies.{name}.{f}");
         for (f, v) in [("min", &b.min), ("max", &b.max)] {
@@ -461,7 +464,17 @@ impl Scene {
             if !(l.initial.is_finite() && (0.0..=1.0).contains(&l.initial)) {
                 return Err(loc.err(&k("lithiation.initial"), l.initial, "the normalised concentration must lie in [0, 1]"));
             }
-            let end = l.initial + l.uniform_rate * self.scheme.end_time;
+            if !(l.ramp_time.is_finite() && l.ramp_time >= 0.0) {
+                return Err(loc.err(&k("lithiation.ramp_time"), l.ramp_time, "the ramp time (s) must be finite and >= 0 (0: no ramp)"));
+            }
+            if let Some((other, t)) = ramps.iter().find(|(_, t)| *t != l.ramp_time) {
+                return Err(loc.err(
+                    &k("lithiation.ramp_time"),
+                    l.ramp_time,
+                    format!("body `{other}` ramps its lithiation over {t:e} s; every lithiated body of a scene has the same ramp"),
+                ));
+            }
+            let end = l.initial + l.uniform_rate * continuum::silicon::ramp_integral(self.scheme.end_time, l.ramp_time);
             if !(l.uniform_rate.is_finite() && (0.0..=1.0).contains(&end)) {
                 return Err(loc.err(
                     &k("lithiation.uniform_rate"),
@@ -841,17 +854,23 @@ impl Scene {
             Some(Reference::VibratingBar(r)) => self.validate_vibrating_bar(loc, &r).map(|_| None),
             Some(Reference::ThinFilmLithiation(r)) => self.validate_thin_film(loc, &r).map(|_| None),
             Some(Reference::HeatSeries(_)) => {
-                let ok = self.domain.dimension == 1
-                    && self.diffusion.as_ref().is_some_and(|d| {
-                        d.x_min.as_ref().is_some_and(|f| f.value.is_some()) && d.x_max.as_ref().is_some_and(|f| f.value.is_some())
-                    });
+                let value = |f: &Option<FaceBc>| f.as_ref().and_then(|f| f.value);
+                let ok = match (self.domain.dimension, self.diffusion.as_ref()) {
+                    (1, Some(d)) => value(&d.x_min).is_some() && value(&d.x_max).is_some(),
+                    (2, Some(d)) => {
+                        let v = value(&d.x_min);
+                        v.is_some() && [&d.x_max, &d.y_min, &d.y_max].iter().all(|f| value(f) == v)
+                    }
+                    _ => false,
+                };
                 if ok {
                     Ok(None)
                 } else {
                     Err(loc.err(
                         "reference.solution",
                         "\"heat-series\"",
-                        "needs a 1D scene with [diffusion] x_min = { value = .. } and x_max = { value = .. }",
+                        "needs a 1D scene with [diffusion] x_min = { value = .. } and x_max = { value = .. }, or a 2D scene \
+                         with the same value on all four faces (x_min, x_max, y_min, y_max = { value = c1 })",
                     ))
                 }
             }
