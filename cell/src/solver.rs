@@ -169,7 +169,7 @@ impl CellEqn {
 
     fn eval(&self, x: &[f64], out: &mut [f64]) {
         let t = Instant::now();
-        self.model.rhs(x, &self.open.borrow(), out);
+        self.model.newton_rhs(x, &self.open.borrow(), out);
         for i in 0..self.model.n {
             out[3 * i] *= T_UNIT;
             out[3 * i + 1] *= T_UNIT;
@@ -866,6 +866,7 @@ mod tests {
                 timestep_s: None,
                 max_steps: 100_000,
                 linear_solver: crate::scene::LinearSolver::Banded,
+                electron_rows: crate::scene::ElectronRows::Field,
             },
             output: CellOutput::default(),
         }
@@ -883,13 +884,13 @@ mod tests {
         eqn.fd_jacobian(&y, &mut vals);
         let n3 = y.len();
         let mut f0 = vec![0.0; n3];
-        model.rhs(&y, &[], &mut f0);
+        model.newton_rhs(&y, &[], &mut f0);
         let mut f1 = vec![0.0; n3];
         for j in 0..n3 {
             let h = 1e-7 * y[j].abs().max(1e-3);
             let mut yp = y.clone();
             yp[j] += h;
-            model.rhs(&yp, &[], &mut f1);
+            model.newton_rhs(&yp, &[], &mut f1);
             let mut dense = vec![0.0; n3];
             for r in 0..n3 {
                 dense[r] = (f1[r] - f0[r]) / h * if r % 3 == 2 { 1.0 } else { T_UNIT };
@@ -903,6 +904,44 @@ mod tests {
             let outside = dense.iter().map(|v| v.abs()).fold(0.0, f64::max);
             assert!(outside < 1e-6, "column {j} has entries outside the pattern: {outside}");
         }
+    }
+
+    /// The field form of the electron rows is the potential form plus sigma/(k eps) times the
+    /// cell's Poisson row, in every electrode cell (inside, at x = 0, at the interfaces and at
+    /// the insulating end), at a state that does not satisfy the Poisson rows.
+    #[test]
+    fn field_electron_rows_are_the_potential_rows_plus_a_multiple_of_the_poisson_row() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/pnp-full-cell.toml");
+        let text = std::fs::read_to_string(path).unwrap();
+        let mut scene = crate::scene::parse(&text, &std::collections::BTreeMap::new(), "t").unwrap();
+        scene.grid.cells = 50;
+        let mut model = Model::new(&scene);
+        let mut y = model.initial_state();
+        for (k, v) in y.iter_mut().enumerate() {
+            *v += if k % 3 == 2 { 1e-2 } else { 1.0 } * ((k * 7919) % 13) as f64 / 13.0;
+        }
+        let open = vec![true; model.interfaces.len()];
+        let mut f = vec![0.0; y.len()];
+        model.rhs(&y, &open, &mut f);
+        model.electron_rows = crate::scene::ElectronRows::Field;
+        let mut g = vec![0.0; y.len()];
+        model.newton_rhs(&y, &open, &mut g);
+        let mut electrode = 0;
+        for i in 0..model.n {
+            assert_eq!(f[3 * i], g[3 * i]);
+            assert_eq!(f[3 * i + 2], g[3 * i + 2]);
+            if model.region[i].is_electrode() {
+                electrode += 1;
+                let mu = model.sigma[i] / (model.k_poisson * model.eps[i]);
+                let want = f[3 * i + 1] + mu * f[3 * i + 2];
+                let scale = f[3 * i + 1].abs() + (mu * f[3 * i + 2]).abs();
+                assert!((g[3 * i + 1] - want).abs() <= 1e-12 * scale, "cell {i}: {} vs {want}", g[3 * i + 1]);
+                assert!((g[3 * i + 1] - f[3 * i + 1]).abs() > 1e-6 * scale, "cell {i}: the row did not change");
+            } else {
+                assert_eq!(f[3 * i + 1], g[3 * i + 1]);
+            }
+        }
+        assert_eq!(electrode, 20);
     }
 
     struct Logger;
@@ -937,5 +976,114 @@ mod tests {
         };
         let (_y, _open, stats) = integrate(&model, &settings, &mut |_| Control::Continue).unwrap_or_else(|e| panic!("{e}"));
         assert!(stats.steps > 0);
+    }
+}
+
+#[cfg(test)]
+mod diagnosis {
+    use super::*;
+    use crate::band::BandLu;
+    use crate::model::Region;
+    use std::collections::BTreeMap;
+
+    fn env<T: std::str::FromStr>(k: &str, d: T) -> T {
+        std::env::var(k).ok().and_then(|v| v.parse().ok()).unwrap_or(d)
+    }
+
+    #[test]
+    #[ignore = "diagnostic"]
+    fn newton_by_hand() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/pnp-full-cell.toml");
+        let text = std::fs::read_to_string(path).unwrap();
+        let mut scene = crate::scene::parse(&text, &BTreeMap::new(), "t").unwrap();
+        scene.grid.cells = env("N", 100_000usize);
+        let t0: f64 = env("T0", 5e-4);
+        let h: f64 = env("H", 2e-6);
+        let mut model = Model::new(&scene);
+        let settings = Settings {
+            rtol: 1e-6,
+            atol_concentration: 1e-9,
+            atol_potential: 1e-9,
+            end_time: t0,
+            output_times: vec![],
+            max_steps: 1_000_000,
+            explicit_dt: None,
+            start: None,
+            linear_solver: LinearSolver::Banded,
+        };
+        let (y0, open, st) = integrate(&model, &settings, &mut |_| Control::Continue).unwrap();
+        eprintln!("state at {t0}: {} steps", st.steps);
+        for form in [crate::scene::ElectronRows::Potential, crate::scene::ElectronRows::Field] {
+            model.electron_rows = form;
+            let eqn = CellEqn::new(model.clone(), y0.clone(), open.clone());
+            let c = h / T_UNIT;
+            let n3 = y0.len();
+            let mut lu = BandLu::default();
+            let mut rs = vec![];
+            let mut y = y0.clone();
+            let mut f = vec![0.0; n3];
+            let w: Vec<f64> = (0..n3).map(|j| 1e-6 * y0[j].abs() + 1e-9).collect();
+            let names = ["p", "n", "phi"];
+            let mut prev = f64::NAN;
+            for it in 0..env("ITS", 8usize) {
+                if it == 0 || env("FULL", 0usize) == 1 {
+                let mut vals = vec![0.0; eqn.row_idx.len()];
+                eqn.fd_jacobian(&y, &mut vals);
+                for j in 0..n3 {
+                    for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
+                        let r = eqn.row_idx[k];
+                        vals[k] = if r == j && r % 3 != 2 { 1.0 } else { 0.0 } - c * vals[k];
+                    }
+                }
+                let (kl, ku): (usize, usize) = BandLu::bandwidths(&eqn.col_ptr, &eqn.row_idx);
+                lu = BandLu::new(n3, kl, ku);
+                rs = vec![0.0f64; n3];
+                for k in 0..vals.len() {
+                    let r = eqn.row_idx[k];
+                    rs[r] = rs[r].max(vals[k].abs());
+                }
+                for v in rs.iter_mut() {
+                    *v = if env("EQ", 0usize) == 1 { 1.0 / *v } else { 1.0 };
+                }
+                for k in 0..vals.len() {
+                    vals[k] *= rs[eqn.row_idx[k]];
+                }
+                lu.factor_csc(&eqn.col_ptr, &eqn.row_idx, &vals);
+                }
+                eqn.eval(&y, &mut f);
+                let mut r: Vec<f64> = (0..n3).map(|j| if j % 3 != 2 { (y[j] - y0[j]) - c * f[j] } else { -c * f[j] }).collect();
+                for (a, b) in r.iter_mut().zip(&rs) {
+                    *a *= b;
+                }
+                lu.solve(&mut r);
+                let mut groups: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+                let mut sum = 0.0;
+                for j in 0..n3 {
+                    let d = -r[j];
+                    y[j] += d;
+                    let e = (d / w[j]).powi(2);
+                    sum += e;
+                    let reg = match model.region[j / 3] {
+                        Region::Anode => "anode",
+                        Region::Electrolyte => "elyte",
+                        Region::Cathode => "cathode",
+                    };
+                    let g = groups.entry(format!("{reg}.{}", names[j % 3])).or_insert((0.0, 0));
+                    if e.sqrt() > g.0 {
+                        *g = (e.sqrt(), j / 3);
+                    }
+                }
+                let norm = (sum / n3 as f64).sqrt();
+                let q = model.totals(&y).charge - model.totals(&y0).charge;
+                let (gl, _, _) = model.gauss(&y, &open);
+                eprintln!("{form:?} it {it}: |d|_w rms {norm:.3e} rate {:.3} Q-Q0 {q:.3e} kG0 {gl:.3e} n0 {:.6e} p0 {:.3e}", norm / prev, y[1], y[0]);
+                let mut gs: Vec<_> = groups.into_iter().collect();
+                gs.sort_by(|a, b| b.1.0.total_cmp(&a.1.0));
+                for (k, (v, cell)) in gs.iter().take(4) {
+                    eprintln!("    {k}: max {v:.3e} at cell {cell}");
+                }
+                prev = norm;
+            }
+        }
     }
 }
