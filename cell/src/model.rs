@@ -65,6 +65,9 @@ pub struct Model {
     pub face_state: FaceState,
     /// The form of the electrode electron rows in [`Model::newton_rhs`].
     pub electron_rows: ElectronRows,
+    /// Whether the banded LU makes its Newton corrections charge-exact (where valid, see
+    /// [`Model::charge_weights`]).
+    pub charge_exact_solve: bool,
     pub alpha: f64,
     pub threshold: f64,
     pub hysteresis: f64,
@@ -171,6 +174,7 @@ impl Model {
             k_poisson: EPS0 / E_CHARGE,
             face_state: scene.scheme.face_state,
             electron_rows: scene.scheme.electron_rows,
+            charge_exact_solve: scene.scheme.charge_exact_solve,
             alpha: scene.interface.alpha,
             threshold: scene.interface.threshold_v,
             hysteresis: scene.interface.hysteresis_v,
@@ -377,6 +381,22 @@ impl Model {
             let relax = ratio / self.k_poisson * (y[3 * i] - y[3 * i + 1]);
             out[3 * i + 1] = (excess(i) - excess(i + 1)) / dx + relax;
         }
+    }
+
+    /// The net charge per area as a linear function of the unknowns, `Q = w . y` with w = +dx
+    /// on p, -dx on n (electrons and anions) and 0 on phi, where its rate does not depend on
+    /// the state: the fluxes through both ends are fixed (no cations cross either end, the
+    /// electron currents are given, the right end insulating), so `w^T f(y)` is a constant and
+    /// `w^T J = 0` for every state; and the electron rows are in flux form (`"potential"`: the
+    /// field form adds Poisson rows, whose charge weights do not cancel). Then the Newton
+    /// matrix A = M - cJ has `w^T A = w^T M`: every exact Newton correction x of `A x = b`
+    /// changes the charge by `w^T x = w^T b`. None where that does not hold or where
+    /// `scheme.charge_exact_solve = false`.
+    pub fn charge_weights(&self) -> Option<Vec<f64>> {
+        if !self.charge_exact_solve || self.right != Right::Insulating || self.electron_rows != ElectronRows::Potential {
+            return None;
+        }
+        Some((0..self.len()).map(|j| [self.dx, -self.dx, 0.0][j % 3]).collect())
     }
 
     /// Every face's fluxes and field.

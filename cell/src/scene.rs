@@ -305,6 +305,13 @@ pub struct CellScheme {
     /// steps at 1e5 cells, not the fix of the stall).
     #[serde(default = "default_electron_rows")]
     pub electron_rows: ElectronRows,
+    /// Charge-exact Newton corrections (cell/README.md "Charge-exact linear solves"): after
+    /// the banded LU, the correction is moved so that it changes the cell's net charge by
+    /// exactly what the Newton system prescribes. Applies where the charge's rate does not
+    /// depend on the state (an insulating right end), with the banded LU and the potential
+    /// form of the electron rows; elsewhere it is a no-op. Default true.
+    #[serde(default = "default_true")]
+    pub charge_exact_solve: bool,
 }
 
 fn default_electron_rows() -> ElectronRows {

@@ -35,14 +35,48 @@ thread_local! {
     static LU_SETUP_S: Cell<f64> = const { Cell::new(0.0) };
     static LU_SOLVE_S: Cell<f64> = const { Cell::new(0.0) };
     static JAC_S: Cell<f64> = const { Cell::new(0.0) };
+    /// The charge weights of this thread's integration ([`Model::charge_weights`]; empty: the
+    /// banded LU's corrections are not made charge-exact).
+    static CHARGE_WEIGHTS: RefCell<Vec<f64>> = const { RefCell::new(Vec::new()) };
 }
 
-/// The banded LU of [`crate::band`] as diffsol's linear solver.
+/// Sets the charge weights for the banded LU of this thread while alive; clears them after.
+struct ChargeWeights;
+
+impl ChargeWeights {
+    fn set(w: Option<Vec<f64>>) -> ChargeWeights {
+        CHARGE_WEIGHTS.with(|c| *c.borrow_mut() = w.unwrap_or_default());
+        ChargeWeights
+    }
+}
+
+impl Drop for ChargeWeights {
+    fn drop(&mut self) {
+        CHARGE_WEIGHTS.with(|c| c.borrow_mut().clear());
+    }
+}
+
+/// The banded LU of [`crate::band`] as diffsol's linear solver, with charge-exact
+/// corrections where the cell's charge weights are set ([`Model::charge_weights`]).
+///
+/// Why: where `w^T A = w^T M` (w the charge weights), an exact solution x of `A x = b` has
+/// `w^T M x = w^T b`. The LU's x is backward stable, `(A + E) x = b` with |E| ~ eps |L||U|,
+/// so it misses that by `w^T E x`: at 1e5 cells the cation rows in the interfaces' Debye layers
+/// carry entries ~c D p / (V_T dx^2) ~ 1e15 and the charge error of a correction is ~1e-6 of its
+/// size. The cell's net charge sits on the Dirichlet contact (G[0] = Q eps0/e): the error lands
+/// in the first cell's electrons as dQ/dx (tolerance 1e-9 /nm^3) and tilts the potential of
+/// the whole cell, and Newton converged only linearly, at 0.05-0.7 per iteration (cell/README.md).
+/// The fix: the charge defect `d = w^T b - w^T M x` is computed from its definition (no product
+/// with A, so to round-off of the charges) and removed along `z = A^{-1} u`, u = the charge
+/// weights times |A||x| (the backward error's bound, row by row): `x += (d / w^T z) z`. The
+/// correction is where the LU's error came from; the charge of the result is right to round-off.
 #[derive(Default)]
 pub struct BandedLu {
     /// The linearisation (M - c J) as diffsol assembles it, in the pattern of the Jacobian.
     a: Option<M>,
     lu: BandLu,
+    /// z = A^{-1} u and w^T z for the charge-exact corrections (None: not made).
+    charge_dir: Option<(Vec<f64>, f64)>,
 }
 
 impl LaLinearSolver<M> for BandedLu {
@@ -51,6 +85,7 @@ impl LaLinearSolver<M> for BandedLu {
         op.matrix_inplace(a);
         let m = &a.inner()[0];
         self.lu.factor_csc(m.symbolic().col_ptr(), m.symbolic().row_idx(), m.val());
+        self.prepare_charge_direction();
     }
     fn set_sparsity<C: LaLinearOp<V = V, T = f64, M = M, C = FaerContext>>(&mut self, op: &C) {
         let a = M::new_from_sparsity(op.nrows(), op.ncols(), op.sparsity(), *op.context());
@@ -63,7 +98,18 @@ impl LaLinearSolver<M> for BandedLu {
         if let Some(col) = self.lu.singular() {
             return Err(diffsol::LaError::Other(format!("the Newton matrix is singular (zero pivot in column {col})")));
         }
-        b.for_each_batch_host([], |b, [], _| self.lu.solve(b));
+        CHARGE_WEIGHTS.with(|w| {
+            let w = w.borrow();
+            b.for_each_batch_host([], |b, [], _| {
+                if w.len() == b.len() && self.charge_dir.is_some() {
+                    let rhs = b.to_vec();
+                    self.lu.solve(b);
+                    self.charge_exact(&w, &rhs, b);
+                } else {
+                    self.lu.solve(b);
+                }
+            });
+        });
         Ok(())
     }
     fn solve_transpose_in_place(&self, b: &mut V) -> Result<(), diffsol::LaError> {
@@ -72,6 +118,52 @@ impl LaLinearSolver<M> for BandedLu {
         }
         b.for_each_batch_host([], |b, [], _| self.lu.solve_transpose(b));
         Ok(())
+    }
+}
+
+impl BandedLu {
+    /// After a factorisation: the direction of the charge correction, z = A^{-1} u with u =
+    /// the charge weights times the rows' sums of |A| (where the LU's backward error, bounded
+    /// by eps |A||x| row by row, is largest), and its charge w^T z.
+    fn prepare_charge_direction(&mut self) {
+        self.charge_dir = None;
+        let Some(a) = self.a.as_ref() else { return };
+        CHARGE_WEIGHTS.with(|w| {
+            let w = w.borrow();
+            let m = &a.inner()[0];
+            let (col_ptr, row_idx, val) = (m.symbolic().col_ptr(), m.symbolic().row_idx(), m.val());
+            if w.len() != col_ptr.len() - 1 || self.lu.singular().is_some() {
+                return;
+            }
+            let mut z = vec![0.0; w.len()];
+            for j in 0..w.len() {
+                for k in col_ptr[j]..col_ptr[j + 1] {
+                    z[row_idx[k]] += val[k].abs();
+                }
+            }
+            for (zj, wj) in z.iter_mut().zip(w.iter()) {
+                *zj *= wj;
+            }
+            self.lu.solve(&mut z);
+            let wz: f64 = w.iter().zip(&z).map(|(a, b)| a * b).sum();
+            if wz != 0.0 && wz.is_finite() {
+                self.charge_dir = Some((z, wz));
+            }
+        });
+    }
+
+    /// Moves the LU's solution x of `A x = b` so that `w^T M x = w^T b` (see [`BandedLu`]).
+    fn charge_exact(&self, w: &[f64], b: &[f64], x: &mut [f64]) {
+        let Some((z, wz)) = self.charge_dir.as_ref() else { return };
+        // M is the identity on the differential rows and 0 on the Poisson rows, where w = 0.
+        let d: f64 = w.iter().zip(b.iter().zip(x.iter())).map(|(wj, (bj, xj))| wj * (bj - xj)).sum();
+        if d == 0.0 || !d.is_finite() {
+            return;
+        }
+        let s = d / wz;
+        for (xj, zj) in x.iter_mut().zip(z) {
+            *xj += s * zj;
+        }
     }
 }
 
@@ -755,6 +847,7 @@ fn bdf(
     // Newton to well below the local error (default 0.2 of it): the Poisson rows, linear,
     // then hold to ~1e-12 of their terms.
     problem.ode_options.nonlinear_solver_tolerance = 1e-3;
+    let _weights = ChargeWeights::set(if settings.linear_solver == LinearSolver::Banded { model.charge_weights() } else { None });
     let mut y = y_start;
     let mut t = t_start;
     let end = settings.end_time;
@@ -867,6 +960,7 @@ mod tests {
                 max_steps: 100_000,
                 linear_solver: crate::scene::LinearSolver::Banded,
                 electron_rows: crate::scene::ElectronRows::Field,
+                charge_exact_solve: true,
             },
             output: CellOutput::default(),
         }
@@ -1020,6 +1114,7 @@ mod diagnosis {
             let n3 = y0.len();
             let mut lu = BandLu::default();
             let mut rs = vec![];
+            let mut vals_keep = vec![];
             let mut y = y0.clone();
             let mut f = vec![0.0; n3];
             let w: Vec<f64> = (0..n3).map(|j| 1e-6 * y0[j].abs() + 1e-9).collect();
@@ -1027,35 +1122,62 @@ mod diagnosis {
             let mut prev = f64::NAN;
             for it in 0..env("ITS", 8usize) {
                 if it == 0 || env("FULL", 0usize) == 1 {
-                let mut vals = vec![0.0; eqn.row_idx.len()];
-                eqn.fd_jacobian(&y, &mut vals);
-                for j in 0..n3 {
-                    for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
-                        let r = eqn.row_idx[k];
-                        vals[k] = if r == j && r % 3 != 2 { 1.0 } else { 0.0 } - c * vals[k];
+                    let mut vals = vec![0.0; eqn.row_idx.len()];
+                    eqn.fd_jacobian(&y, &mut vals);
+                    for j in 0..n3 {
+                        for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
+                            let r = eqn.row_idx[k];
+                            vals[k] = if r == j && r % 3 != 2 { 1.0 } else { 0.0 } - c * vals[k];
+                        }
                     }
-                }
-                let (kl, ku): (usize, usize) = BandLu::bandwidths(&eqn.col_ptr, &eqn.row_idx);
-                lu = BandLu::new(n3, kl, ku);
-                rs = vec![0.0f64; n3];
-                for k in 0..vals.len() {
-                    let r = eqn.row_idx[k];
-                    rs[r] = rs[r].max(vals[k].abs());
-                }
-                for v in rs.iter_mut() {
-                    *v = if env("EQ", 0usize) == 1 { 1.0 / *v } else { 1.0 };
-                }
-                for k in 0..vals.len() {
-                    vals[k] *= rs[eqn.row_idx[k]];
-                }
-                lu.factor_csc(&eqn.col_ptr, &eqn.row_idx, &vals);
+                    let (kl, ku): (usize, usize) = BandLu::bandwidths(&eqn.col_ptr, &eqn.row_idx);
+                    lu = BandLu::new(n3, kl, ku);
+                    rs = vec![0.0f64; n3];
+                    for k in 0..vals.len() {
+                        let r = eqn.row_idx[k];
+                        rs[r] = rs[r].max(vals[k].abs());
+                    }
+                    for v in rs.iter_mut() {
+                        *v = if env("EQ", 0usize) == 1 { 1.0 / *v } else { 1.0 };
+                    }
+                    for k in 0..vals.len() {
+                        vals[k] *= rs[eqn.row_idx[k]];
+                    }
+                    lu.factor_csc(&eqn.col_ptr, &eqn.row_idx, &vals);
+                    vals_keep = vals.clone();
                 }
                 eqn.eval(&y, &mut f);
                 let mut r: Vec<f64> = (0..n3).map(|j| if j % 3 != 2 { (y[j] - y0[j]) - c * f[j] } else { -c * f[j] }).collect();
                 for (a, b) in r.iter_mut().zip(&rs) {
                     *a *= b;
                 }
+                let b0 = r.clone();
                 lu.solve(&mut r);
+                if env("PROJ", 0usize) == 1 {
+                    // Charge weights: +dx for p, -dx for n, 0 for the Poisson rows.
+                    let wq = |j: usize| match j % 3 {
+                        0 => model.dx,
+                        1 => -model.dx,
+                        _ => 0.0,
+                    };
+                    // The charge defect of the solve: w^T (b - A x) = w^T b - w^T M x (w^T J = 0).
+                    let d: f64 = (0..n3).map(|j| wq(j) * (b0[j] - r[j])).sum();
+                    // |A||x| per row.
+                    let mut ax = vec![0.0; n3];
+                    for j in 0..n3 {
+                        for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
+                            ax[eqn.row_idx[k]] += (vals_keep[k] * r[j]).abs();
+                        }
+                    }
+                    let mut z: Vec<f64> = (0..n3).map(|j| wq(j) * ax[j]).collect();
+                    lu.solve(&mut z);
+                    let wz: f64 = (0..n3).map(|j| wq(j) * z[j]).sum();
+                    for j in 0..n3 {
+                        r[j] += d / wz * z[j];
+                    }
+                    let d2: f64 = (0..n3).map(|j| wq(j) * (b0[j] - r[j])).sum();
+                    eprintln!("    charge defect {d:.3e} -> {d2:.3e}");
+                }
                 let mut groups: BTreeMap<String, (f64, usize)> = BTreeMap::new();
                 let mut sum = 0.0;
                 for j in 0..n3 {
@@ -1076,7 +1198,12 @@ mod diagnosis {
                 let norm = (sum / n3 as f64).sqrt();
                 let q = model.totals(&y).charge - model.totals(&y0).charge;
                 let (gl, _, _) = model.gauss(&y, &open);
-                eprintln!("{form:?} it {it}: |d|_w rms {norm:.3e} rate {:.3} Q-Q0 {q:.3e} kG0 {gl:.3e} n0 {:.6e} p0 {:.3e}", norm / prev, y[1], y[0]);
+                eprintln!(
+                    "{form:?} it {it}: |d|_w rms {norm:.3e} rate {:.3} Q-Q0 {q:.3e} kG0 {gl:.3e} n0 {:.6e} p0 {:.3e}",
+                    norm / prev,
+                    y[1],
+                    y[0]
+                );
                 let mut gs: Vec<_> = groups.into_iter().collect();
                 gs.sort_by(|a, b| b.1.0.total_cmp(&a.1.0));
                 for (k, (v, cell)) in gs.iter().take(4) {
