@@ -525,6 +525,8 @@ pub struct Snapshot<'a> {
     pub output: bool,
     /// Set where the integration restarts (see [`Restart`]): a checkpoint may be taken here.
     pub restart: Option<&'a Restart>,
+    /// The run's counters so far (the times only at the end of [`integrate`]).
+    pub stats: &'a Stats,
 }
 
 /// What the caller wants after a step.
@@ -654,7 +656,7 @@ pub fn integrate(
             }
             monitor.check(&y0, &open0, &mut stats);
             let r = Restart { t: 0.0, y: y0, open: open0, h0: 1e-3, outputs_done: done, stats };
-            let snap = Snapshot { step: 0, t: 0.0, y: &r.y, open: &r.open, output: done > 0, restart: Some(&r) };
+            let snap = Snapshot { step: 0, t: 0.0, y: &r.y, open: &r.open, output: done > 0, restart: Some(&r), stats: &r.stats };
             if on_snapshot(&snap) == Control::Stop {
                 let mut stats = r.stats.clone();
                 stats.stopped = true;
@@ -736,7 +738,7 @@ fn explicit(
             outputs_done,
             stats: stats.clone(),
         });
-        if on_snapshot(&Snapshot { step: stats.steps, t, y: &y, open: &open, output: is_output, restart: restart.as_ref() })
+        if on_snapshot(&Snapshot { step: stats.steps, t, y: &y, open: &open, output: is_output, restart: restart.as_ref(), stats })
             == Control::Stop
         {
             stats.stopped = true;
@@ -811,7 +813,7 @@ fn segment<L: LaLinearSolver<M> + Default>(
             return Ok(Some(SegmentEnd { t: tn, y: std::mem::take(y), switched: None, h: state.h }));
         }
         let open = problem.eqn.open.borrow();
-        if on_snapshot(&Snapshot { step: stats.steps, t: tn, y, open: &open, output: false, restart: None }) == Control::Stop {
+        if on_snapshot(&Snapshot { step: stats.steps, t: tn, y, open: &open, output: false, restart: None, stats }) == Control::Stop {
             return Ok(None);
         }
     }
@@ -890,7 +892,7 @@ fn bdf(
             // The end: no restart, the state as the integrator left it.
             y = y_end;
             let open = problem.eqn.open.borrow();
-            let snap = Snapshot { step: stats.steps, t, y: &y, open: &open, output, restart: None };
+            let snap = Snapshot { step: stats.steps, t, y: &y, open: &open, output, restart: None, stats };
             if on_snapshot(&snap) == Control::Stop {
                 stats.stopped = true;
             }
@@ -908,7 +910,8 @@ fn bdf(
         problem.h0 = h0;
         let open = problem.eqn.open.borrow().clone();
         let restart = Restart { t, y: yr, open, h0, outputs_done, stats: stats.clone() };
-        let snap = Snapshot { step: stats.steps, t, y: &restart.y, open: &restart.open, output, restart: Some(&restart) };
+        let snap =
+            Snapshot { step: stats.steps, t, y: &restart.y, open: &restart.open, output, restart: Some(&restart), stats: &restart.stats };
         let control = on_snapshot(&snap);
         y = restart.y;
         if control == Control::Stop {
@@ -1077,23 +1080,83 @@ mod tests {
 mod diagnosis {
     use super::*;
     use crate::band::BandLu;
-    use crate::model::Region;
     use std::collections::BTreeMap;
 
     fn env<T: std::str::FromStr>(k: &str, d: T) -> T {
         std::env::var(k).ok().and_then(|v| v.parse().ok()).unwrap_or(d)
     }
 
+    /// Backward Euler from the state y0 with step h, solved by modified Newton (the Jacobian
+    /// of y0) over the banded LU, with or without the charge-exact correction; returns the
+    /// weighted RMS norms of the corrections (rtol 1e-6, atol 1e-9) and the charge defects of
+    /// the LU's solutions (e/nm^2).
+    fn newton(model: &Model, y0: &[f64], open: &[bool], h: f64, charge_exact: bool, its: usize) -> (Vec<f64>, Vec<f64>) {
+        let eqn = CellEqn::new(model.clone(), y0.to_vec(), open.to_vec());
+        let c = h / T_UNIT;
+        let n3 = y0.len();
+        let mut vals = vec![0.0; eqn.row_idx.len()];
+        eqn.fd_jacobian(y0, &mut vals);
+        for j in 0..n3 {
+            for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
+                let r = eqn.row_idx[k];
+                vals[k] = if r == j && r % 3 != 2 { 1.0 } else { 0.0 } - c * vals[k];
+            }
+        }
+        let (kl, ku) = BandLu::bandwidths(&eqn.col_ptr, &eqn.row_idx);
+        let mut lu = BandLu::new(n3, kl, ku);
+        lu.factor_csc(&eqn.col_ptr, &eqn.row_idx, &vals);
+        let w = model.charge_weights().expect("a closed cell");
+        // The charge direction as BandedLu makes it: A^{-1} (w * row sums of |A|).
+        let mut z = vec![0.0; n3];
+        for j in 0..n3 {
+            for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
+                z[eqn.row_idx[k]] += vals[k].abs();
+            }
+        }
+        for (zj, wj) in z.iter_mut().zip(&w) {
+            *zj *= wj;
+        }
+        lu.solve(&mut z);
+        let wz: f64 = w.iter().zip(&z).map(|(a, b)| a * b).sum();
+        let weight: Vec<f64> = y0.iter().map(|v| 1e-6 * v.abs() + 1e-9).collect();
+        let (mut norms, mut defects) = (vec![], vec![]);
+        let mut y = y0.to_vec();
+        let mut f = vec![0.0; n3];
+        for _ in 0..its {
+            eqn.eval(&y, &mut f);
+            let b: Vec<f64> = (0..n3).map(|j| -if j % 3 != 2 { (y[j] - y0[j]) - c * f[j] } else { -c * f[j] }).collect();
+            let mut x = b.clone();
+            lu.solve(&mut x);
+            let d: f64 = (0..n3).map(|j| w[j] * (b[j] - x[j])).sum();
+            defects.push(d);
+            if charge_exact {
+                for (xj, zj) in x.iter_mut().zip(&z) {
+                    *xj += d / wz * zj;
+                }
+            }
+            let mut sum = 0.0;
+            for j in 0..n3 {
+                y[j] += x[j];
+                sum += (x[j] / weight[j]).powi(2);
+            }
+            norms.push((sum / n3 as f64).sqrt());
+        }
+        (norms, defects)
+    }
+
+    /// The diagnosis of cell/README.md "1e5 cells: why the steps were small": at 1e5 cells the
+    /// LU's corrections change the cell's charge, and Newton converges only linearly; the
+    /// charge-exact correction restores fast convergence.
     #[test]
-    #[ignore = "diagnostic"]
-    fn newton_by_hand() {
+    #[ignore = "heavy: a 1e5-cell state (about a minute); run with --ignored --nocapture"]
+    fn charge_exact_corrections_restore_newton_convergence_at_1e5_cells() {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/pnp-full-cell.toml");
         let text = std::fs::read_to_string(path).unwrap();
         let mut scene = crate::scene::parse(&text, &BTreeMap::new(), "t").unwrap();
         scene.grid.cells = env("N", 100_000usize);
         let t0: f64 = env("T0", 5e-4);
         let h: f64 = env("H", 2e-6);
-        let mut model = Model::new(&scene);
+        let model = Model::new(&scene);
         let settings = Settings {
             rtol: 1e-6,
             atol_concentration: 1e-9,
@@ -1105,112 +1168,13 @@ mod diagnosis {
             start: None,
             linear_solver: LinearSolver::Banded,
         };
-        let (y0, open, st) = integrate(&model, &settings, &mut |_| Control::Continue).unwrap();
-        eprintln!("state at {t0}: {} steps", st.steps);
-        for form in [crate::scene::ElectronRows::Potential, crate::scene::ElectronRows::Field] {
-            model.electron_rows = form;
-            let eqn = CellEqn::new(model.clone(), y0.clone(), open.clone());
-            let c = h / T_UNIT;
-            let n3 = y0.len();
-            let mut lu = BandLu::default();
-            let mut rs = vec![];
-            let mut vals_keep = vec![];
-            let mut y = y0.clone();
-            let mut f = vec![0.0; n3];
-            let w: Vec<f64> = (0..n3).map(|j| 1e-6 * y0[j].abs() + 1e-9).collect();
-            let names = ["p", "n", "phi"];
-            let mut prev = f64::NAN;
-            for it in 0..env("ITS", 8usize) {
-                if it == 0 || env("FULL", 0usize) == 1 {
-                    let mut vals = vec![0.0; eqn.row_idx.len()];
-                    eqn.fd_jacobian(&y, &mut vals);
-                    for j in 0..n3 {
-                        for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
-                            let r = eqn.row_idx[k];
-                            vals[k] = if r == j && r % 3 != 2 { 1.0 } else { 0.0 } - c * vals[k];
-                        }
-                    }
-                    let (kl, ku): (usize, usize) = BandLu::bandwidths(&eqn.col_ptr, &eqn.row_idx);
-                    lu = BandLu::new(n3, kl, ku);
-                    rs = vec![0.0f64; n3];
-                    for k in 0..vals.len() {
-                        let r = eqn.row_idx[k];
-                        rs[r] = rs[r].max(vals[k].abs());
-                    }
-                    for v in rs.iter_mut() {
-                        *v = if env("EQ", 0usize) == 1 { 1.0 / *v } else { 1.0 };
-                    }
-                    for k in 0..vals.len() {
-                        vals[k] *= rs[eqn.row_idx[k]];
-                    }
-                    lu.factor_csc(&eqn.col_ptr, &eqn.row_idx, &vals);
-                    vals_keep = vals.clone();
-                }
-                eqn.eval(&y, &mut f);
-                let mut r: Vec<f64> = (0..n3).map(|j| if j % 3 != 2 { (y[j] - y0[j]) - c * f[j] } else { -c * f[j] }).collect();
-                for (a, b) in r.iter_mut().zip(&rs) {
-                    *a *= b;
-                }
-                let b0 = r.clone();
-                lu.solve(&mut r);
-                if env("PROJ", 0usize) == 1 {
-                    // Charge weights: +dx for p, -dx for n, 0 for the Poisson rows.
-                    let wq = |j: usize| match j % 3 {
-                        0 => model.dx,
-                        1 => -model.dx,
-                        _ => 0.0,
-                    };
-                    // The charge defect of the solve: w^T (b - A x) = w^T b - w^T M x (w^T J = 0).
-                    let d: f64 = (0..n3).map(|j| wq(j) * (b0[j] - r[j])).sum();
-                    // |A||x| per row.
-                    let mut ax = vec![0.0; n3];
-                    for j in 0..n3 {
-                        for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
-                            ax[eqn.row_idx[k]] += (vals_keep[k] * r[j]).abs();
-                        }
-                    }
-                    let mut z: Vec<f64> = (0..n3).map(|j| wq(j) * ax[j]).collect();
-                    lu.solve(&mut z);
-                    let wz: f64 = (0..n3).map(|j| wq(j) * z[j]).sum();
-                    for j in 0..n3 {
-                        r[j] += d / wz * z[j];
-                    }
-                    let d2: f64 = (0..n3).map(|j| wq(j) * (b0[j] - r[j])).sum();
-                    eprintln!("    charge defect {d:.3e} -> {d2:.3e}");
-                }
-                let mut groups: BTreeMap<String, (f64, usize)> = BTreeMap::new();
-                let mut sum = 0.0;
-                for j in 0..n3 {
-                    let d = -r[j];
-                    y[j] += d;
-                    let e = (d / w[j]).powi(2);
-                    sum += e;
-                    let reg = match model.region[j / 3] {
-                        Region::Anode => "anode",
-                        Region::Electrolyte => "elyte",
-                        Region::Cathode => "cathode",
-                    };
-                    let g = groups.entry(format!("{reg}.{}", names[j % 3])).or_insert((0.0, 0));
-                    if e.sqrt() > g.0 {
-                        *g = (e.sqrt(), j / 3);
-                    }
-                }
-                let norm = (sum / n3 as f64).sqrt();
-                let q = model.totals(&y).charge - model.totals(&y0).charge;
-                let (gl, _, _) = model.gauss(&y, &open);
-                eprintln!(
-                    "{form:?} it {it}: |d|_w rms {norm:.3e} rate {:.3} Q-Q0 {q:.3e} kG0 {gl:.3e} n0 {:.6e} p0 {:.3e}",
-                    norm / prev,
-                    y[1],
-                    y[0]
-                );
-                let mut gs: Vec<_> = groups.into_iter().collect();
-                gs.sort_by(|a, b| b.1.0.total_cmp(&a.1.0));
-                for (k, (v, cell)) in gs.iter().take(4) {
-                    eprintln!("    {k}: max {v:.3e} at cell {cell}");
-                }
-                prev = norm;
-            }
-        }
+        let (y0, open, _) = integrate(&model, &settings, &mut |_| Control::Continue).unwrap();
+        let (plain, plain_d) = newton(&model, &y0, &open, h, false, 4);
+        let (exact, exact_d) = newton(&model, &y0, &open, h, true, 4);
+        eprintln!("plain LU: corrections {plain:?}, charge defects {plain_d:?}");
+        eprintln!("charge-exact: corrections {exact:?}, charge defects of the LU {exact_d:?}");
+        assert!(exact[2] < 1e-4 * exact[0], "charge-exact corrections converge fast: {exact:?}");
+        assert!(plain[2] > 1e-3 * plain[0], "plain LU corrections converge slowly at 1e5 cells: {plain:?}");
+        assert!(plain_d[0].abs() > 1e-8, "the plain LU's first correction changes the charge: {plain_d:?}");
     }
 }

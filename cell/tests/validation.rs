@@ -336,10 +336,13 @@ fn timings_to_two_seconds() {
             if every > 0 && snap.step >= last.1 + every {
                 let dt = (snap.t - last.0) / (snap.step - last.1) as f64;
                 eprintln!(
-                    "  {n} cells: t {:.4e} s, {} steps, mean step {dt:.2e} s, wall {:.1} s",
+                    "  {n} cells: t {:.4e} s, {} steps, mean step {dt:.2e} s, wall {:.1} s; {} Newton failures, {} error-test failures, {} switches",
                     snap.t,
                     snap.step,
-                    wall.elapsed().as_secs_f64()
+                    wall.elapsed().as_secs_f64(),
+                    snap.stats.newton_failures,
+                    snap.stats.error_test_failures,
+                    snap.stats.switch_events
                 );
                 last = (snap.t, snap.step);
             }
@@ -347,6 +350,14 @@ fn timings_to_two_seconds() {
         };
         let (y, _open, st) = solver::integrate(&model, &settings(&s), &mut progress).unwrap_or_else(|e| panic!("{e}"));
         let tot = model.totals(&y);
+        // The final profile as x_nm,p,n,phi (MSCALE_CELL_TIMING_SAVE=DIR: DIR/final_<cells>.csv).
+        if let Ok(dir) = std::env::var("MSCALE_CELL_TIMING_SAVE") {
+            let mut out = String::from("x_nm,p_per_nm3,n_per_nm3,phi_v\n");
+            for i in 0..model.n {
+                out += &format!("{:e},{:e},{:e},{:e}\n", model.x[i], y[3 * i], y[3 * i + 1], y[3 * i + 2]);
+            }
+            std::fs::write(Path::new(&dir).join(format!("final_{}.csv", n.trim())), out).expect("write the final profile");
+        }
         eprintln!(
             "{n} cells: {} steps, {} switches ({} error-test failures, {} Newton failures, {} Newton iterations, {} LU setups, {} Jacobians), wall {:.2} s: rhs {:.2}, Jacobian {:.2}, LU factor {:.2}, LU solve {:.2}; min p {:e}, cathode electrons {:.2}/nm^2, cation drift {:e}",
             st.steps,
