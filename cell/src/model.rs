@@ -66,7 +66,7 @@ pub struct Model {
     /// The form of the electrode electron rows in [`Model::newton_rhs`].
     pub electron_rows: ElectronRows,
     /// Whether the banded LU makes its Newton corrections charge-exact (where valid, see
-    /// [`Model::charge_weights`]).
+    /// [`Model::invariants`]).
     pub charge_exact_solve: bool,
     pub alpha: f64,
     pub threshold: f64,
@@ -383,20 +383,39 @@ impl Model {
         }
     }
 
-    /// The net charge per area as a linear function of the unknowns, `Q = w . y` with w = +dx
-    /// on p, -dx on n (electrons and anions) and 0 on phi, where its rate does not depend on
-    /// the state: the fluxes through both ends are fixed (no cations cross either end, the
-    /// electron currents are given, the right end insulating), so `w^T f(y)` is a constant and
-    /// `w^T J = 0` for every state; and the electron rows are in flux form (`"potential"`: the
-    /// field form adds Poisson rows, whose charge weights do not cancel). Then the Newton
-    /// matrix A = M - cJ has `w^T A = w^T M`: every exact Newton correction x of `A x = b`
-    /// changes the charge by `w^T x = w^T b`. None where that does not hold or where
-    /// `scheme.charge_exact_solve = false`.
-    pub fn charge_weights(&self) -> Option<Vec<f64>> {
+    /// The inventories (per area) whose rates do not depend on the state, as weights on the
+    /// unknowns, `I_k = w_k . y`: for each species (p; n = electrons or anions), the cells of
+    /// each material, joined across an interface where cations may cross it (for p, an open
+    /// or ramped interface). No electron or anion crosses an interface, no cation an end, the
+    /// ends' electron currents are given: each such inventory changes at a fixed rate, so
+    /// `w_k^T f(y)` is constant and `w_k^T J = 0` for every state, and the Newton matrix
+    /// A = M - cJ has `w_k^T A = w_k^T M`: an exact Newton correction x of `A x = b` changes
+    /// the inventory by exactly `w_k^T b`. Requires the insulating right end (a reservoir's
+    /// fluxes depend on the state) and the electron rows in flux form (the field form adds
+    /// Poisson rows); empty there and where `scheme.charge_exact_solve = false`. The net
+    /// charge is in their span.
+    pub fn invariants(&self, open: &[bool]) -> Vec<Vec<f64>> {
         if !self.charge_exact_solve || self.right != Right::Insulating || self.electron_rows != ElectronRows::Potential {
-            return None;
+            return vec![];
         }
-        Some((0..self.len()).map(|j| [self.dx, -self.dx, 0.0][j % 3]).collect())
+        let crossable =
+            |f: usize| self.ramp.is_some() || self.interfaces.binary_search(&f).ok().and_then(|k| open.get(k).copied()).unwrap_or(false);
+        let mut out = vec![];
+        for var in 0..2 {
+            let mut start = 0;
+            for i in 1..=self.n {
+                let end = i == self.n || (self.region[i] != self.region[i - 1] && !(var == 0 && crossable(i)));
+                if end {
+                    let mut w = vec![0.0; self.len()];
+                    for c in start..i {
+                        w[3 * c + var] = self.dx;
+                    }
+                    out.push(w);
+                    start = i;
+                }
+            }
+        }
+        out
     }
 
     /// Every face's fluxes and field.

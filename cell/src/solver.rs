@@ -35,17 +35,17 @@ thread_local! {
     static LU_SETUP_S: Cell<f64> = const { Cell::new(0.0) };
     static LU_SOLVE_S: Cell<f64> = const { Cell::new(0.0) };
     static JAC_S: Cell<f64> = const { Cell::new(0.0) };
-    /// The charge weights of this thread's integration ([`Model::charge_weights`]; empty: the
+    /// The charge weights of this thread's integration ([`Model::invariants`]; empty: the
     /// banded LU's corrections are not made charge-exact).
-    static CHARGE_WEIGHTS: RefCell<Vec<f64>> = const { RefCell::new(Vec::new()) };
+    static CHARGE_WEIGHTS: RefCell<Vec<Vec<f64>>> = const { RefCell::new(Vec::new()) };
 }
 
 /// Sets the charge weights for the banded LU of this thread while alive; clears them after.
 struct ChargeWeights;
 
 impl ChargeWeights {
-    fn set(w: Option<Vec<f64>>) -> ChargeWeights {
-        CHARGE_WEIGHTS.with(|c| *c.borrow_mut() = w.unwrap_or_default());
+    fn set(w: Vec<Vec<f64>>) -> ChargeWeights {
+        CHARGE_WEIGHTS.with(|c| *c.borrow_mut() = w);
         ChargeWeights
     }
 }
@@ -57,7 +57,8 @@ impl Drop for ChargeWeights {
 }
 
 /// The banded LU of [`crate::band`] as diffsol's linear solver, with charge-exact
-/// corrections where the cell's charge weights are set ([`Model::charge_weights`]).
+/// corrections where the cell's invariants are set ([`Model::invariants`]: the inventories per
+/// material and species; the text below speaks of the net charge, which is in their span).
 ///
 /// Why: where `w^T A = w^T M` (w the charge weights), an exact solution x of `A x = b` has
 /// `w^T M x = w^T b`. The LU's x is backward stable, `(A + E) x = b` with |E| ~ eps |L||U|,
@@ -76,7 +77,7 @@ pub struct BandedLu {
     a: Option<M>,
     lu: BandLu,
     /// z = A^{-1} u and w^T z for the charge-exact corrections (None: not made).
-    charge_dir: Option<(Vec<f64>, f64)>,
+    charge_dir: Option<Directions>,
 }
 
 impl LaLinearSolver<M> for BandedLu {
@@ -101,10 +102,10 @@ impl LaLinearSolver<M> for BandedLu {
         CHARGE_WEIGHTS.with(|w| {
             let w = w.borrow();
             b.for_each_batch_host([], |b, [], _| {
-                if w.len() == b.len() && self.charge_dir.is_some() {
+                if let Some(dirs) = self.charge_dir.as_ref().filter(|_| w.first().is_some_and(|w0| w0.len() == b.len())) {
                     let rhs = b.to_vec();
                     self.lu.solve(b);
-                    self.charge_exact(&w, &rhs, b);
+                    dirs.apply(&w, &rhs, b);
                 } else {
                     self.lu.solve(b);
                 }
@@ -122,47 +123,90 @@ impl LaLinearSolver<M> for BandedLu {
 }
 
 impl BandedLu {
-    /// After a factorisation: the direction of the charge correction, z = A^{-1} u with u =
-    /// the charge weights times the rows' sums of |A| (where the LU's backward error, bounded
-    /// by eps |A||x| row by row, is largest), and its charge w^T z.
+    /// After a factorisation: the correction directions for this thread's invariants.
     fn prepare_charge_direction(&mut self) {
         self.charge_dir = None;
         let Some(a) = self.a.as_ref() else { return };
-        CHARGE_WEIGHTS.with(|w| {
-            let w = w.borrow();
-            let m = &a.inner()[0];
-            let (col_ptr, row_idx, val) = (m.symbolic().col_ptr(), m.symbolic().row_idx(), m.val());
-            if w.len() != col_ptr.len() - 1 || self.lu.singular().is_some() {
-                return;
-            }
-            let mut z = vec![0.0; w.len()];
-            for j in 0..w.len() {
-                for k in col_ptr[j]..col_ptr[j + 1] {
-                    z[row_idx[k]] += val[k].abs();
-                }
-            }
-            for (zj, wj) in z.iter_mut().zip(w.iter()) {
-                *zj *= wj;
-            }
-            self.lu.solve(&mut z);
-            let wz: f64 = w.iter().zip(&z).map(|(a, b)| a * b).sum();
-            if wz != 0.0 && wz.is_finite() {
-                self.charge_dir = Some((z, wz));
-            }
-        });
-    }
-
-    /// Moves the LU's solution x of `A x = b` so that `w^T M x = w^T b` (see [`BandedLu`]).
-    fn charge_exact(&self, w: &[f64], b: &[f64], x: &mut [f64]) {
-        let Some((z, wz)) = self.charge_dir.as_ref() else { return };
-        // M is the identity on the differential rows and 0 on the Poisson rows, where w = 0.
-        let d: f64 = w.iter().zip(b.iter().zip(x.iter())).map(|(wj, (bj, xj))| wj * (bj - xj)).sum();
-        if d == 0.0 || !d.is_finite() {
+        if self.lu.singular().is_some() {
             return;
         }
-        let s = d / wz;
-        for (xj, zj) in x.iter_mut().zip(z) {
-            *xj += s * zj;
+        let m = &a.inner()[0];
+        let (col_ptr, row_idx, val) = (m.symbolic().col_ptr(), m.symbolic().row_idx(), m.val());
+        self.charge_dir = CHARGE_WEIGHTS.with(|w| Directions::new(&w.borrow(), col_ptr, row_idx, val, &self.lu));
+    }
+}
+
+/// The correction directions of the invariant-exact solves ([`BandedLu`]): for each invariant
+/// weight w_k, `z_k = A^{-1} u_k` with u_k = w_k times the rows' sums of |A| (where the LU's
+/// backward error, bounded by eps |A||x| row by row, lives), and the K x K matrix `w_a . z_b`.
+pub(crate) struct Directions {
+    z: Vec<Vec<f64>>,
+    wz: Vec<f64>,
+}
+
+impl Directions {
+    pub(crate) fn new(ws: &[Vec<f64>], col_ptr: &[usize], row_idx: &[usize], val: &[f64], lu: &BandLu) -> Option<Directions> {
+        let n = col_ptr.len() - 1;
+        if ws.is_empty() || ws.iter().any(|w| w.len() != n) {
+            return None;
+        }
+        let mut rowabs = vec![0.0; n];
+        for j in 0..n {
+            for k in col_ptr[j]..col_ptr[j + 1] {
+                rowabs[row_idx[k]] += val[k].abs();
+            }
+        }
+        let z: Vec<Vec<f64>> = ws
+            .iter()
+            .map(|w| {
+                let mut z: Vec<f64> = w.iter().zip(&rowabs).map(|(a, b)| a * b).collect();
+                lu.solve(&mut z);
+                z
+            })
+            .collect();
+        let wz = ws.iter().flat_map(|w| z.iter().map(move |z| w.iter().zip(z).map(|(a, b)| a * b).sum::<f64>())).collect::<Vec<f64>>();
+        wz.iter().all(|v| v.is_finite()).then_some(Directions { z, wz })
+    }
+
+    /// Moves the LU's solution x of `A x = b` so that `w_k^T M x = w_k^T b` for every k.
+    pub(crate) fn apply(&self, ws: &[Vec<f64>], b: &[f64], x: &mut [f64]) {
+        let k = ws.len();
+        // M is the identity on the differential rows and 0 on the Poisson rows, where w = 0.
+        let mut d: Vec<f64> = ws.iter().map(|w| w.iter().zip(b.iter().zip(x.iter())).map(|(wj, (bj, xj))| wj * (bj - xj)).sum()).collect();
+        if d.iter().all(|v| *v == 0.0) || !d.iter().all(|v| v.is_finite()) {
+            return;
+        }
+        // (w_a . z_b) s = d by Gaussian elimination with partial pivoting (K <= 6).
+        let mut g = self.wz.clone();
+        for c in 0..k {
+            let p = (c..k).max_by(|&a, &b| g[a * k + c].abs().total_cmp(&g[b * k + c].abs())).unwrap_or(c);
+            if g[p * k + c] == 0.0 {
+                return;
+            }
+            for j in 0..k {
+                g.swap(c * k + j, p * k + j);
+            }
+            d.swap(c, p);
+            for r in c + 1..k {
+                let f = g[r * k + c] / g[c * k + c];
+                for j in c..k {
+                    g[r * k + j] -= f * g[c * k + j];
+                }
+                d[r] -= f * d[c];
+            }
+        }
+        let mut s = vec![0.0; k];
+        for c in (0..k).rev() {
+            let t: f64 = (c + 1..k).map(|j| g[c * k + j] * s[j]).sum();
+            s[c] = (d[c] - t) / g[c * k + c];
+        }
+        if !s.iter().all(|v| v.is_finite()) {
+            return;
+        }
+        for (sk, z) in s.iter().zip(&self.z) {
+            for (xj, zj) in x.iter_mut().zip(z) {
+                *xj += sk * zj;
+            }
         }
     }
 }
@@ -849,7 +893,6 @@ fn bdf(
     // Newton to well below the local error (default 0.2 of it): the Poisson rows, linear,
     // then hold to ~1e-12 of their terms.
     problem.ode_options.nonlinear_solver_tolerance = 1e-3;
-    let _weights = ChargeWeights::set(if settings.linear_solver == LinearSolver::Banded { model.charge_weights() } else { None });
     let mut y = y_start;
     let mut t = t_start;
     let end = settings.end_time;
@@ -861,6 +904,9 @@ fn bdf(
         }
         problem.ode_options.max_number_timesteps = remaining as usize;
         let next_stop = outputs.peek().copied().unwrap_or(end).min(end);
+        // The inventories this segment conserves, for the banded LU's invariant-exact solves.
+        let invariants = if settings.linear_solver == LinearSolver::Banded { model.invariants(&problem.eqn.open.borrow()) } else { vec![] };
+        let _weights = ChargeWeights::set(invariants);
         // How the segment ended: at a switch (its root: time, state, interface) or at the stop
         // time; with the step size to restart from.
         let segment = match settings.linear_solver {
@@ -1105,19 +1151,10 @@ mod diagnosis {
         let (kl, ku) = BandLu::bandwidths(&eqn.col_ptr, &eqn.row_idx);
         let mut lu = BandLu::new(n3, kl, ku);
         lu.factor_csc(&eqn.col_ptr, &eqn.row_idx, &vals);
-        let w = model.charge_weights().expect("a closed cell");
-        // The charge direction as BandedLu makes it: A^{-1} (w * row sums of |A|).
-        let mut z = vec![0.0; n3];
-        for j in 0..n3 {
-            for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
-                z[eqn.row_idx[k]] += vals[k].abs();
-            }
-        }
-        for (zj, wj) in z.iter_mut().zip(&w) {
-            *zj *= wj;
-        }
-        lu.solve(&mut z);
-        let wz: f64 = w.iter().zip(&z).map(|(a, b)| a * b).sum();
+        let ws = model.invariants(open);
+        let dirs = Directions::new(&ws, &eqn.col_ptr, &eqn.row_idx, &vals, &lu).expect("a closed cell");
+        // The net charge: +dx on p, -dx on n.
+        let w: Vec<f64> = (0..n3).map(|j| [model.dx, -model.dx, 0.0][j % 3]).collect();
         let weight: Vec<f64> = y0.iter().map(|v| 1e-6 * v.abs() + 1e-9).collect();
         let (mut norms, mut defects) = (vec![], vec![]);
         let mut y = y0.to_vec();
@@ -1130,9 +1167,7 @@ mod diagnosis {
             let d: f64 = (0..n3).map(|j| w[j] * (b[j] - x[j])).sum();
             defects.push(d);
             if charge_exact {
-                for (xj, zj) in x.iter_mut().zip(&z) {
-                    *xj += d / wz * zj;
-                }
+                dirs.apply(&ws, &b, &mut x);
             }
             let mut sum = 0.0;
             for j in 0..n3 {
