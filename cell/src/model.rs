@@ -8,7 +8,7 @@
 //! flux in +x through face f (face f lies between cells f-1 and f) and `G[f] = eps_r dphi/dx`
 //! there.
 
-use crate::scene::{CellScene, FaceState, Switch};
+use crate::scene::{CellScene, ElectronRows, FaceState, Switch};
 
 pub use crate::units::{CM2_PER_S, E_CHARGE, EPS0, K_B};
 
@@ -47,6 +47,8 @@ pub struct Model {
     /// Relative permittivity at each face (n + 1): the cells' value, the mean of the two at an
     /// interface face (8.58)-(8.59).
     pub eps_face: Vec<f64>,
+    /// Relative permittivity per cell.
+    pub eps: Vec<f64>,
     /// Cation diffusivity per cell (nm^2/s).
     pub d_p: Vec<f64>,
     /// Anion diffusivity per cell (nm^2/s; 0 in electrodes).
@@ -61,6 +63,11 @@ pub struct Model {
     /// eps0/e (1/(V nm)): Poisson rows in concentration units.
     pub k_poisson: f64,
     pub face_state: FaceState,
+    /// The form of the electrode electron rows in [`Model::newton_rhs`].
+    pub electron_rows: ElectronRows,
+    /// Whether the banded LU makes its Newton corrections charge-exact (where valid, see
+    /// [`Model::invariants`]).
+    pub charge_exact_solve: bool,
     pub alpha: f64,
     pub threshold: f64,
     pub hysteresis: f64,
@@ -158,6 +165,7 @@ impl Model {
             x: (0..n).map(|i| (i as f64 + 0.5) * dx).collect(),
             region,
             eps_face,
+            eps,
             d_p,
             d_n,
             sigma,
@@ -165,6 +173,8 @@ impl Model {
             vt,
             k_poisson: EPS0 / E_CHARGE,
             face_state: scene.scheme.face_state,
+            electron_rows: scene.scheme.electron_rows,
+            charge_exact_solve: scene.scheme.charge_exact_solve,
             alpha: scene.interface.alpha,
             threshold: scene.interface.threshold_v,
             hysteresis: scene.interface.hysteresis_v,
@@ -331,6 +341,81 @@ impl Model {
             out[3 * i + 2] = self.k_poisson * (g_r - g_l) / dx + y[3 * i] - y[3 * i + 1];
             (fp_l, fn_l, g_l) = (fp_r, fn_r, g_r);
         }
+    }
+
+    /// The right-hand side the BDF's Newton iteration works with: [`Model::rhs`], with each
+    /// electrode cell's electron row replaced, for `electron_rows = "field"`, by itself plus
+    /// `mu_i = sigma_i / (k eps_i)` times the cell's Poisson row `g_i` (k = eps0/e):
+    ///
+    /// `n_i' = (X[i] - X[i+1]) / dx + (p_i - n_i) / tau_i`, `tau_i = k eps_i / sigma_i`,
+    ///
+    /// with the excess flux `X[f] = F_n[f] - (sigma_i / eps_i) G[f]` of face f, exactly 0 on a
+    /// face inside the electrode (both sides carry sigma_i and eps_i), so it is computed only
+    /// at the electrode's two ends. A row operation that adds multiples of algebraic rows to
+    /// differential ones leaves the mass matrix unchanged (T M = M), so the BDF equations
+    /// `M (y - psi) = c f(y)` and `M (y - psi) = c T f(y)` have the same solutions and Newton's
+    /// corrections are the same in exact arithmetic; what changes is the rounding: `F_n[i] -
+    /// F_n[i+1]` is a difference of two nearly equal fluxes `sigma dphi/dx`, each rounded to
+    /// `sigma ulp(phi)/dx`, so the row's floor was `sigma ulp(phi)/dx^2` (1e4x finer grid, 1e4x
+    /// higher floor); the new row has no potential inside the electrode.
+    pub fn newton_rhs(&self, y: &[f64], open: &[bool], out: &mut [f64]) {
+        self.rhs(y, open, out);
+        if self.electron_rows != ElectronRows::Field {
+            return;
+        }
+        let dx = self.dx;
+        let n = self.n;
+        for i in (0..n).filter(|&i| self.region[i].is_electrode() && self.sigma[i] > 0.0) {
+            let r = self.region[i];
+            let ratio = self.sigma[i] / self.eps[i];
+            // The excess flux of a face at the electrode's end (0 on a face inside it).
+            let excess = |f: usize| -> f64 {
+                let inside = f > 0 && f < n && self.region[f - 1] == r && self.region[f] == r;
+                if inside {
+                    0.0
+                } else {
+                    let (_, f_n, g) = self.face(y, open, f);
+                    f_n - ratio * g
+                }
+            };
+            let relax = ratio / self.k_poisson * (y[3 * i] - y[3 * i + 1]);
+            out[3 * i + 1] = (excess(i) - excess(i + 1)) / dx + relax;
+        }
+    }
+
+    /// The inventories (per area) whose rates do not depend on the state, as weights on the
+    /// unknowns, `I_k = w_k . y`: for each species (p; n = electrons or anions), the cells of
+    /// each material, joined across an interface where cations may cross it (for p, an open
+    /// or ramped interface). No electron or anion crosses an interface, no cation an end, the
+    /// ends' electron currents are given: each such inventory changes at a fixed rate, so
+    /// `w_k^T f(y)` is constant and `w_k^T J = 0` for every state, and the Newton matrix
+    /// A = M - cJ has `w_k^T A = w_k^T M`: an exact Newton correction x of `A x = b` changes
+    /// the inventory by exactly `w_k^T b`. Requires the insulating right end (a reservoir's
+    /// fluxes depend on the state) and the electron rows in flux form (the field form adds
+    /// Poisson rows); empty there and where `scheme.charge_exact_solve = false`. The net
+    /// charge is in their span.
+    pub fn invariants(&self, open: &[bool]) -> Vec<Vec<f64>> {
+        if !self.charge_exact_solve || self.right != Right::Insulating || self.electron_rows != ElectronRows::Potential {
+            return vec![];
+        }
+        let crossable =
+            |f: usize| self.ramp.is_some() || self.interfaces.binary_search(&f).ok().and_then(|k| open.get(k).copied()).unwrap_or(false);
+        let mut out = vec![];
+        for var in 0..2 {
+            let mut start = 0;
+            for i in 1..=self.n {
+                let end = i == self.n || (self.region[i] != self.region[i - 1] && !(var == 0 && crossable(i)));
+                if end {
+                    let mut w = vec![0.0; self.len()];
+                    for c in start..i {
+                        w[3 * c + var] = self.dx;
+                    }
+                    out.push(w);
+                    start = i;
+                }
+            }
+        }
+        out
     }
 
     /// Every face's fluxes and field.

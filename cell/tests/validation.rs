@@ -108,6 +108,65 @@ fn full_cell_conserves_cations_and_electrons_and_keeps_the_gauss_law() {
     assert!(stats.switch_events > 0, "the threshold never opened");
 }
 
+/// The Newton iteration's variants give the same cell within the tolerances: the charge-exact
+/// corrections (the default) against plain LU corrections, and `scheme.electron_rows =
+/// "field"` (the electron rows plus multiples of the algebraic Poisson rows: the same BDF
+/// equations), each with conservation, the Gauss law and the Poisson residual as tight as
+/// before, the same switch events and states within a small multiple of rtol.
+#[test]
+fn the_newton_variants_give_the_same_cell() {
+    let base = [("grid.cells", "200"), ("scheme.end_time_s", "0.003"), ("output.times_s", "[]")];
+    let mut runs = vec![];
+    let variants = [
+        ("plain LU", ("scheme.charge_exact_solve", "false")),
+        ("charge-exact", ("scheme.charge_exact_solve", "true")),
+        ("field rows", ("scheme.electron_rows", "\"field\"")),
+    ];
+    for (name, set) in variants {
+        let mut sets = base.to_vec();
+        sets.push(set);
+        let s = load("pnp-full-cell.toml", &sets);
+        let (y, model, stats) = run(&s);
+        eprintln!(
+            "{name}: steps {} newton failures {} switches {:?} cations {:e} electrons {:e} gauss {:e} poisson {:e}",
+            stats.steps,
+            stats.newton_failures,
+            stats.switch_log,
+            stats.max_cation_drift,
+            stats.max_electron_drift,
+            stats.max_gauss_error,
+            stats.max_poisson_residual
+        );
+        assert!(stats.max_cation_drift < 1e-12, "{name}: cation drift {:e}", stats.max_cation_drift);
+        assert!(stats.max_electron_drift < 1e-12, "{name}: electron drift {:e}", stats.max_electron_drift);
+        assert!(stats.max_gauss_error < 1e-9, "{name}: Gauss law error {:e}", stats.max_gauss_error);
+        assert!(stats.max_poisson_residual < 1e-10, "{name}: Poisson residual {:e}", stats.max_poisson_residual);
+        runs.push((name, y, model, stats));
+    }
+    let (_, y0, m, s0) = &runs[0];
+    // Switch events by interface (the two interfaces reach the threshold at the same instant,
+    // so their order may differ).
+    let by_face = |s: &Stats| {
+        let mut v = s.switch_log.clone();
+        v.sort_by(|a, b| (a.1, a.0).partial_cmp(&(b.1, b.0)).unwrap());
+        v
+    };
+    let cmax = (0..m.n).flat_map(|i| [y0[3 * i], y0[3 * i + 1]]).fold(0.0f64, |a, b| a.max(b.abs()));
+    let phimax = (0..m.n).map(|i| phi(y0, i).abs()).fold(0.0f64, f64::max);
+    for (name, y1, _, s1) in &runs[1..] {
+        let (l0, l1) = (by_face(s0), by_face(s1));
+        assert_eq!(l0.len(), l1.len(), "{name}: the same switch events");
+        for ((t0, k0, o0), (t1, k1, o1)) in l0.iter().zip(&l1) {
+            assert!(k0 == k1 && o0 == o1 && (t0 - t1).abs() < 1e-3 * t0, "{name}: switches {l0:?} vs {l1:?}");
+        }
+        let dc = (0..m.n).flat_map(|i| [(y0[3 * i] - y1[3 * i]).abs(), (y0[3 * i + 1] - y1[3 * i + 1]).abs()]).fold(0.0f64, f64::max);
+        let dphi = (0..m.n).map(|i| (phi(y0, i) - phi(y1, i)).abs()).fold(0.0f64, f64::max);
+        eprintln!("{name}: max |dc| {dc:e} of {cmax:e}, max |dphi| {dphi:e} of {phimax:e}");
+        assert!(dc < 1e-4 * cmax && dphi < 1e-4 * phimax, "{name} differs: {dc:e} of {cmax:e}, {dphi:e} of {phimax:e}");
+        assert!(dc > 0.0 || dphi > 0.0, "{name} changes nothing: the runs are bitwise equal");
+    }
+}
+
 /// Sign changes of the second difference of p within `w` cells of each interface face.
 fn wiggles(model: &Model, y: &[f64], w: usize) -> usize {
     let mut count = 0;
@@ -268,12 +327,43 @@ fn timings_to_two_seconds() {
             sets.push((k, v));
         }
         let s = load("pnp-full-cell.toml", &sets);
-        let (y, model, st) = run(&s);
+        // Progress every MSCALE_CELL_TIMING_EVERY accepted steps (0: none).
+        let every: u64 = std::env::var("MSCALE_CELL_TIMING_EVERY").ok().and_then(|v| v.parse().ok()).unwrap_or(0);
+        let model = Model::new(&s);
+        let wall = std::time::Instant::now();
+        let mut last = (0.0, 0u64);
+        let mut progress = |snap: &solver::Snapshot<'_>| {
+            if every > 0 && snap.step >= last.1 + every {
+                let dt = (snap.t - last.0) / (snap.step - last.1) as f64;
+                eprintln!(
+                    "  {n} cells: t {:.4e} s, {} steps, mean step {dt:.2e} s, wall {:.1} s; {} Newton failures, {} error-test failures, {} switches",
+                    snap.t,
+                    snap.step,
+                    wall.elapsed().as_secs_f64(),
+                    snap.stats.newton_failures,
+                    snap.stats.error_test_failures,
+                    snap.stats.switch_events
+                );
+                last = (snap.t, snap.step);
+            }
+            Control::Continue
+        };
+        let (y, _open, st) = solver::integrate(&model, &settings(&s), &mut progress).unwrap_or_else(|e| panic!("{e}"));
         let tot = model.totals(&y);
+        // The final profile as x_nm,p,n,phi (MSCALE_CELL_TIMING_SAVE=DIR: DIR/final_<cells>.csv).
+        if let Ok(dir) = std::env::var("MSCALE_CELL_TIMING_SAVE") {
+            let mut out = String::from("x_nm,p_per_nm3,n_per_nm3,phi_v\n");
+            for i in 0..model.n {
+                out += &format!("{:e},{:e},{:e},{:e}\n", model.x[i], y[3 * i], y[3 * i + 1], y[3 * i + 2]);
+            }
+            std::fs::write(Path::new(&dir).join(format!("final_{}.csv", n.trim())), out).expect("write the final profile");
+        }
         eprintln!(
-            "{n} cells: {} steps ({} error-test failures, {} Newton iterations, {} LU setups, {} Jacobians), wall {:.2} s: rhs {:.2}, Jacobian {:.2}, LU factor {:.2}, LU solve {:.2}; min p {:e}, cathode electrons {:.2}/nm^2, cation drift {:e}",
+            "{n} cells: {} steps, {} switches ({} error-test failures, {} Newton failures, {} Newton iterations, {} LU setups, {} Jacobians), wall {:.2} s: rhs {:.2}, Jacobian {:.2}, LU factor {:.2}, LU solve {:.2}; min p {:e}, cathode electrons {:.2}/nm^2, cation drift {:e}",
             st.steps,
+            st.switch_events,
             st.error_test_failures,
+            st.newton_failures,
             st.newton_iterations,
             st.lu_setups,
             st.jacobian_evaluations,
