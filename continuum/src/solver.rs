@@ -633,7 +633,7 @@ impl<const D: usize> Simulation<D> {
         }
         let (dt, given) = (self.dt, &self.prescribed_scalar_rate);
         let ramp = crate::silicon::ramp_factor(self.time, dt, self.prescribed_ramp);
-        let given_at = |p: usize| given.get(p).map_or(0.0, |r| if ramp == 1.0 { *r } else { r * ramp });
+        let given_at = |p: usize| given.get(p).map_or(0.0, |r| r * ramp); // r * 1.0 is r, bit for bit
         for p in 0..pts.scalar.len() {
             pts.scalar_rate[p] = given_at(p);
         }
