@@ -239,11 +239,26 @@ pub fn plot_profile(path: &Path, title: &str, xlabel: &str, ylabel: &str, series
             .build_cartesian_2d(x0..x1, (y0 - pad)..(y1 + pad))
             .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
         chart.configure_mesh().x_desc(xlabel).y_desc(ylabel).draw().map_err(|e| anyhow::anyhow!("plot: {e}"))?;
-        let colors = [BLUE, RED, GREEN, BLACK, MAGENTA];
+        // Ten distinguishable colours: a report over every scheme has up to ten series.
+        let colors = [
+            BLUE,
+            RED,
+            GREEN,
+            BLACK,
+            MAGENTA,
+            CYAN,
+            RGBColor(230, 120, 0),
+            RGBColor(120, 60, 160),
+            RGBColor(140, 80, 20),
+            RGBColor(120, 120, 120),
+        ];
         for (k, s) in series.iter().enumerate() {
             let color = colors[k % colors.len()];
-            let pts = s.points.iter().copied().filter(|(x, y)| x.is_finite() && y.is_finite());
+            let pts: Vec<(f64, f64)> = s.points.iter().copied().filter(|(x, y)| x.is_finite() && y.is_finite()).collect();
             if s.line {
+                // Lines join the points, and each point is marked, so a series of one run (or
+                // two series on top of each other) still shows.
+                chart.draw_series(pts.iter().map(|&p| Circle::new(p, 3, color.filled()))).map_err(|e| anyhow::anyhow!("plot: {e}"))?;
                 chart
                     .draw_series(LineSeries::new(pts, color.stroke_width(2)))
                     .map_err(|e| anyhow::anyhow!("plot: {e}"))?
@@ -251,7 +266,7 @@ pub fn plot_profile(path: &Path, title: &str, xlabel: &str, ylabel: &str, series
                     .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
             } else {
                 chart
-                    .draw_series(pts.map(|p| Circle::new(p, 1, color.filled())))
+                    .draw_series(pts.into_iter().map(|p| Circle::new(p, 1, color.filled())))
                     .map_err(|e| anyhow::anyhow!("plot: {e}"))?
                     .label(s.label)
                     .legend(move |(x, y)| Circle::new((x + 10, y), 3, color.filled()));
