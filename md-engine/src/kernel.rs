@@ -5,7 +5,7 @@
 
 use crate::neighbor::{self, NeighborList};
 use crate::potential::Potential;
-use crate::simd::{LANES, SimdPath, reduce_lanes};
+use crate::simd::SimdPath;
 use crate::units::{BOLTZ, EV_PER_A3_TO_GPA, FTM2V, MVV2E};
 use serde::{Deserialize, Serialize};
 
@@ -361,10 +361,7 @@ fn eam_forces<const ONE: bool>(
     for i in 0..n {
         let xi = xu[i];
         let ti = types[i] as usize;
-        // The row's own sum in LANES partial sums by the pair's position in the row
-        // (`crate::simd::reduce_lanes`): the vector paths' order.
-        let mut rho_i = [0.0; LANES];
-        let np0 = np;
+        let mut rho_i = 0.0;
         let row = list.start[i] as usize..list.start[i + 1] as usize;
         let (js, codes) = (&list.j[row.clone()], &list.code[row]);
         for (&j, &c) in js.iter().zip(codes) {
@@ -374,22 +371,21 @@ fn eam_forces<const ONE: bool>(
             if r2 < cut2 {
                 let r = r2.sqrt();
                 let j = j as usize;
-                let lane = (np - np0) % LANES;
                 s.pairs[np] = Pair { d, r, j };
                 np += 1;
                 let (m, p) = index(r);
                 if ONE {
                     let v = spline_value(&dens[0][m], p);
-                    rho_i[lane] += v;
+                    rho_i += v;
                     rho[j] += v;
                 } else {
                     let tj = types[j] as usize;
-                    rho_i[lane] += spline_value(&dens[tj * ne + ti][m], p);
+                    rho_i += spline_value(&dens[tj * ne + ti][m], p);
                     rho[j] += spline_value(&dens[ti * ne + tj][m], p);
                 }
             }
         }
-        rho[i] += reduce_lanes(&rho_i);
+        rho[i] += rho_i;
         s.pair_end.push(np as u32);
     }
     let mut pe = 0.0;
@@ -400,19 +396,15 @@ fn eam_forces<const ONE: bool>(
         fp[i] = d;
         pe += phi;
     }
-    // Pair energy and virial in LANES partial sums by the pair's position in its row, row
-    // force sums likewise per row (the vector paths' order, `crate::simd::reduce_lanes`).
-    let mut pe_l = [0.0f64; LANES];
-    let mut w_l = [[0.0f64; LANES]; 6];
+    let mut w = [0.0f64; 6];
     let f = &mut *b.f;
     let mut q0 = 0;
     for i in 0..n {
         let ti = types[i] as usize;
         let fp_i = fp[i];
-        let mut fi_l = [[0.0; LANES]; 3];
+        let mut fi = [0.0; 3];
         let q1 = s.pair_end[i] as usize;
-        for (e, pr) in s.pairs[q0..q1].iter().enumerate() {
-            let lane = e % LANES;
+        for pr in &s.pairs[q0..q1] {
             let (d, r, j) = (pr.d, pr.r, pr.j);
             let (m, p) = index(r);
             let (rho_ip, rho_jp, c) = if ONE {
@@ -430,30 +422,29 @@ fn eam_forces<const ONE: bool>(
             let phip = z2p * recip - phi * recip;
             let psip = fp_i * rho_jp + fp[j] * rho_ip + phip;
             let fpair = -psip * recip;
-            pe_l[lane] += phi;
+            pe += phi;
             let fd = [d[0] * fpair, d[1] * fpair, d[2] * fpair];
-            fi_l[0][lane] += fd[0];
-            fi_l[1][lane] += fd[1];
-            fi_l[2][lane] += fd[2];
+            fi[0] += fd[0];
+            fi[1] += fd[1];
+            fi[2] += fd[2];
             let fj = &mut f[j];
             fj[0] -= fd[0];
             fj[1] -= fd[1];
             fj[2] -= fd[2];
-            w_l[0][lane] += d[0] * fd[0];
-            w_l[1][lane] += d[1] * fd[1];
-            w_l[2][lane] += d[2] * fd[2];
-            w_l[3][lane] += d[0] * fd[1];
-            w_l[4][lane] += d[0] * fd[2];
-            w_l[5][lane] += d[1] * fd[2];
+            w[0] += d[0] * fd[0];
+            w[1] += d[1] * fd[1];
+            w[2] += d[2] * fd[2];
+            w[3] += d[0] * fd[1];
+            w[4] += d[0] * fd[2];
+            w[5] += d[1] * fd[2];
         }
         q0 = q1;
         let fo = &mut f[i];
-        fo[0] += reduce_lanes(&fi_l[0]);
-        fo[1] += reduce_lanes(&fi_l[1]);
-        fo[2] += reduce_lanes(&fi_l[2]);
+        fo[0] += fi[0];
+        fo[1] += fi[1];
+        fo[2] += fi[2];
     }
-    pe += reduce_lanes(&pe_l);
-    (pe, w_l.map(|c| reduce_lanes(&c)))
+    (pe, w)
 }
 
 /// Lennard-Jones (tests only): one pass over the half list.

@@ -7,18 +7,8 @@
 //! derivatives, division, force and virial products) is done 8 (AVX-512) or 4 (AVX2) pairs at
 //! a time with exactly the scalar's operations in the scalar's order (IEEE `sqrt` and `div`,
 //! separate multiplies and adds: no FMA contraction), and every sum (densities, forces,
-//! energy, virial) is accumulated in one fixed order that the scalar kernel defines and every
-//! path reproduces: contributions to a neighbour atom (`rho[j]`, `f[j]`) in pair order, and a
-//! row's own sums, the pair energy and the virial in [`LANES`] = 8 partial sums by the pair's
-//! position in its row, combined by [`reduce_lanes`]. So every path gives the same bits as the
-//! `reference` oracle, and a digest blessed on one path holds on all.
-//!
-//! The default AVX-512 kernel (`eam_rows_avx512`) keeps each row's pairs from an 8-aligned
-//! start, so a vector never spans two rows: the row sums, energy and virial stay in registers,
-//! F'(rho_i) is a broadcast, and the scatter into neighbour atoms runs lane by lane inside the
-//! vector loop (forces as 256-bit rows of a 4-f64-per-atom copy). The other paths below (AVX2,
-//! AVX-512 with an image table it cannot decode) write per-pair terms into a block buffer that
-//! a serial pass then accumulates in the same order.
+//! energy, virial) is accumulated serially in the scalar's pair order. So every path gives
+//! the same bits as the `reference` oracle, and a digest blessed on one path holds on all.
 //!
 //! Layout: the neighbour list stays CSR (`NeighborList`); the geometry pass loads neighbour
 //! positions from a copy padded to 4 f64 per atom (8 row loads and a transpose rather than
@@ -141,21 +131,6 @@ pub fn selected_name() -> &'static str {
     selected().map_or("invalid", SimdPath::name)
 }
 
-/// Partial sums of the fixed summation order shared by every path: a row's own sums (its
-/// density and force) and the pair energy and virial are accumulated in `LANES` partial sums,
-/// a pair going to the sum of its position among its row's pairs within the cut-off, mod
-/// `LANES`, and the partial sums are combined by [`reduce_lanes`]. Eight f64 lanes are an
-/// AVX-512 register, so the vector path keeps these sums in registers (no serial latency
-/// chain of one add per pair); the scalar kernel and the other paths reproduce the order.
-pub const LANES: usize = 8;
-
-/// The fixed combination of [`LANES`] partial sums: `((l0 + l4) + (l2 + l6)) + ((l1 + l5) +
-/// (l3 + l7))` (an AVX-512 register's halves added, then its 128-bit halves, then the pair).
-#[inline(always)]
-pub fn reduce_lanes(l: &[f64; LANES]) -> f64 {
-    ((l[0] + l[4]) + (l[2] + l[6])) + ((l[1] + l[5]) + (l[3] + l[7]))
-}
-
 /// Pairs per block of the vector and serial passes (the block's terms stay in L1).
 pub const BLOCK: usize = 256;
 /// Padding of the pair buffers beyond the list length (full-width stores and loads at the end).
@@ -181,8 +156,6 @@ pub(crate) struct Scratch {
     blk: Vec<f64>,
     /// Unwrapped positions padded to 4 f64 per atom (row loads instead of gathers).
     x4: Vec<f64>,
-    /// Forces padded to 4 f64 per atom (the AVX-512 row kernel's 256-bit updates).
-    f4: Vec<f64>,
 }
 
 /// How the list's image codes decode (`neighbor::build`'s enumeration), and the box lengths.
@@ -300,10 +273,6 @@ pub(crate) fn eam_forces_one(
     if images.is_some() {
         s.x4.extend(xu.iter().flat_map(|p| [p[0], p[1], p[2], 0.0]));
     }
-    #[cfg(target_arch = "x86_64")]
-    if let (SimdPath::Avx512, Some(img)) = (path, &images) {
-        return eam_rows_avx512(t, &tab, types, list, xu, img, f, rho, fp, s);
-    }
     let x4 = s.x4.as_ptr();
     rho.clear();
     rho.resize(n, 0.0);
@@ -359,20 +328,18 @@ pub(crate) fn eam_forces_one(
         let mut q = q0;
         for i in i0..i1 {
             let end = s.row_end[i] as usize;
-            let mut rho_i = [0.0; LANES];
-            let mut lane = 0;
+            let mut rho_i = 0.0;
             while q < end {
                 // SAFETY: q < np <= the buffers' length, q - q0 < len <= blk's, and every
                 // j < n (checked by the geometry pass or the scan above).
                 unsafe {
                     let v = *s.blk.get_unchecked(q - q0);
-                    rho_i[lane] += v;
+                    rho_i += v;
                     *rho.get_unchecked_mut(*s.j.get_unchecked(q) as usize) += v;
                 }
                 q += 1;
-                lane = (lane + 1) % LANES;
             }
-            rho[i] += reduce_lanes(&rho_i);
+            rho[i] += rho_i;
         }
         i0 = i1;
     }
@@ -386,8 +353,7 @@ pub(crate) fn eam_forces_one(
         pe += phi;
     }
     // Force pass.
-    let mut pe_l = [0.0f64; LANES];
-    let mut w_l = [[0.0f64; LANES]; 6];
+    let mut w = [0.0f64; 6];
     let (mut i0, mut q0) = (0usize, 0usize);
     while i0 < n {
         let mut i1 = i0 + 1;
@@ -414,132 +380,36 @@ pub(crate) fn eam_forces_one(
         let mut q = q0;
         for i in i0..i1 {
             let end = s.row_end[i] as usize;
-            let mut fi = [[0.0; LANES]; 3];
-            let mut lane = 0;
+            let mut fi = [0.0; 3];
             while q < end {
                 let k = q - q0;
                 // SAFETY: k < len < bl and blk holds TERMS * bl; q < np; every j < n.
                 unsafe {
                     let at = |t: usize| *b.get_unchecked(t * bl + k);
                     let fd = [at(0), at(1), at(2)];
-                    pe_l[lane] += at(3);
-                    fi[0][lane] += fd[0];
-                    fi[1][lane] += fd[1];
-                    fi[2][lane] += fd[2];
+                    pe += at(3);
+                    fi[0] += fd[0];
+                    fi[1] += fd[1];
+                    fi[2] += fd[2];
                     let fj = f.get_unchecked_mut(*s.j.get_unchecked(q) as usize);
                     fj[0] -= fd[0];
                     fj[1] -= fd[1];
                     fj[2] -= fd[2];
                     for c in 0..6 {
-                        w_l[c][lane] += at(4 + c);
+                        w[c] += at(4 + c);
                     }
                 }
                 q += 1;
-                lane = (lane + 1) % LANES;
             }
             let fo = &mut f[i];
-            fo[0] += reduce_lanes(&fi[0]);
-            fo[1] += reduce_lanes(&fi[1]);
-            fo[2] += reduce_lanes(&fi[2]);
+            fo[0] += fi[0];
+            fo[1] += fi[1];
+            fo[2] += fi[2];
         }
         i0 = i1;
         q0 = q1;
     }
-    pe += reduce_lanes(&pe_l);
-    (pe, w_l.map(|c| reduce_lanes(&c)))
-}
-
-/// The AVX-512 row kernel (the default path where the list's images decode): every row's
-/// pairs within the cut-off are kept from an 8-aligned start (padding lanes after a row's
-/// last pair are masked out), so each 8-pair vector belongs to one row and lane l holds the
-/// row's pairs at positions l mod 8: the row sums, the pair energy and the virial stay in
-/// registers in exactly the [`LANES`] order, and the scatter into neighbour atoms (`rho[j]`,
-/// `f[j]` as 256-bit rows of a padded copy) runs lane by lane in pair order inside the vector
-/// loop. Bitwise the scalar kernel's results.
-#[cfg(target_arch = "x86_64")]
-#[allow(clippy::too_many_arguments)]
-fn eam_rows_avx512(
-    t: &EamTables,
-    tab: &Tab,
-    types: &[u32],
-    list: &NeighborList,
-    xu: &[[f64; 3]],
-    img: &Images,
-    f: &mut [[f64; 3]],
-    rho: &mut Vec<f64>,
-    fp: &mut Vec<f64>,
-    s: &mut Scratch,
-) -> (f64, [f64; 6]) {
-    let n = xu.len();
-    // Rows start 8-aligned: at most 7 padding pairs per row, and the compress stores write
-    // up to 8 entries past a row's end.
-    let cap = list.len() + 8 * n + PAD;
-    for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r] {
-        if v.len() < cap {
-            v.resize(cap, 0.0);
-        }
-    }
-    for v in [&mut s.i, &mut s.j] {
-        if v.len() < cap {
-            v.resize(cap, 0);
-        }
-    }
-    rho.clear();
-    rho.resize(n, 0.0);
-    s.row_end.clear();
-    s.row_end.reserve(n);
-    let x4 = s.x4.as_ptr();
-    let mut np = 0usize;
-    let mut i0 = 0;
-    // Geometry of a block of rows (about BLOCK pairs), then their densities: the density loads
-    // then find the geometry's compacted stores committed (a load spanning two stores that are
-    // still in flight waits for them).
-    while i0 < n {
-        let q0 = np;
-        let mut i1 = i0;
-        while i1 < n && np - q0 < BLOCK {
-            let row = list.start[i1] as usize..list.start[i1 + 1] as usize;
-            let (js, codes) = (&list.j[row.clone()], &list.code[row]);
-            // SAFETY: AVX-512 is supported (asserted by the caller); the geometry pass checks
-            // atoms and codes as it loads; the buffers hold cap >= np + js.len() + 8 entries.
-            let end = unsafe { avx512::geometry4::<false>(xu[i1], js, codes, x4, img, n, tab.cut2, s, i1, np, 0) };
-            s.row_end.push(end as u32);
-            np = end.next_multiple_of(LANES);
-            // Padding lanes: a valid distance and atom (masked out of every sum and scatter).
-            for q in end..np {
-                (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.j[q]) = (0.0, 0.0, 0.0, 1.0, i1 as i32);
-            }
-            i1 += 1;
-        }
-        let mut beg = q0;
-        for i in i0..i1 {
-            let end = s.row_end[i] as usize;
-            // SAFETY: pairs beg..end (padded to 8) are valid, their atoms < n = rho.len().
-            let rho_i = unsafe { avx512::density_row(tab, s, beg, end, rho.as_mut_ptr()) };
-            rho[i] += rho_i;
-            beg = end.next_multiple_of(LANES);
-        }
-        i0 = i1;
-    }
-    // Embedding pass (as the scalar kernel).
-    let mut pe = 0.0;
-    fp.clear();
-    fp.resize(n, 0.0);
-    for i in 0..n {
-        let (phi, d) = t.embed(types[i] as usize, rho[i]);
-        fp[i] = d;
-        pe += phi;
-    }
-    let mut f4 = std::mem::take(&mut s.f4);
-    f4.clear();
-    f4.resize(4 * n, 0.0);
-    // SAFETY: as above; fp and f4 hold n atoms.
-    let (pe_pairs, w) = unsafe { avx512::force_rows(tab, s, fp.as_ptr(), f4.as_mut_ptr(), n) };
-    for (fo, q) in f.iter_mut().zip(f4.chunks_exact(4)) {
-        *fo = [q[0], q[1], q[2]];
-    }
-    s.f4 = f4;
-    (pe + pe_pairs, w)
+    (pe, w)
 }
 
 /// What the blocks of the threaded kernel (`intra.rs`) share for one force evaluation.
@@ -684,15 +554,14 @@ pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut S
     vcol.fill(0.0);
     let mut q = 0;
     for (ri, &end) in s.row_end.iter().enumerate() {
-        let mut rho_i = [0.0; LANES];
-        let rs = q;
+        let mut rho_i = 0.0;
         while q < end as usize {
             let v = s.blk[q];
-            rho_i[(q - rs) % LANES] += v;
+            rho_i += v;
             vcol[s.k[q] as usize] = v;
             q += 1;
         }
-        rho_row[ri] = reduce_lanes(&rho_i);
+        rho_row[ri] = rho_i;
     }
 }
 
@@ -716,10 +585,7 @@ pub(crate) fn block_force(
     fcol.fill([0.0; 3]);
     let (mut pe, mut w) = (0.0, [0.0f64; 6]);
     let mut row = 0usize;
-    // The row's first pair, and its own force sum in the `LANES` order.
-    let mut rs = 0usize;
-    let mut fi = [[0.0f64; LANES]; 3];
-    let red = |fi: &[[f64; LANES]; 3]| [reduce_lanes(&fi[0]), reduce_lanes(&fi[1]), reduce_lanes(&fi[2])];
+    let mut fi = [0.0f64; 3];
     let dens = &sh.t.rhor[sh.t.type2rhor[0][0]];
     let z2 = &sh.t.z2r[sh.t.type2z2r[0][0]];
     let mut q0 = 0;
@@ -764,18 +630,16 @@ pub(crate) fn block_force(
         for k in 0..len {
             let q = q0 + k;
             while q >= s.row_end[row] as usize {
-                fi_row[row] = red(&fi);
-                fi = [[0.0; LANES]; 3];
-                rs = s.row_end[row] as usize;
+                fi_row[row] = fi;
+                fi = [0.0; 3];
                 row += 1;
             }
-            let lane = (q - rs) % LANES;
             let at = |t: usize| s.blk[t * bl + k];
             let fd = [at(0), at(1), at(2)];
             pe += at(3);
-            fi[0][lane] += fd[0];
-            fi[1][lane] += fd[1];
-            fi[2][lane] += fd[2];
+            fi[0] += fd[0];
+            fi[1] += fd[1];
+            fi[2] += fd[2];
             fcol[s.k[q] as usize] = fd;
             for c in 0..6 {
                 w[c] += at(4 + c);
@@ -787,8 +651,8 @@ pub(crate) fn block_force(
         }
     }
     while row < rows.len() {
-        fi_row[row] = red(&fi);
-        fi = [[0.0; LANES]; 3];
+        fi_row[row] = fi;
+        fi = [0.0; 3];
         row += 1;
     }
     (pe, w)
@@ -1055,143 +919,6 @@ mod avx512 {
             }
             k += 8;
         }
-    }
-
-    /// The row kernel's density of one row (pairs beg..end from an 8-aligned `beg`, padded
-    /// to a multiple of 8): r = sqrt(r^2) in place, each pair's density value added to
-    /// `rho[j]` lane by lane in pair order; returns the row's own sum in the `LANES` order.
-    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
-    pub(super) unsafe fn density_row(t: &Tab, s: &mut Scratch, beg: usize, end: usize, rho: *mut f64) -> f64 {
-        let mut acc = _mm512_setzero_pd();
-        let mut q = beg;
-        while q < end {
-            let k = (end - q).min(8);
-            let lane: __mmask8 = if k == 8 { 0xff } else { (1u8 << k) - 1 };
-            // SAFETY: q + 8 <= the padded end; spline rows m <= nr - 1 exist; every j indexes rho.
-            unsafe {
-                let r = _mm512_sqrt_pd(_mm512_loadu_pd(s.r.as_ptr().add(q)));
-                _mm512_storeu_pd(s.r.as_mut_ptr().add(q), r);
-                let (m7, p) = index(r, t);
-                let [c3, c4, c5, c6] = rows4(t.dens.add(3), &offsets(m7));
-                let v = add(mul(add(mul(add(mul(c3, p), c4), p), c5), p), c6);
-                // Masked-off lanes keep their sum (= adding +0.0: a sum from +0.0 is never -0.0).
-                acc = _mm512_mask_add_pd(acc, lane, acc, v);
-                let mut tv = [0.0f64; 8];
-                _mm512_storeu_pd(tv.as_mut_ptr(), v);
-                for (l, v) in tv.iter().enumerate().take(k) {
-                    *rho.add(*s.j.get_unchecked(q + l) as usize) += *v;
-                }
-            }
-            q += 8;
-        }
-        let mut a = [0.0f64; 8];
-        // SAFETY: a holds 8 f64.
-        unsafe { _mm512_storeu_pd(a.as_mut_ptr(), acc) };
-        super::reduce_lanes(&a)
-    }
-
-    /// The row kernel's force pass over every row (rows as [`density_row`]'s; `s.r` holds r):
-    /// each pair's force subtracted from `f4[j]` (4 f64 per atom) lane by lane in pair order,
-    /// each row's own sum (`LANES` order) added to `f4[i]` after its pairs; returns the pair
-    /// energy and the virial, each in the `LANES` order over all pairs.
-    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
-    pub(super) unsafe fn force_rows(t: &Tab, s: &Scratch, fp: *const f64, f4: *mut f64, n: usize) -> (f64, [f64; 6]) {
-        let one = _mm512_set1_pd(1.0);
-        let sign = _mm512_set1_epi64(i64::MIN);
-        let zero = _mm512_setzero_pd();
-        let (ilo, ihi) = (_mm512_setr_epi64(0, 1, 8, 9, 2, 3, 10, 11), _mm512_setr_epi64(4, 5, 12, 13, 6, 7, 14, 15));
-        let mut pe = zero;
-        let mut w = [zero; 6];
-        let mut beg = 0usize;
-        for i in 0..n {
-            // SAFETY: i < n = the rows of row_end.
-            let end = unsafe { *s.row_end.get_unchecked(i) } as usize;
-            // SAFETY: i < n indexes fp.
-            let fpi = _mm512_set1_pd(unsafe { *fp.add(i) });
-            let (mut ax, mut ay, mut az) = (zero, zero, zero);
-            let mut q = beg;
-            while q < end {
-                let k = (end - q).min(8);
-                let lane: __mmask8 = if k == 8 { 0xff } else { (1u8 << k) - 1 };
-                // SAFETY: q + 8 <= the padded end; every j (padding: i) indexes fp and f4;
-                // spline rows exist.
-                unsafe {
-                    let r = _mm512_loadu_pd(s.r.as_ptr().add(q));
-                    let (m7, p) = index(r, t);
-                    let o = offsets(m7);
-                    let [d0, d1, d2, _] = rows4(t.dens, &o);
-                    let rho_p = add(mul(add(mul(d0, p), d1), p), d2);
-                    let [z0, z1, z2, z3, z4, z5, z6] = rows7(t.z2, &o);
-                    let z2p = add(mul(add(mul(z0, p), z1), p), z2);
-                    let z2v = add(mul(add(mul(add(mul(z3, p), z4), p), z5), p), z6);
-                    let recip = _mm512_div_pd(one, r);
-                    let phi = mul(z2v, recip);
-                    let phip = _mm512_sub_pd(mul(z2p, recip), mul(phi, recip));
-                    let jv = _mm256_loadu_si256(s.j.as_ptr().add(q) as *const __m256i);
-                    let fpj = gather(jv, fp);
-                    let psip = add(add(mul(fpi, rho_p), mul(fpj, rho_p)), phip);
-                    let neg = _mm512_castsi512_pd(_mm512_xor_si512(_mm512_castpd_si512(psip), sign));
-                    let fpair = mul(neg, recip);
-                    let dx = _mm512_loadu_pd(s.dx.as_ptr().add(q));
-                    let dy = _mm512_loadu_pd(s.dy.as_ptr().add(q));
-                    let dz = _mm512_loadu_pd(s.dz.as_ptr().add(q));
-                    let (fx, fy, fz) = (mul(dx, fpair), mul(dy, fpair), mul(dz, fpair));
-                    // Masked-off (padding) lanes keep their sums, as adding +0.0 would.
-                    ax = _mm512_mask_add_pd(ax, lane, ax, fx);
-                    ay = _mm512_mask_add_pd(ay, lane, ay, fy);
-                    az = _mm512_mask_add_pd(az, lane, az, fz);
-                    pe = _mm512_mask_add_pd(pe, lane, pe, phi);
-                    w[0] = _mm512_mask_add_pd(w[0], lane, w[0], mul(dx, fx));
-                    w[1] = _mm512_mask_add_pd(w[1], lane, w[1], mul(dy, fy));
-                    w[2] = _mm512_mask_add_pd(w[2], lane, w[2], mul(dz, fz));
-                    w[3] = _mm512_mask_add_pd(w[3], lane, w[3], mul(dx, fy));
-                    w[4] = _mm512_mask_add_pd(w[4], lane, w[4], mul(dx, fz));
-                    w[5] = _mm512_mask_add_pd(w[5], lane, w[5], mul(dy, fz));
-                    // Lane l's (fx, fy, fz, 0) as 256-bit rows: f4[j] -= them in pair order
-                    // (the 4th element stays as it is: x - 0.0 == x).
-                    let (t0, t1) = (_mm512_unpacklo_pd(fx, fy), _mm512_unpackhi_pd(fx, fy));
-                    let (t2, t3) = (_mm512_unpacklo_pd(fz, zero), _mm512_unpackhi_pd(fz, zero));
-                    let (q02, q46) = (_mm512_permutex2var_pd(t0, ilo, t2), _mm512_permutex2var_pd(t0, ihi, t2));
-                    let (q13, q57) = (_mm512_permutex2var_pd(t1, ilo, t3), _mm512_permutex2var_pd(t1, ihi, t3));
-                    let quads = [
-                        _mm512_castpd512_pd256(q02),
-                        _mm512_castpd512_pd256(q13),
-                        _mm512_extractf64x4_pd::<1>(q02),
-                        _mm512_extractf64x4_pd::<1>(q13),
-                        _mm512_castpd512_pd256(q46),
-                        _mm512_castpd512_pd256(q57),
-                        _mm512_extractf64x4_pd::<1>(q46),
-                        _mm512_extractf64x4_pd::<1>(q57),
-                    ];
-                    for (l, fd) in quads.iter().enumerate().take(k) {
-                        let at = f4.add(4 * *s.j.get_unchecked(q + l) as usize);
-                        _mm256_storeu_pd(at, _mm256_sub_pd(_mm256_loadu_pd(at), *fd));
-                    }
-                }
-                q += 8;
-            }
-            let sum = |v: __m512d| {
-                let mut a = [0.0f64; 8];
-                // SAFETY: a holds 8 f64.
-                unsafe { _mm512_storeu_pd(a.as_mut_ptr(), v) };
-                super::reduce_lanes(&a)
-            };
-            // SAFETY: i < n indexes f4's rows.
-            unsafe {
-                let at = f4.add(4 * i);
-                *at += sum(ax);
-                *at.add(1) += sum(ay);
-                *at.add(2) += sum(az);
-            }
-            beg = end.next_multiple_of(super::LANES);
-        }
-        let sum = |v: __m512d| {
-            let mut a = [0.0f64; 8];
-            // SAFETY: a holds 8 f64.
-            unsafe { _mm512_storeu_pd(a.as_mut_ptr(), v) };
-            super::reduce_lanes(&a)
-        };
-        (sum(pe), w.map(sum))
     }
 
     /// Force terms of pairs q0..q0 + len into blk (TERMS arrays of stride bl).
