@@ -11,9 +11,12 @@ set -euo pipefail
 RUNS=${1:-5}
 STEPS=${2:-200}
 NAT=43200
-export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-target}
-cargo build --release -q -p md-worker
-MD="$CARGO_TARGET_DIR/release/md-worker"
+# MD=path/to/md-worker runs that binary; unset, the release build of this checkout.
+if [ -z "${MD:-}" ]; then
+  export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-target}
+  cargo build --release -q -p md-worker
+  MD="$CARGO_TARGET_DIR/release/md-worker"
+fi
 OUT=$(mktemp -d)
 DIRECT="$MD direct --potential md-worker/potentials/Cu_mishin1.eam.alloy --a0 3.615 --cells 300,6,6 --region 0:542.25:-0.05 --wall 10 --dt 0.001 --out $OUT/bar.csv"
 LMP="lmp -sf opt -in md-worker/scripts/lammps_bar.in -log none -var n $STEPS"
@@ -44,7 +47,7 @@ for r in $(seq "$RUNS"); do
   b=$(md 2)
   c=$(lmp_run $MPI $LMP)
   d=$(lmp_run $LMP)
-  echo "run $r (wall, cpu ns/atom-step): direct 1t $a | direct 2t $b | lmp np2 $c | lmp np1 $d"
+  echo "run $r (load $(cut -d" " -f1 /proc/loadavg); wall, cpu ns/atom-step): direct 1t $a | direct 2t $b | lmp np2 $c | lmp np1 $d"
   rows+=("$a $b $c $d")
 done
 echo "load after: $(cat /proc/loadavg)"

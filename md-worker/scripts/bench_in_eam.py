@@ -4,13 +4,13 @@ on the same 20x20x20-cell Cu_u3 box (one box; md-worker's bench runs 300 K, 1 fs
 in.eam 1600 K, 5 fs: LAMMPS rebuilds its list more often), interleaved run by run. Prints wall
 and CPU ns/atom-step (CPU: user + sys of the whole process over its atom-steps).
 Usage: python3 md-worker/scripts/bench_in_eam.py [RUNS]   (from the repository root, after
-cargo build --release -p md-worker)"""
+cargo build --release -p md-worker; MD=path/to/md-worker runs another binary)"""
 import json, os, re, resource, statistics as st, subprocess, sys
 
 runs = int(sys.argv[1]) if len(sys.argv) > 1 else 5
 REPS, STEPS, N = 5, 20, 32000
 LMP = ["lmp", "-sf", "opt", "-in", "md-worker/scripts/lammps_in.eam", "-log", "none"]
-MD = ["target/release/md-worker", "bench", "--potential", "md-worker/potentials/Cu_u3.eam", "--lattice", "fcc", "--a0", "3.615",
+MD = [os.environ.get("MD", "target/release/md-worker"), "bench", "--potential", "md-worker/potentials/Cu_u3.eam", "--lattice", "fcc", "--a0", "3.615",
       "--cells", "20", "--boxes", "1", "--steps", str(STEPS), "--reps", str(REPS), "--threads", "1", "--backend", "cpu"]
 
 

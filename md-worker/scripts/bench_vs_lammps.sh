@@ -14,9 +14,12 @@ RUNS=${1:-5}
 CELLS=${2:-5}
 LSTEPS=${3:-2000}
 NAT=$((4 * CELLS * CELLS * CELLS))
-export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-target}
-cargo build --release -q -p md-worker
-MD="$CARGO_TARGET_DIR/release/md-worker"
+# MD=path/to/md-worker runs that binary; unset, the release build of this checkout.
+if [ -z "${MD:-}" ]; then
+  export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-target}
+  cargo build --release -q -p md-worker
+  MD="$CARGO_TARGET_DIR/release/md-worker"
+fi
 POT=md-worker/potentials/Cu_mishin1.eam.alloy
 REPS=5
 MDB="$MD bench --potential $POT --lattice fcc --a0 3.615 --cells $CELLS --boxes 16 --steps 200 --reps $REPS --backend cpu"
