@@ -332,14 +332,14 @@ impl<const D: usize> Simulation<D> {
 
     /// One explicit step.
     pub fn step(&mut self) -> Result<StepReport, SolverError> {
+        if self.scheme == SchemeKind::Tlmpm {
+            return self.tlmpm_step();
+        }
         if self.integrator == TimeIntegrator::ImplicitTrapezoidal {
             return self.implicit_step();
         }
         if self.integrator == TimeIntegrator::StormerVerlet {
             return self.verlet_step();
-        }
-        if self.scheme == SchemeKind::Tlmpm {
-            return self.tlmpm_step();
         }
         let step = self.step + 1;
         let dt = self.dt;

@@ -346,8 +346,8 @@ mod tests {
     /// points per cell ([`crate::tlmpm`]'s derivation), 2 at 1; through `cfl_bound` as well.
     #[test]
     fn the_tlmpm_bound_is_the_closed_form() {
-        for (n, a) in [(1usize, 0.25), (2, 3.0 / 16.0), (4, 11.0 / 64.0)] {
-            let qm = (1.0 / (8.0 * a as f64)).min(1.0);
+        for (n, a) in [(1usize, 0.25f64), (2, 3.0 / 16.0), (4, 11.0 / 64.0)] {
+            let qm = (1.0 / (8.0 * a)).min(1.0);
             let closed = 1.0 / (qm * (1.0 - 4.0 * a * qm)).sqrt();
             let b = cfl_bound(layout(SchemeKind::Tlmpm, n), TimeIntegrator::Leapfrog, 1.0).unwrap().unwrap();
             assert!((b - closed).abs() < 2e-3, "N = {n}: tlmpm {b} vs {closed}");

@@ -5,6 +5,8 @@
 //! points' reference positions X_p, with the tiles of every scatter sorted by X_p; the nodal
 //! masses m_i = sum_p S0_ip m_p are therefore the same every step. A step (velocities at half
 //! steps: the validator requires `integrator = "leapfrog"`, whose first step kicks by dt / 2):
+//! (`Simulation::step` runs this for the scheme `Tlmpm` whatever `integrator` says, and sets
+//! it to `Leapfrog`, which the velocity time of the outputs then reads.)
 //! 1. v_i = sum_p S0_ip m_p v_p / m_i with the boundary conditions (the solver's map, small-mass
 //!    treatment included);
 //! 2. f_i = -sum_p V0_p P_p G0_ip + sum_p S0_ip m_p b_p(X_p, t), with the first Piola-Kirchhoff
@@ -39,6 +41,9 @@ impl<const D: usize> Simulation<D> {
     pub(super) fn tlmpm_step(&mut self) -> Result<StepReport, SolverError> {
         let step = self.step + 1;
         let dt = self.dt;
+        // TLMPM is a leapfrog scheme whatever integrator was set (the scene validator asks for
+        // "leapfrog"): the map, the Lagrangian update and the point update read it.
+        self.integrator = super::TimeIntegrator::Leapfrog;
         if self.stencil.parts.is_empty() {
             self.reference_stencil().map_err(|o| super::stencil_error(step, &o, "the reference stencil is built at X_p"))?;
         }
