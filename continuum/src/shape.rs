@@ -37,6 +37,11 @@ pub enum SchemeKind {
     /// (linear basis, cubic B-spline) at the nodes. 1D: the 1D CPDI; 2D/3D: cpdi2 (tracked
     /// corners) with the same map [proposed extension; Gong gives 1D only].
     CpdiImproved,
+    /// Total-Lagrangian MPM (battery thesis 6.1, notes C.1): hat functions, their gradients and
+    /// the nodal masses at the points' reference positions X_p, computed once; first
+    /// Piola-Kirchhoff forces; the PIC/FLIP blend of (6.33); F updated with the re-mapped nodal
+    /// velocity (see `solver/tlmpm.rs`). No point changes its stencil, so no cell crossing.
+    Tlmpm,
 }
 
 impl SchemeKind {
@@ -52,6 +57,7 @@ impl SchemeKind {
         ("ddmp-subpoints", SchemeKind::DdmpSubpoints),
         ("impm", SchemeKind::Impm),
         ("cpdi-improved", SchemeKind::CpdiImproved),
+        ("tlmpm", SchemeKind::Tlmpm),
     ];
 
     pub fn from_name(name: &str) -> Option<SchemeKind> {

@@ -19,6 +19,7 @@ mod corrected;
 pub mod implicit;
 mod impm;
 mod nullspace;
+mod tlmpm;
 mod verlet;
 
 pub use corrected::{GradientCorrection, NodeCorrection, correction_factors};
@@ -331,6 +332,9 @@ impl<const D: usize> Simulation<D> {
 
     /// One explicit step.
     pub fn step(&mut self) -> Result<StepReport, SolverError> {
+        if self.scheme == SchemeKind::Tlmpm {
+            return self.tlmpm_step();
+        }
         if self.integrator == TimeIntegrator::ImplicitTrapezoidal {
             return self.implicit_step();
         }
@@ -404,7 +408,8 @@ impl<const D: usize> Simulation<D> {
                     match scheme {
                         SchemeKind::Mpm | SchemeKind::Ugimp | SchemeKind::Cpgimp => shape::gimp_row(scheme, grid, pts, p, part)?,
                         // IMPM moves its points with the hat functions at x_p^s (Gong 5.3 steps 5-6).
-                        SchemeKind::Impm => shape::gimp_row(SchemeKind::Mpm, grid, pts, p, part)?,
+                        // TLMPM builds its stencil once, at X_p (`solver/tlmpm.rs`); hats here.
+                        SchemeKind::Impm | SchemeKind::Tlmpm => shape::gimp_row(SchemeKind::Mpm, grid, pts, p, part)?,
                         SchemeKind::Cpdi | SchemeKind::Cpdi1 | SchemeKind::Cpdi2 => shape::cpdi_row(scheme, grid, pts, p, block, part)?,
                         SchemeKind::CpdiImproved => shape::cpdi_row(impm::improved_cpdi_base::<D>(), grid, pts, p, block, part)?,
                         SchemeKind::Ddmp | SchemeKind::DdmpSubpoints => {

@@ -93,7 +93,12 @@ pub fn symbols(layout: Layout, thetas: &[f64]) -> Result<Vec<Symbol>, String> {
     let law = LinearPiola { youngs_modulus: 1.0, poisson_ratio: 0.0, density0: 1.0 };
     // cpdi-improved keeps the CPDI stencil and maps velocities by MLS (below).
     let mls_map = layout.scheme == SchemeKind::CpdiImproved;
-    let stencil_scheme = if mls_map { SchemeKind::Cpdi } else { layout.scheme };
+    // tlmpm's stencil is the hats at the reference positions: at rest, mpm's.
+    let stencil_scheme = match layout.scheme {
+        SchemeKind::CpdiImproved => SchemeKind::Cpdi,
+        SchemeKind::Tlmpm => SchemeKind::Mpm,
+        k => k,
+    };
     let phi = if mls_map {
         let x: Vec<[f64; 1]> = pts.x.clone();
         Some(
@@ -229,35 +234,61 @@ pub fn eigenvalues(m: &[[C64; 2]; 2]) -> [C64; 2] {
 /// Whether every wave is stable at `cfl`. For `dhakal` only a real eigenvalue below -1 counts
 /// (its complex pairs grow at every dt; see the module notes).
 fn stable(integrator: TimeIntegrator, flip_fraction: f64, syms: &[Symbol], cfl: f64) -> bool {
+    stable_with(|sym, cfl| amplification(integrator, flip_fraction, sym, cfl), integrator == TimeIntegrator::Dhakal, syms, cfl)
+}
+
+fn stable_with(matrix: impl Fn(&Symbol, f64) -> [[C64; 2]; 2], real_only: bool, syms: &[Symbol], cfl: f64) -> bool {
     const TOL: f64 = 1e-9;
     syms.iter().all(|sym| {
-        eigenvalues(&amplification(integrator, flip_fraction, sym, cfl))
+        eigenvalues(&matrix(sym, cfl))
             .iter()
-            .all(|l| if integrator == TimeIntegrator::Dhakal { !(l.im.abs() <= 1e-12 && l.re < -1.0 - TOL) } else { l.norm() <= 1.0 + TOL })
+            .all(|l| if real_only { !(l.im.abs() <= 1e-12 && l.re < -1.0 - TOL) } else { l.norm() <= 1.0 + TOL })
     })
 }
 
 /// The largest CFL (c dt / h) at which every wave of `syms` is stable (up to 8; `None` if no
 /// CFL is, which no scheme here gives).
 pub fn bound_of(integrator: TimeIntegrator, flip_fraction: f64, syms: &[Symbol]) -> Option<f64> {
+    largest_stable(|cfl| stable(integrator, flip_fraction, syms, cfl))
+}
+
+fn largest_stable(stable: impl Fn(f64) -> bool) -> Option<f64> {
     let step = 1e-3;
     let mut lo = 0.0;
     while lo < 8.0 {
         let hi = lo + step;
-        if !stable(integrator, flip_fraction, syms, hi) {
+        if !stable(hi) {
             if lo == 0.0 {
                 return None;
             }
             let (mut a, mut b) = (lo, hi);
             for _ in 0..50 {
                 let m = 0.5 * (a + b);
-                if stable(integrator, flip_fraction, syms, m) { a = m } else { b = m }
+                if stable(m) { a = m } else { b = m }
             }
             return Some(a);
         }
         lo = hi;
     }
     Some(8.0)
+}
+
+/// TLMPM's one-step matrix on (v, dt a) (`solver/tlmpm.rs`, leapfrog): the re-mapped velocity
+/// v' = b v + r alpha (as for usl), but F, and so the next force, is updated with v' rather
+/// than v^L: alpha' = alpha - s v'. So [[b, r], [-s b, 1 - s r]], b = beta + (1 - beta) r.
+/// At beta = 1 the determinant is 1 and the bound is s r <= 4: hats at 2 points per cell
+/// (r = 1 - 3 q / 4, s = 4 CFL^2 q) give CFL <= sqrt 3, as [`crate::tlmpm`] derives.
+pub fn tlmpm_amplification(flip_fraction: f64, sym: &Symbol, cfl: f64) -> [[C64; 2]; 2] {
+    let one = C64::new(1.0, 0.0);
+    let s = sym.w2 * (cfl * cfl);
+    let r = sym.r;
+    let b = one * flip_fraction + r * (1.0 - flip_fraction);
+    [[b, r], [-s * b, one - s * r]]
+}
+
+/// TLMPM's bound over the waves of `syms` (the symbols of its hats at the reference positions).
+pub fn tlmpm_bound_of(flip_fraction: f64, syms: &[Symbol]) -> Option<f64> {
+    largest_stable(|cfl| stable_with(|sym, cfl| tlmpm_amplification(flip_fraction, sym, cfl), false, syms, cfl))
 }
 
 /// Wave numbers 0 ..= pi (every wave of an infinite bar; the symbols are even in theta).
@@ -276,6 +307,9 @@ pub fn cfl_bound(layout: Layout, integrator: TimeIntegrator, flip_fraction: f64)
         return Ok(None);
     }
     let syms = symbols(layout, &all_waves())?;
+    if layout.scheme == SchemeKind::Tlmpm {
+        return Ok(tlmpm_bound_of(flip_fraction, &syms));
+    }
     Ok(bound_of(integrator, flip_fraction, &syms))
 }
 
@@ -306,5 +340,23 @@ mod tests {
             let usf = bound_of(TimeIntegrator::Usf, 1.0, &syms).unwrap();
             assert!((usf - 1.0 / (qm * (1.0 - 4.0 * a * qm)).sqrt()).abs() < 2e-3, "N = {n}: usf {usf}");
         }
+    }
+
+    /// TLMPM at beta = 1: s r <= 4, CFL^2 <= 1 / max_q q (1 - 4 a q), the usf form: sqrt 3 at 2
+    /// points per cell ([`crate::tlmpm`]'s derivation), 2 at 1; through `cfl_bound` as well.
+    #[test]
+    fn the_tlmpm_bound_is_the_closed_form() {
+        for (n, a) in [(1usize, 0.25f64), (2, 3.0 / 16.0), (4, 11.0 / 64.0)] {
+            let qm = (1.0 / (8.0 * a)).min(1.0);
+            let closed = 1.0 / (qm * (1.0 - 4.0 * a * qm)).sqrt();
+            let b = cfl_bound(layout(SchemeKind::Tlmpm, n), TimeIntegrator::Leapfrog, 1.0).unwrap().unwrap();
+            assert!((b - closed).abs() < 2e-3, "N = {n}: tlmpm {b} vs {closed}");
+        }
+        let b2 = cfl_bound(layout(SchemeKind::Tlmpm, 2), TimeIntegrator::Leapfrog, 1.0).unwrap().unwrap();
+        assert!((b2 - 3f64.sqrt()).abs() < 2e-3, "{b2}");
+        // PIC re-maps the FLIP increment away: still bounded, and no looser than FLIP here.
+        let pic = cfl_bound(layout(SchemeKind::Tlmpm, 2), TimeIntegrator::Leapfrog, 0.0).unwrap().unwrap();
+        eprintln!("tlmpm 2 ppc: FLIP {b2:.4}, PIC {pic:.4}");
+        assert!(pic > 0.5 && pic <= b2 + 1e-6, "PIC {pic}");
     }
 }

@@ -64,7 +64,8 @@ fn free_block_2d(scheme: SchemeKind, sub: usize) -> Simulation<2> {
 fn mass_and_momentum_are_conserved_at_free_surfaces() {
     // Every PIC/FLIP blend: the PIC share interpolates nodal velocities, so it must see the
     // momentum the points mapped, not the small-mass average of the light surface nodes.
-    let cases = [(SchemeKind::Ddmp, 1), (SchemeKind::DdmpSubpoints, 8), (SchemeKind::Cpdi2, 1), (SchemeKind::Ugimp, 1)];
+    let cases =
+        [(SchemeKind::Ddmp, 1), (SchemeKind::DdmpSubpoints, 8), (SchemeKind::Cpdi2, 1), (SchemeKind::Ugimp, 1), (SchemeKind::Tlmpm, 1)];
     for ((scheme, sub), beta) in cases.into_iter().flat_map(|c| [1.0, 0.5, 0.0].map(|b| (c, b))) {
         let mut s = free_block_2d(scheme, sub);
         s.flip_fraction = beta;
@@ -350,7 +351,7 @@ fn manufactured_solution_converges_at_second_order_full_range() {
 fn registry(dim: usize) -> Vec<(SchemeKind, usize)> {
     let all: Vec<(SchemeKind, usize)> =
         SchemeKind::NAMES.iter().map(|&(_, k)| (k, if k == SchemeKind::DdmpSubpoints { 4 } else { 1 })).collect();
-    assert_eq!(all.len(), 10, "the registry changed: check that every scheme is still covered");
+    assert_eq!(all.len(), 11, "the registry changed: check that every scheme is still covered");
     all.into_iter().filter(|(k, _)| k.supports_dimension(dim)).collect()
 }
 

@@ -133,6 +133,34 @@ fn every_explicit_combination_is_stable_below_its_derived_bound_and_grows_above(
     assert!(failures.is_empty(), "not bounded below / growing above the derived bound:\n{}", failures.concat());
 }
 
+/// `scheme.method = "tlmpm"` (the solver's total-Lagrangian step, leapfrog): its own derived
+/// bound ([`stability::tlmpm_bound_of`]: sqrt 3 at 2 points per cell, FLIP), not the usl one,
+/// at 1 and 2 points per cell, FLIP and a 0.5 blend: bounded at 0.99, growing at 1.01.
+#[test]
+fn tlmpm_is_stable_below_its_derived_bound_and_grows_above() {
+    let mut failures = Vec::new();
+    for n in [1, 2] {
+        let layout = Layout { scheme: SchemeKind::Tlmpm, particles_per_cell: n, sub_points: 1 };
+        for flip in [1.0, 0.5] {
+            let syms = stability::symbols(layout, &stability::waves_of_periodic_bar(CELLS)).unwrap();
+            let bound = stability::tlmpm_bound_of(flip, &syms).unwrap();
+            let below = growth(layout, TimeIntegrator::Leapfrog, flip, 0.99 * bound, 3000);
+            let above = growth(layout, TimeIntegrator::Leapfrog, flip, 1.01 * bound, 3000);
+            let line = format!("tlmpm N={n} flip {flip}: bound {bound:.4}, growth {below:.3e} at 0.99, {above:.3e} at 1.01\n");
+            print!("{line}");
+            if n == 2 && flip == 1.0 {
+                // Over every wave number (the 16-cell bar's waves miss sin^2(theta/2) = 2/3).
+                let all = stability::tlmpm_bound_of(flip, &stability::symbols(layout, &stability::all_waves()).unwrap()).unwrap();
+                assert!((all - 3f64.sqrt()).abs() < 1e-6 && bound >= all, "{line} (all waves {all})");
+            }
+            if !(below < 10.0 && above > 1e3) {
+                failures.push(line);
+            }
+        }
+    }
+    assert!(failures.is_empty(), "not bounded below / growing above the derived bound:\n{}", failures.concat());
+}
+
 /// One smooth wave (theta = 2 pi / CELLS) on an MPM bar: its per-step rotation (the frequency)
 /// and modulus (growth) as measured match the eigenvalue of the analysis, for usl (neutral),
 /// usf, and dhakal (growing at every dt: the first-order cycle).

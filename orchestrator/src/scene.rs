@@ -924,6 +924,42 @@ end_time = 1e-12
         assert!(e.contains("`scheme.flip_fraction` = 0.5: the Stormer-Verlet step updates the point velocities by FLIP only"), "{e}");
     }
 
+    /// tlmpm: its own derived bound (sqrt 3 at 2 points per cell, FLIP; 2 at 1), leapfrog only,
+    /// and what it cannot run with refused naming the key.
+    #[test]
+    fn tlmpm_resolves_with_its_own_bound_and_refuses_what_it_cannot_run() {
+        let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+        let parse_in = |file: &str, sets: &[&str]| {
+            let text = std::fs::read_to_string(base.join(file)).unwrap();
+            let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+            parse(file, &text, &sets, &base, file.trim_end_matches(".toml")).map(|l| l.resolved.scheme)
+        };
+        let err = |file: &str, sets: &[&str]| parse_in(file, sets).unwrap_err().to_string();
+        assert_eq!(parse_in("mms-1d-tlmpm.toml", &[]).unwrap(), continuum::SchemeKind::Tlmpm);
+        // The vibrating bar (E = 1e3, rho = 1, h = 1/40: c = 31.6 m/s, A c pi = 0.30 m/s).
+        let bar = ["scheme.method=\"tlmpm\"", "scheme.integrator=leapfrog"];
+        let with = |extra: &[&'static str]| -> Vec<&'static str> { bar.iter().chain(extra).copied().collect() };
+        assert!(parse_in("vibrating-bar-1d.toml", &with(&["scheme.timestep=5.3e-4"])).is_ok(), "1.70 of h / (c + |v|) is below sqrt 3");
+        let e = err("vibrating-bar-1d.toml", &with(&["scheme.timestep=5.6e-4"]));
+        assert!(e.contains("`scheme.timestep`") && e.contains("1.732 h / (c + |v|)"), "{e}");
+        let e = err("mms-1d-tlmpm.toml", &["scheme.cfl=1.8"]);
+        assert!(e.contains("`scheme.cfl` = 1.8: allowed: 0 < cfl <= 1.7320, the linear stability bound of tlmpm"), "{e}");
+        assert!(parse_in("mms-1d-tlmpm.toml", &["scheme.cfl=1.1", "reference.amplitude=1e-4"]).is_ok());
+        // 1 point per cell: the bound is 2.
+        assert!(parse_in("mms-1d-tlmpm.toml", &["scheme.cfl=1.9", "reference.amplitude=1e-4", "scheme.particles_per_cell=1"]).is_ok());
+        let e = err("mms-1d-tlmpm.toml", &["scheme.integrator=dhakal"]);
+        assert!(e.contains("`scheme.integrator` = \"dhakal\": tlmpm keeps its velocities at half steps"), "{e}");
+        for (key, set) in [
+            ("scheme.nullspace_filter", "scheme.nullspace_filter=\"local\""),
+            ("scheme.gradient_correction", "scheme.gradient_correction=\"linear\""),
+        ] {
+            let e = err("mms-1d-tlmpm.toml", &[set]);
+            assert!(e.contains(&format!("`{key}`")) && e.contains("tlmpm"), "{e}");
+        }
+        let e = err("heat-1d.toml", &bar);
+        assert!(e.contains("`diffusion`") && e.contains("diffusion with tlmpm"), "{e}");
+    }
+
     #[test]
     fn the_shipped_battery_scenes_resolve_and_the_diffusion_bound_is_named() {
         let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");

@@ -341,3 +341,18 @@ fn sigterm_checkpoints_a_cell_run_and_it_resumes_to_the_same_digest() {
     ok(&["run", "--resume", stopped.to_str().unwrap()]);
     same_cell_state(&reference, &summary(&stopped));
 }
+
+/// Issue 19: a tlmpm run resumes to the digest of an uninterrupted one (its reference stencil
+/// and nodal masses are rebuilt from X_p to the same bits; the nodal velocity is re-mapped from
+/// the points every step, so the points are all it carries). 1D and 2D.
+#[test]
+fn tlmpm_run_resumes_to_the_same_digest() {
+    // 80 steps; checkpoints after steps 60 and 80 are kept.
+    resume_matches("../scenes/mms-1d-tlmpm.toml", &["output.snapshots=2", "output.plots=false"], "20");
+    // 8 x 8 cells, 40 steps; checkpoints after steps 30 and 40.
+    resume_matches(
+        "../scenes/mms-2d.toml",
+        &["scheme.method=\"tlmpm\"", "domain.cells=[8,8]", "output.snapshots=2", "output.plots=false", "output.vtk=false"],
+        "10",
+    );
+}

@@ -121,6 +121,22 @@ impl Scene {
         })
     }
 
+    /// The largest c dt / h an explicit step of this scene's scheme allows: tlmpm's derived
+    /// bound, `CFL_LIMIT` for every other scheme.
+    fn explicit_cfl_limit(&self) -> f64 {
+        if self.scheme.method == SchemeKind::Tlmpm {
+            tlmpm_bound(self.scheme.particles_per_cell, self.scheme.flip_fraction)
+        } else {
+            CFL_LIMIT
+        }
+    }
+
+    /// `explicit_cfl_limit` times h / (c + |v|), as a message writes it.
+    fn explicit_bound_form(&self) -> String {
+        let limit = self.explicit_cfl_limit();
+        if limit == CFL_LIMIT { "h / (c + |v|)".to_string() } else { format!("{limit} h / (c + |v|) (tlmpm's bound)") }
+    }
+
     /// Material points per body (name order), counted without building them.
     fn point_counts(&self) -> Vec<(String, usize)> {
         let d = &self.domain;
@@ -670,6 +686,22 @@ impl Scene {
                 ));
             }
         }
+        if kind == SchemeKind::Tlmpm {
+            if s.integrator != continuum::solver::TimeIntegrator::Leapfrog {
+                return Err(loc.err(
+                    "scheme.integrator",
+                    format!("{:?}", s.integrator.scene_name()),
+                    "tlmpm keeps its velocities at half steps (the first step kicks by dt / 2, battery thesis 6.1): set scheme.integrator = \"leapfrog\"",
+                ));
+            }
+            if self.diffusion.is_some() {
+                return Err(loc.err(
+                    "diffusion",
+                    "[diffusion]",
+                    "diffusion with tlmpm needs the reference-configuration form, whose carried nodal values the checkpoint does not hold in this build; use a current-configuration scheme (mpm, ugimp, ...) for [diffusion], or a prescribed [bodies.X.lithiation] rate with tlmpm",
+                ));
+            }
+        }
         if kind == SchemeKind::CpdiImproved
             && let Some((face, _)) = self.boundary.faces().into_iter().find(|(_, f)| matches!(f, FaceSpec::Named(FaceName::Periodic)))
         {
@@ -713,7 +745,9 @@ impl Scene {
         }
         if s.gradient_correction != continuum::solver::GradientCorrection::None {
             let name = format!("{:?}", s.gradient_correction.scene_name());
-            let why = if !matches!(
+            let why = if kind == SchemeKind::Tlmpm {
+                Some("tlmpm's forces use the reference gradients G0 of hats at X_p, exact for its stencil; corrected derivatives apply to mpm, ugimp, cpgimp, cpdi, cpdi1, cpdi2".to_string())
+            } else if !matches!(
                 kind,
                 SchemeKind::Mpm | SchemeKind::Ugimp | SchemeKind::Cpgimp | SchemeKind::Cpdi | SchemeKind::Cpdi1 | SchemeKind::Cpdi2
             ) {
@@ -734,7 +768,9 @@ impl Scene {
             use continuum::solver::NullspaceFilter;
             let name = format!("{:?}", s.nullspace_filter.scene_name());
             let points = self.domain.cells.iter().product::<usize>().saturating_mul(s.particles_per_cell.saturating_pow(dim as u32));
-            let why = if matches!(kind, SchemeKind::Impm | SchemeKind::CpdiImproved) {
+            let why = if kind == SchemeKind::Tlmpm {
+                Some("tlmpm updates F from the re-mapped nodal velocity and never forms the filtered velocity gradient; the filters apply to mpm, ugimp, cpgimp, cpdi, cpdi1, cpdi2, ddmp, ddmp-subpoints".to_string())
+            } else if matches!(kind, SchemeKind::Impm | SchemeKind::CpdiImproved) {
                 Some(format!(
                     "`{}` maps velocities to the nodes by MLS, whose nullspace these filters do not address; the filters apply to mpm, ugimp, cpgimp, cpdi, cpdi1, cpdi2, ddmp, ddmp-subpoints",
                     kind.name()
@@ -776,9 +812,18 @@ impl Scene {
                 ));
             }
         }
-        // The implicit integrator has no CFL bound (its bound is on motion per step, below).
-        let bound = if implicit { f64::INFINITY } else { CFL_LIMIT * h / speed };
-        let cfl_limit = if implicit { f64::INFINITY } else { CFL_LIMIT };
+        // The implicit integrator has no CFL bound (its bound is on motion per step, below);
+        // tlmpm's is its own derived one (sqrt 3 at 2 points per cell, FLIP).
+        let tlmpm = (kind == SchemeKind::Tlmpm).then(|| tlmpm_bound(s.particles_per_cell, s.flip_fraction));
+        let cfl_limit = if implicit { f64::INFINITY } else { tlmpm.unwrap_or(CFL_LIMIT) };
+        let bound = cfl_limit * h / speed;
+        let cfl_message = |implicit: bool| match tlmpm {
+            Some(b) => format!(
+                "allowed: 0 < cfl <= {b:.4}, the linear stability bound of tlmpm at {} points per cell and flip_fraction {} (derived in continuum::stability: the F update sees the re-mapped velocity)",
+                s.particles_per_cell, s.flip_fraction
+            ),
+            None => cfl_message(implicit),
+        };
         let dt = match (s.cfl, s.timestep) {
             (Some(c), Some(dt)) => {
                 // Both given (as in a resolved scene): they must agree.
@@ -804,7 +849,8 @@ impl Scene {
             (None, Some(dt)) => {
                 finite_positive(loc, "scheme.timestep", dt, "the time step (s)")?;
                 if dt > bound {
-                    return Err(loc.err("scheme.timestep", dt, format!("exceeds the stability bound h / (c + |v|) = {bound:.6e} s (h = {h:e} m, c + |v| = {speed:e} m/s); use a smaller time step or `cfl`")));
+                    let form = if tlmpm.is_some() { format!("tlmpm's {cfl_limit} h / (c + |v|)") } else { "h / (c + |v|)".to_string() };
+                    return Err(loc.err("scheme.timestep", dt, format!("exceeds the stability bound {form} = {bound:.6e} s (h = {h:e} m, c + |v| = {speed:e} m/s); use a smaller time step or `cfl`")));
                 }
                 dt
             }
@@ -1047,14 +1093,15 @@ impl Scene {
         if let (Some(dt), Some(m)) = (self.scheme.timestep, self.vibrating_bar()) {
             let h = self.domain.cell_size[0];
             let speed = m.speed() + m.max_speed();
-            if dt * speed / h > CFL_LIMIT {
+            if dt * speed / h > self.explicit_cfl_limit() {
                 return Err(loc.err(
                     "scheme.timestep",
                     dt,
                     format!(
-                        "with the bar's particle speed A c pi = {:e} m/s, dt exceeds the bound h / (c + |v|) = {:e} s",
+                        "with the bar's particle speed A c pi = {:e} m/s, dt exceeds the bound {} = {:e} s",
                         m.max_speed(),
-                        h / speed
+                        self.explicit_bound_form(),
+                        self.explicit_cfl_limit() * h / speed
                     ),
                 ));
             }
@@ -1141,14 +1188,15 @@ impl Scene {
             let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
             let (lambda, mu) = continuum::closure::lame(m.youngs_modulus, m.poisson_ratio);
             let speed = ((lambda + 2.0 * mu) / m.density0).sqrt() + m.max_speed();
-            if dt * speed / h > CFL_LIMIT {
+            if dt * speed / h > self.explicit_cfl_limit() {
                 return Err(loc.err(
                     "scheme.cfl",
                     self.scheme.cfl.unwrap_or_default(),
                     format!(
-                        "with the manufactured particle speed c pi G = {:e} m/s, dt = {dt:e} s exceeds the bound h / (c + |v|) = {:e} s",
+                        "with the manufactured particle speed c pi G = {:e} m/s, dt = {dt:e} s exceeds the bound {} = {:e} s",
                         m.max_speed(),
-                        h / speed
+                        self.explicit_bound_form(),
+                        self.explicit_cfl_limit() * h / speed
                     ),
                 ));
             }
@@ -1372,6 +1420,14 @@ fn validate_adaptive(loc: &Locator<'_>, a: &crate::scene::AdaptiveSpec) -> Resul
         return Err(loc.err("scheme.adaptive.max_rejections", 0, "must be at least 1"));
     }
     Ok(())
+}
+
+/// TLMPM's derived linear bound (c dt / h) at `ppc` points per cell and the blend `flip`, rounded
+/// down to 4 digits (the hats at rest are a valid layout, so the analysis always gives one).
+fn tlmpm_bound(ppc: usize, flip: f64) -> f64 {
+    let layout = continuum::stability::Layout { scheme: SchemeKind::Tlmpm, particles_per_cell: ppc, sub_points: 1 };
+    let b = continuum::stability::cfl_bound(layout, continuum::solver::TimeIntegrator::Leapfrog, flip).ok().flatten().unwrap_or(CFL_LIMIT);
+    (b * 1e4).floor() / 1e4
 }
 
 fn cfl_message(implicit: bool) -> String {
