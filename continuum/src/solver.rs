@@ -736,15 +736,8 @@ impl<const D: usize> Simulation<D> {
         if let Some(ex) = ranks {
             // The closures are pointwise (`split_ranks`): each run of this rank's points is a
             // batch of its own.
-            let r = ranks::advance_owned_closures(
-                pts,
-                &mut self.closures,
-                &self.body_ranges,
-                owned,
-                step,
-                dt,
-                &mut self.closure_evaluations,
-            );
+            let r =
+                ranks::advance_owned_closures(pts, &mut self.closures, &self.body_ranges, owned, step, dt, &mut self.closure_evaluations);
             ranks::agree(Some(ex), r)?;
         }
         // Every closure sees its batch first (`prepare`), so closures sharing a worker pool send

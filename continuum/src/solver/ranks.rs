@@ -26,7 +26,8 @@ impl<const D: usize> Simulation<D> {
     /// computes every point (replicated, stage 1; only the scatters are split).
     pub(super) fn split_ranks(&self) -> Option<&'static dyn TileExchange> {
         let ex = par::exchange().filter(|e| e.size() > 1)?;
-        let explicit = matches!(self.integrator, TimeIntegrator::Dhakal | TimeIntegrator::Leapfrog | TimeIntegrator::Usl | TimeIntegrator::Usf);
+        let explicit =
+            matches!(self.integrator, TimeIntegrator::Dhakal | TimeIntegrator::Leapfrog | TimeIntegrator::Usl | TimeIntegrator::Usf);
         let scheme = !matches!(self.scheme, SchemeKind::Impm | SchemeKind::CpdiImproved);
         let extras = self.gradient_correction == GradientCorrection::None
             && self.nullspace_filter == NullspaceFilter::None
@@ -225,5 +226,64 @@ fn decode(b: &[u8]) -> SolverError {
         // copy received is harmless.
         0 => SolverError::Diverged { step, what, cause: Box::leak(cause.into_boxed_str()) },
         _ => SolverError::Closure { step, source: ClosureError::Other(what) },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One rank of a pretend exchange: the other ranks' contributions are given.
+    struct Fake {
+        rank: usize,
+        theirs: Vec<Vec<u8>>,
+    }
+
+    impl TileExchange for Fake {
+        fn rank(&self) -> usize {
+            self.rank
+        }
+        fn size(&self) -> usize {
+            self.theirs.len()
+        }
+        fn all_gather(&self, _: &[f64]) -> Vec<Vec<f64>> {
+            unreachable!("agree gathers bytes only")
+        }
+        fn all_gather_bytes(&self, mine: &[u8]) -> Vec<Vec<u8>> {
+            let mut all = self.theirs.clone();
+            all[self.rank] = mine.to_vec();
+            all
+        }
+    }
+
+    fn diverged(p: usize) -> SolverError {
+        SolverError::Diverged { step: 5, what: format!("particle {p} left the grid"), cause: "a cause" }
+    }
+
+    #[test]
+    fn every_rank_gets_the_error_of_the_lowest_failing_point() {
+        let closure = SolverError::Closure { step: 5, source: ClosureError::NonFinite { point: 3, law: "neo-hookean", jacobian: -1.0 } };
+        let want = chain(&closure);
+        let (c3, d7) = (encode(3, &closure), encode(7, &diverged(7)));
+        // Rank 1 failed at point 7, rank 0 at point 3 (a closure), rank 2 not at all: rank 1
+        // and rank 2 report rank 0's error, message for message.
+        for rank in [1, 2] {
+            let ex = Fake { rank, theirs: vec![c3.clone(), d7.clone(), Vec::new()] };
+            let local = if rank == 1 { Err((7, diverged(7))) } else { Ok(()) };
+            let e = agree(Some(&ex), local).expect_err("rank 0 failed");
+            assert_eq!(chain(&e), want, "rank {rank}");
+            assert!(matches!(e, SolverError::Closure { step: 5, .. }), "{e:?}");
+        }
+        // Rank 0 keeps its own error (its type and source intact).
+        let ex = Fake { rank: 0, theirs: vec![Vec::new(), d7.clone(), Vec::new()] };
+        let e = agree(Some(&ex), Err((3, closure))).expect_err("failed");
+        assert!(matches!(e, SolverError::Closure { source: ClosureError::NonFinite { point: 3, .. }, .. }), "{e:?}");
+        // A divergence crosses ranks whole.
+        let ex = Fake { rank: 2, theirs: vec![Vec::new(), d7.clone(), Vec::new()] };
+        let e = agree(Some(&ex), Ok(())).expect_err("rank 1 failed");
+        assert_eq!(chain(&e), chain(&diverged(7)));
+        // No failure anywhere: every rank goes on.
+        let ex = Fake { rank: 1, theirs: vec![Vec::new(); 3] };
+        assert!(agree(Some(&ex), Ok(())).is_ok());
     }
 }
