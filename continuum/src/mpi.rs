@@ -1,9 +1,10 @@
-//! The continuum over MPI ranks (cargo feature `mpi`): [`init`] starts MPI and spreads the
-//! tiles of every explicit scatter ([`crate::par::Scatter::run_tiled`]) over the ranks of
-//! `MPI_COMM_WORLD`. Stage 1 of issue 14 (README "MPI"): the point state stays replicated on
-//! every rank, each rank sums only the tiles it owns and the tile buffers are all-gathered, so
-//! every rank reduces the same buffers in the same tile order and ends each step with the
-//! single-process bits.
+//! The continuum over MPI ranks (cargo feature `mpi`): [`init`] starts MPI and sets the
+//! process's tile exchange over the ranks of `MPI_COMM_WORLD` ([`par::set_exchange`]). With
+//! it, every explicit scatter ([`crate::par::Scatter::run_tiled`]) is summed tile by tile on the
+//! tiles' owners and the buffers all-gathered (stage 1 of issue 14), and the explicit step's
+//! per-point work is split the same way, the updated points all-gathered in tile order and
+//! failures agreed over the ranks (stage 2, `solver/ranks.rs`). The point state stays
+//! replicated, so every rank ends each step with the single-process bits (README "MPI").
 
 use crate::par::{self, ExchangeStats, TileExchange};
 use mpi::traits::*;
