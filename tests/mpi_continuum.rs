@@ -1,6 +1,8 @@
 //! The continuum over MPI ranks (continuum's and orchestrator's cargo feature `mpi`, issue 14
-//! stage 1): `mpirun -np N mscale run SCENE` gives the `state_digest` of the single-process run
-//! for N = 1, 2, 3 (oversubscribed), on a 1D and a 2D scene and several gradient schemes.
+//! stages 1 and 2): `mpirun -np N mscale run SCENE` gives the `state_digest` of the
+//! single-process run for N = 1, 2, 3 (and 4 on the 3D scene; oversubscribed), on a 1D, a 2D
+//! and a 3D scene and several gradient schemes; a checkpoint written on 2 ranks resumes on 3 to
+//! the uninterrupted digest.
 //!
 //! Needs an `mscale` built with `--features mpi` (`bash deploy/setup.sh mpi`, then
 //! `cargo build -p orchestrator --features mpi --bin mscale`); set `MSCALE_MPI_MSCALE` to that
@@ -24,8 +26,20 @@ fn mpi_mscale() -> PathBuf {
 /// Runs `scene` with `set` into a fresh directory under `tmp`, over `ranks` MPI ranks (None: no
 /// mpirun), and returns the state_digest of its summary.json.
 fn digest(exe: &Path, tmp: &Path, scene: &str, set: &[String], ranks: Option<usize>) -> String {
-    let out = tmp.join(format!("{}-{}-{}", scene.replace('/', "_"), set.join(",").replace(['/', '"', '='], "_"), ranks.unwrap_or(0)));
-    let scene = repo().join(scene);
+    // A run counter names the directory (the settings would make too long a name).
+    static RUNS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let k = RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let out = tmp.join(format!("run{k}-{}", ranks.unwrap_or(0)));
+    let mut args = vec!["run".to_string(), repo().join(scene).display().to_string(), "--out".into(), out.display().to_string()];
+    for s in set {
+        args.extend(["--set".to_string(), s.clone()]);
+    }
+    run_digest(exe, &args, &out, ranks)
+}
+
+/// Runs `mscale ARGS` over `ranks` MPI ranks (None: no mpirun), expects success, and returns the
+/// state_digest of `out`'s summary.json.
+fn run_digest(exe: &Path, args: &[String], out: &Path, ranks: Option<usize>) -> String {
     let mut cmd = match ranks {
         Some(n) => {
             let mut c = Command::new(std::env::var("MSCALE_MPIRUN").unwrap_or_else(|_| "mpirun".into()));
@@ -34,10 +48,7 @@ fn digest(exe: &Path, tmp: &Path, scene: &str, set: &[String], ranks: Option<usi
         }
         None => Command::new(exe),
     };
-    cmd.arg("run").arg(&scene).arg("--out").arg(&out);
-    for s in set {
-        cmd.args(["--set", s]);
-    }
+    cmd.args(args);
     cmd.current_dir(repo()).env("RUST_LOG", "warn").env("RAYON_NUM_THREADS", "1").env("OMPI_MCA_btl_vader_single_copy_mechanism", "none");
     let o = cmd.output().expect("run mscale");
     assert_eq!(
@@ -68,6 +79,20 @@ fn sets(base: &[&str], method: Option<&str>) -> Vec<String> {
 /// the scene's own scheme gives `pinned` (tests/golden/digests.toml). The other schemes run
 /// with `extra` appended to `base` (a later `--set` wins).
 fn same_digest_over_ranks(scene: &str, base: &[&str], methods: &[&str], extra: &[&str], pinned: &str) {
+    same_digest_over(scene, base, methods, extra, Some(pinned), &[1, 2, 3], &[]);
+}
+
+/// As [`same_digest_over_ranks`] over `ranks`, plus `more` ranks for the methods named in
+/// `more_for` (`None`: the scene's own); without `pinned`, nothing pinned to compare with.
+fn same_digest_over(
+    scene: &str,
+    base: &[&str],
+    methods: &[&str],
+    extra: &[&str],
+    pinned: Option<&str>,
+    ranks: &[usize],
+    more: &[(Option<&str>, usize)],
+) {
     let exe = mpi_mscale();
     let tmp = tempfile::tempdir().expect("tempdir");
     let mut methods: Vec<Option<&str>> = methods.iter().map(|m| Some(*m)).collect();
@@ -78,14 +103,16 @@ fn same_digest_over_ranks(scene: &str, base: &[&str], methods: &[&str], extra: &
             set.extend(extra.iter().map(|s| s.to_string()));
         }
         let one = digest(&exe, tmp.path(), scene, &set, None);
-        if m.is_none() {
+        if let (None, Some(pinned)) = (m, pinned) {
             assert_eq!(one, pinned, "{scene}: the mpi build's one-process digest differs from the pinned default-build digest");
         }
-        for n in 1..=3 {
+        let extra_ranks = more.iter().filter(|(mm, _)| *mm == m).map(|(_, n)| *n);
+        let all: Vec<usize> = ranks.iter().copied().chain(extra_ranks).collect();
+        for &n in &all {
             let d = digest(&exe, tmp.path(), scene, &set, Some(n));
             assert_eq!(d, one, "{scene} {m:?}: mpirun -np {n} differs from the one-process run");
         }
-        eprintln!("{scene} {}: one digest {one} over 1, 2, 3 ranks", m.unwrap_or("(scene's scheme)"));
+        eprintln!("{scene} {}: one digest {one} over {all:?} ranks", m.unwrap_or("(scene's scheme)"));
     }
 }
 
@@ -178,4 +205,112 @@ fn a_point_leaving_the_grid_stops_every_rank_with_one_message() {
     let line = |e: &str| e.lines().filter(|l| l.contains("the run failed: step 3: particle")).map(str::to_string).collect::<Vec<_>>();
     assert_eq!(line(&err1).len(), 1, "{err1}");
     assert_eq!(line(&err3), line(&err1), "3 ranks: {err3}");
+}
+
+/// The 2D manufactured solution set up in 3D (a unit cube of neo-Hookean material, rollers on
+/// every face), 4 x 4 x 12 cells (three slab tiles), 6 steps.
+const CUBE: &[&str] = &[
+    "domain.dimension=3",
+    "domain.min=[0.0,0.0,0.0]",
+    "domain.max=[1.0,1.0,1.0]",
+    "domain.cells=[4,4,12]",
+    "bodies.bar.min=[0.0,0.0,0.0]",
+    "bodies.bar.max=[1.0,1.0,1.0]",
+    "boundary.z_min=\"roller\"",
+    "boundary.z_max=\"roller\"",
+    "scheme.end_time=0.002",
+    "output.snapshots=0",
+    "output.particles=false",
+    "output.vtk=false",
+    "output.plots=false",
+];
+
+#[test]
+#[cfg_attr(
+    not(require_mpi),
+    ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_MSCALE=<mscale built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
+)]
+fn a_3d_block_has_one_digest_over_1_2_3_4_ranks() {
+    // 1,536 points in three slab tiles: at N = 4 the fourth rank owns no tile (no points) and
+    // still takes part in every collective. The scene's cpdi1 and ddmp-subpoints also run on
+    // 4 ranks.
+    same_digest_over(
+        "scenes/mms-2d.toml",
+        CUBE,
+        &["mpm", "cpdi2", "ddmp-subpoints;scheme.sub_points=4"],
+        &[],
+        None,
+        &[1, 2, 3],
+        &[(None, 4), (Some("ddmp-subpoints;scheme.sub_points=4"), 4)],
+    );
+}
+
+#[test]
+#[cfg_attr(
+    not(require_mpi),
+    ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_MSCALE=<mscale built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
+)]
+fn a_checkpoint_of_2_ranks_resumes_on_3_to_the_uninterrupted_digest() {
+    // mms-2d on 8 x 12 cells (three slab tiles), 6 steps, a checkpoint every 2 steps: written by
+    // 2 ranks, the run directory (its summary removed) resumed from the step-4 checkpoint by 3
+    // ranks, and from the step-2 one by 1 rank, ends in the digest of one uninterrupted process.
+    let exe = mpi_mscale();
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let set: Vec<String> = [
+        "scheme.end_time=0.002",
+        "domain.cells=[8,12]",
+        "output.snapshots=0",
+        "output.particles=false",
+        "output.vtk=false",
+        "output.plots=false",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    let straight = digest(&exe, tmp.path(), "scenes/mms-2d.toml", &set, None);
+    let ckpt = tmp.path().join("ckpt");
+    let mut args = vec![
+        "run".to_string(),
+        repo().join("scenes/mms-2d.toml").display().to_string(),
+        "--out".into(),
+        ckpt.display().to_string(),
+        "--checkpoint-every".into(),
+        "2".into(),
+    ];
+    for s in &set {
+        args.extend(["--set".to_string(), s.clone()]);
+    }
+    assert_eq!(run_digest(&exe, &args, &ckpt, Some(2)), straight, "2 ranks with checkpoints");
+    let mut files: Vec<String> = std::fs::read_dir(ckpt.join("checkpoints"))
+        .expect("checkpoints/")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .filter(|f| f.starts_with("step-") && f.ends_with(".ckpt"))
+        .collect();
+    files.sort();
+    assert_eq!(files.len(), 2, "the two newest checkpoints (steps 2 and 4): {files:?}");
+    let resume = |ranks: usize, drop_newest: bool| {
+        let dir = tmp.path().join(format!("resumed-{ranks}"));
+        copy_dir(&ckpt, &dir);
+        std::fs::remove_file(dir.join("summary.json")).expect("summary.json");
+        if drop_newest {
+            std::fs::remove_file(dir.join("checkpoints").join(files.last().expect("newest"))).expect("remove the newest checkpoint");
+        }
+        let args = vec!["run".to_string(), "--resume".into(), dir.display().to_string()];
+        run_digest(&exe, &args, &dir, Some(ranks))
+    };
+    assert_eq!(resume(3, false), straight, "resumed on 3 ranks from the step-4 checkpoint of 2");
+    assert_eq!(resume(1, true), straight, "resumed on 1 rank from the step-2 checkpoint of 2");
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).expect("mkdir");
+    for e in std::fs::read_dir(from).expect("read_dir") {
+        let e = e.expect("entry");
+        let dest = to.join(e.file_name());
+        if e.file_type().expect("type").is_dir() {
+            copy_dir(&e.path(), &dest);
+        } else {
+            std::fs::copy(e.path(), dest).expect("copy");
+        }
+    }
 }

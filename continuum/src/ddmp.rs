@@ -303,12 +303,16 @@ pub(crate) fn ddmp_row<const D: usize>(
     block.emit(grid, p, &pts.x[p], out)
 }
 
-/// Sub-point positions of every point (`n` per point), chunk-parallel.
-pub fn place_all<const D: usize>(pts: &Particles<D>, n: usize, out: &mut Vec<[f64; D]>) {
+/// Sub-point positions of every point (`n` per point), chunk-parallel; with `owned` non-empty,
+/// of the points it marks only (the others keep what they held).
+pub fn place_all<const D: usize>(pts: &Particles<D>, n: usize, owned: &[bool], out: &mut Vec<[f64; D]>) {
     let layout = sub_point_layout::<D>(n);
     out.resize(pts.len() * n, [0.0; D]);
     par::for_chunks_mut(out, n, |r, s| {
         for (k, p) in r.enumerate() {
+            if !owned.is_empty() && !owned[p] {
+                continue;
+            }
             place_sub_points(pts, p, &layout, &mut s[k * n..(k + 1) * n]);
         }
     });

@@ -489,7 +489,8 @@ impl<const D: usize> Simulation<D> {
             return Err(SolverError::Diverged { step, what: why, cause: "a closure or option the implicit integrator cannot use" });
         }
         // (The implicit integrator refuses ddmp: only cpdi1 is suggested.)
-        self.build_stencil().map_err(|o| stencil_error(step, &o, "time step too large or a domain sheared past its limit (use cpdi1)"))?;
+        self.build_stencil(None)
+            .map_err(|o| stencil_error(step, &o, "time step too large or a domain sheared past its limit (use cpdi1)"))?;
         // The scalar field (concentration) is advanced explicitly over the step on the frozen
         // stencil (prescribed rate plus diffusion, the diffusion step bounded by its explicit
         // limit); the closures read its rate in every residual.

@@ -258,6 +258,37 @@ pub trait TileExchange: Send + Sync {
     fn size(&self) -> usize;
     /// Every rank's `mine`, in rank order (a collective: every rank calls it).
     fn all_gather(&self, mine: &[f64]) -> Vec<Vec<f64>>;
+    /// Every rank's `mine` bytes, in rank order (a collective: every rank calls it); the
+    /// solver's agreement on a failure (which point, which message).
+    fn all_gather_bytes(&self, mine: &[u8]) -> Vec<Vec<u8>>;
+    /// What this rank's collectives cost so far.
+    fn stats(&self) -> ExchangeStats {
+        ExchangeStats::default()
+    }
+}
+
+/// The traffic of one rank's collectives since the start: calls, bytes this rank sent (its
+/// own contribution, once per call) and received (the other ranks' contributions), and the
+/// wall time spent inside the collectives (waiting for the slowest rank included).
+#[derive(Debug, Default, Clone, Copy, PartialEq)]
+pub struct ExchangeStats {
+    pub calls: u64,
+    pub bytes_sent: u64,
+    pub bytes_received: u64,
+    pub seconds: f64,
+}
+
+/// Per point whether the rank `rank` of `ranks` owns it: the points of the tiles it owns
+/// ([`tile_owner`]), the tiles [`Scatter::run_tiled`] fills on that rank.
+pub fn owned_points(tiles: &Tiles, rank: usize, ranks: usize, out: &mut Vec<bool>) {
+    out.clear();
+    out.resize(tiles.tile.len(), false);
+    let nt = tiles.count();
+    for t in (0..nt).filter(|&t| tile_owner(t, nt, ranks) == rank) {
+        for &p in tiles.points(t) {
+            out[p] = true;
+        }
+    }
 }
 
 static EXCHANGE: std::sync::OnceLock<Box<dyn TileExchange>> = std::sync::OnceLock::new();

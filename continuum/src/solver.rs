@@ -19,6 +19,7 @@ mod corrected;
 pub mod implicit;
 mod impm;
 mod nullspace;
+mod ranks;
 mod tlmpm;
 mod verlet;
 
@@ -187,6 +188,9 @@ pub struct Simulation<const D: usize> {
     /// The points of each slab tile, the fixed summation order of every scatter of the step
     /// (see [`crate::par`]).
     tiles: par::Tiles,
+    /// Over MPI ranks with the per-point work split (see `solver/ranks.rs`): per point whether
+    /// this rank computes it this step (the points of the tiles it owns). Empty: every point.
+    owned: Vec<bool>,
     flat: Vec<f64>,
     sub_x: Vec<[f64; D]>,
     ddmp_field: Vec<f64>,
@@ -274,6 +278,7 @@ impl<const D: usize> Simulation<D> {
             order_1d,
             scatter: Scatter::default(),
             tiles: par::Tiles::default(),
+            owned: Vec::new(),
             flat: Vec::new(),
             old_stress: Vec::new(),
             old_q: Vec::new(),
@@ -332,6 +337,7 @@ impl<const D: usize> Simulation<D> {
 
     /// One explicit step.
     pub fn step(&mut self) -> Result<StepReport, SolverError> {
+        self.owned.clear();
         if self.scheme == SchemeKind::Tlmpm {
             return self.tlmpm_step();
         }
@@ -343,8 +349,14 @@ impl<const D: usize> Simulation<D> {
         }
         let step = self.step + 1;
         let dt = self.dt;
-        self.build_stencil()
-            .map_err(|o| stencil_error(step, &o, "time step too large or a domain sheared past its limit (use cpdi1 or ddmp)"))?;
+        let ranks = self.split_ranks();
+        let built = self.build_stencil(ranks);
+        ranks::agree(
+            ranks,
+            built.map_err(|o| {
+                (o.point, stencil_error(step, &o, "time step too large or a domain sheared past its limit (use cpdi1 or ddmp)"))
+            }),
+        )?;
         self.correct_gradients(step)?;
         let c = self.wave_speed();
         if self.scheme == SchemeKind::Impm {
@@ -376,18 +388,32 @@ impl<const D: usize> Simulation<D> {
         self.time += dt;
         self.step = step;
         self.integration_point_updates = self.integration_point_updates.saturating_add((self.points.len() * self.sub_points) as u64);
-        self.guard(step)?;
+        match ranks {
+            None => self.guard(step)?,
+            Some(ex) => {
+                // Each rank checks its own points, all agree on the lowest bad one, then every
+                // rank takes the others' points and the neighbour-gap check (1D) runs on all.
+                ranks::agree(Some(ex), self.guard_points(step))?;
+                self.share_points(ex);
+                self.guard_gaps(step)?;
+            }
+        }
         Ok(StepReport { step, time: self.time })
     }
 
-    /// Fills the stencil for the scheme (DDMP: sub-points and the nodal integrals first).
-    fn build_stencil(&mut self) -> Result<(), OutsideGrid> {
+    /// Fills the stencil for the scheme (DDMP: sub-points and the nodal integrals first). With
+    /// `ranks` (the per-point work split over MPI ranks), only this rank's points get a row.
+    fn build_stencil(&mut self, ranks: Option<&dyn par::TileExchange>) -> Result<(), OutsideGrid> {
         let n = self.points.len();
         let ns = self.sub_points.max(1);
         let (grid, x) = (&self.grid, &self.points.x);
         self.tiles.assign(par::slab_tile_count(grid), n, |p| par::slab_tile(grid, &x[p]));
+        match ranks {
+            Some(ex) => par::owned_points(&self.tiles, ex.rank(), ex.size(), &mut self.owned),
+            None => self.owned.clear(),
+        }
         if self.scheme.is_ddmp() {
-            ddmp::place_all(&self.points, ns, &mut self.sub_x);
+            ddmp::place_all(&self.points, ns, &self.owned, &mut self.sub_x);
             if self.ddmp_point_volumes {
                 ddmp::assemble_volumes(&self.grid, &self.points, &self.sub_x, ns, &self.tiles, &mut self.scatter, &mut self.ddmp_field);
             }
@@ -397,6 +423,7 @@ impl<const D: usize> Simulation<D> {
         self.stencil.parts.truncate(ranges.len());
         let (grid, pts, scheme) = (&self.grid, &self.points, self.scheme);
         let (subs, field) = (&self.sub_x, if self.ddmp_point_volumes { Some(self.ddmp_field.as_slice()) } else { None });
+        let owned = &self.owned;
         let results: Vec<Result<(), OutsideGrid>> = self
             .stencil
             .parts
@@ -405,6 +432,11 @@ impl<const D: usize> Simulation<D> {
             .map_init(Block::default, |block, (part, r)| {
                 part.clear(r.start);
                 for p in r {
+                    if !owned.is_empty() && !owned[p] {
+                        // Another rank's point: an empty row (no scatter of this rank reads it).
+                        part.end_point();
+                        continue;
+                    }
                     match scheme {
                         SchemeKind::Mpm | SchemeKind::Ugimp | SchemeKind::Cpgimp => shape::gimp_row(scheme, grid, pts, p, part)?,
                         // IMPM moves its points with the hat functions at x_p^s (Gong 5.3 steps 5-6).
@@ -611,8 +643,12 @@ impl<const D: usize> Simulation<D> {
         let old = self.old_velocity_weight();
         // USF: the start-of-step velocity alone (v^L is not computed yet).
         let first = self.integrator == TimeIntegrator::Usf;
+        let owned = &self.owned;
         par::for_chunks_mut(&mut self.points.vel_grad, 1, |r, out| {
             for (k, p) in r.enumerate() {
+                if !owned.is_empty() && !owned[p] {
+                    continue;
+                }
                 let (nodes, _, grads) = st.row(p);
                 let mut l: Mat3 = tensor::ZERO;
                 for (&i, g) in nodes.iter().zip(grads) {
@@ -666,6 +702,8 @@ impl<const D: usize> Simulation<D> {
     /// stress work (internal energy, midpoint rule).
     fn deform_and_stress(&mut self, step: u64, c: f64) -> Result<(), SolverError> {
         let dt = self.dt;
+        let ranks = self.split_ranks().filter(|_| !self.owned.is_empty());
+        let owned = &self.owned;
         let pts = &mut self.points;
         let n = pts.len();
         self.old_stress.resize(n, tensor::ZERO);
@@ -680,6 +718,9 @@ impl<const D: usize> Simulation<D> {
             .enumerate()
             .with_min_len(CHUNK)
             .filter_map(|(p, ((f, vol), ((old_s, old_q), old_vol)))| {
+                if !owned.is_empty() && !owned[p] {
+                    return None;
+                }
                 (*old_s, *old_q, *old_vol) = (stress[p], visc[p], *vol);
                 let inc = tensor::add_scaled(&tensor::IDENTITY, &vel_grad[p], dt);
                 *f = tensor::mul(&inc, f);
@@ -688,16 +729,25 @@ impl<const D: usize> Simulation<D> {
                 if j > 0.0 { None } else { Some((p, j)) }
             })
             .min_by_key(|b| b.0);
-        if let Some((p, j)) = bad {
-            return Err(SolverError::Diverged {
+        let bad = bad.map(|(p, j)| {
+            let e = SolverError::Diverged {
                 step,
                 what: format!("particle {p} has a non-positive volume ratio J = {j:e}"),
                 cause: "time step too large or the particle was crushed between its neighbours",
-            });
+            };
+            (p, e)
+        });
+        ranks::agree(ranks, bad.map_or(Ok(()), Err))?;
+        if let Some(ex) = ranks {
+            // The closures are pointwise (`split_ranks`): each run of this rank's points is a
+            // batch of its own.
+            let r =
+                ranks::advance_owned_closures(pts, &mut self.closures, &self.body_ranges, owned, step, dt, &mut self.closure_evaluations);
+            ranks::agree(Some(ex), r)?;
         }
         // Every closure sees its batch first (`prepare`), so closures sharing a worker pool send
         // one call for all their bodies; then each is advanced.
-        for prepare in [true, false] {
+        for prepare in [true, false].into_iter().filter(|_| ranks.is_none()) {
             for (b, range) in self.body_ranges.iter().enumerate() {
                 let batch = pts.batch(step, range.clone());
                 let closure = &mut self.closures[b];
@@ -716,8 +766,12 @@ impl<const D: usize> Simulation<D> {
         let (mut visc_stress, mut visc_pressure, mut energy) =
             (std::mem::take(&mut pts.visc_stress), std::mem::take(&mut pts.visc_pressure), std::mem::take(&mut pts.internal_energy));
         let pts_ro: &Particles<D> = pts;
+        let owned = &self.owned;
         visc_stress.par_iter_mut().zip(visc_pressure.par_iter_mut()).zip(energy.par_iter_mut()).enumerate().with_min_len(CHUNK).for_each(
             |(p, ((q_out, qp), e))| {
+                if !owned.is_empty() && !owned[p] {
+                    return;
+                }
                 let l = &pts_ro.vel_grad[p];
                 let d = tensor::sym(l);
                 let rho = pts_ro.density(p);
@@ -767,10 +821,14 @@ impl<const D: usize> Simulation<D> {
         let pts = &mut self.points;
         let track = self.scheme.tracks_corners();
         let nc = 1usize << D;
+        let owned = &self.owned;
         pts.v.par_chunks_mut(CHUNK).zip(pts.x.par_chunks_mut(CHUNK)).zip(pts.corners.par_chunks_mut(CHUNK * nc)).enumerate().for_each(
             |(c, ((vs, xs), cs))| {
                 for k in 0..vs.len() {
                     let p = c * CHUNK + k;
+                    if !owned.is_empty() && !owned[p] {
+                        continue;
+                    }
                     let (nodes, weights, _) = st.row(p);
                     let mut dv = [0.0; D];
                     let mut vbar = [0.0; D];
@@ -830,18 +888,34 @@ impl<const D: usize> Simulation<D> {
 
     /// Stops a run that is going wrong, naming the particle, the quantity and the likely cause.
     fn guard(&self, step: u64) -> Result<(), SolverError> {
-        let pts = &self.points;
-        let bad = (0..pts.len())
-            .into_par_iter()
-            .with_min_len(CHUNK)
-            .find_first(|&p| !(pts.x[p].iter().chain(&pts.v[p]).all(|v| v.is_finite()) && tensor::is_finite(&pts.stress[p])));
-        if let Some(p) = bad {
-            return Err(SolverError::Diverged {
-                step,
-                what: format!("particle {p} has a non-finite position, velocity or stress"),
-                cause: "time step too large or a tension instability",
-            });
+        self.guard_points(step).map_err(|(_, e)| e)?;
+        self.guard_gaps(step)
+    }
+
+    /// The guard's per-point check (this rank's points when the work is split): the lowest
+    /// point with a non-finite position, velocity or stress, with its error.
+    fn guard_points(&self, step: u64) -> Result<(), (usize, SolverError)> {
+        let (pts, owned) = (&self.points, &self.owned);
+        let bad = (0..pts.len()).into_par_iter().with_min_len(CHUNK).find_first(|&p| {
+            (owned.is_empty() || owned[p])
+                && !(pts.x[p].iter().chain(&pts.v[p]).all(|v| v.is_finite()) && tensor::is_finite(&pts.stress[p]))
+        });
+        match bad {
+            Some(p) => Err((
+                p,
+                SolverError::Diverged {
+                    step,
+                    what: format!("particle {p} has a non-finite position, velocity or stress"),
+                    cause: "time step too large or a tension instability",
+                },
+            )),
+            None => Ok(()),
         }
+    }
+
+    /// The guard's neighbour-gap check of 1D bodies (over every point).
+    fn guard_gaps(&self, step: u64) -> Result<(), SolverError> {
+        let pts = &self.points;
         if D == 1 && !self.grid.periodic(0) {
             // Neighbours in one body must stay within GAP_LIMIT_CELLS cells of each other.
             let h = self.grid.h[0];

@@ -589,9 +589,9 @@ fn dispatch(cli: Cli) -> i32 {
             // state; rank 0 writes the outputs and speaks, the others write theirs into a
             // private scratch directory removed at the end.
             let (rank, ranks) = mpi_ranks();
-            if ranks > 1 && (resume.is_some() || !workers.is_empty()) {
+            if ranks > 1 && !workers.is_empty() {
                 if rank == 0 {
-                    eprintln!("mscale: --resume and --workers are not supported over MPI ranks yet (issue 14)");
+                    eprintln!("mscale: --workers is not supported over MPI ranks yet (issue 14)");
                 }
                 return exit::BAD_INPUT;
             }
@@ -602,6 +602,9 @@ fn dispatch(cli: Cli) -> i32 {
             opts.workers = workers;
             opts.checkpoint_every = checkpoint_every;
             opts.resume = resume.is_some();
+            // Every rank resumes from the run's checkpoint (the state is the same on every rank
+            // and for any rank count: a checkpoint of N ranks resumes on M).
+            opts.resume_from = resume.clone();
             opts.step_deadline = step_deadline;
             match orchestrator::checkpoint::stop_on_signals() {
                 Ok(flag) => opts.cancel = Some(flag),
@@ -609,12 +612,16 @@ fn dispatch(cli: Cli) -> i32 {
             }
             if rank > 0 {
                 // The same replicated state as rank 0: the same outcome, reported by rank 0.
-                return match loaded.run(&opts) {
+                let outcome = loaded.run(&opts);
+                exchange_stats(rank);
+                return match outcome {
                     Ok(run::Outcome::Completed(_)) => exit::OK,
                     _ => exit::RUN_FAILED,
                 };
             }
-            match loaded.run(&opts) {
+            let outcome = loaded.run(&opts);
+            exchange_stats(rank);
+            match outcome {
                 Ok(run::Outcome::Completed(summary)) => {
                     println!(
                         "completed {} steps in {:.2} s; outputs in {}",
@@ -658,6 +665,22 @@ fn dispatch(cli: Cli) -> i32 {
                 Err(e) => report(Err(e)),
             }
         }
+    }
+}
+
+/// With `MSCALE_MPI_STATS` set, over more than one MPI rank: what this rank's collectives cost
+/// (calls, bytes, seconds inside them), one line on stderr per rank.
+fn exchange_stats(rank: usize) {
+    if let Some(ex) = continuum::par::exchange().filter(|e| e.size() > 1 && std::env::var_os("MSCALE_MPI_STATS").is_some()) {
+        let s = ex.stats();
+        eprintln!(
+            "mscale: rank {rank} of {}: {} collectives, {} bytes sent, {} bytes received, {:.3} s inside them",
+            ex.size(),
+            s.calls,
+            s.bytes_sent,
+            s.bytes_received,
+            s.seconds
+        );
     }
 }
 

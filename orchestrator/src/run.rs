@@ -65,6 +65,9 @@ pub struct RunOptions {
     pub checkpoint_every: u64,
     /// Continue from the newest good checkpoint in `out` instead of starting afresh.
     pub resume: bool,
+    /// Where a resume reads its checkpoint when not `out` (MPI ranks above 0 write into a
+    /// scratch directory but resume from the run's).
+    pub resume_from: Option<PathBuf>,
     /// When set (by a signal handler or the job service), the run checkpoints after the current
     /// step and returns [`Outcome::Cancelled`].
     pub cancel: Option<Arc<AtomicBool>>,
@@ -92,6 +95,7 @@ impl RunOptions {
             workers: Vec::new(),
             checkpoint_every: 0,
             resume: false,
+            resume_from: None,
             cancel: None,
             progress: None,
             worker_weights: Vec::new(),
@@ -357,7 +361,11 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     let resolved = scene.to_toml();
     let scene_sha = checkpoint::scene_sha256(&resolved);
     // A resumed run reads its checkpoint before anything in the directory is rewritten.
-    let saved = if opts.resume { Some(checkpoint::load_latest::<checkpoint::Checkpoint>(dir)?) } else { None };
+    let saved = if opts.resume {
+        Some(checkpoint::load_latest::<checkpoint::Checkpoint>(opts.resume_from.as_deref().unwrap_or(dir))?)
+    } else {
+        None
+    };
     if let Some((ck, path)) = &saved {
         anyhow::ensure!(
             ck.scene_sha256 == scene_sha,
@@ -421,7 +429,15 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     let mut last_log = Instant::now();
     let mut failure = None;
     let (session_start, first_step) = (Instant::now(), sim.step);
-    let cancelled = || opts.cancel.as_ref().is_some_and(|c| c.load(Ordering::SeqCst));
+    // Over MPI ranks (continuum/README.md "MPI") a stop asked of any rank stops all of them
+    // after the same step (mpirun hands a signal to each rank at its own moment).
+    let cancelled = || {
+        let mine = opts.cancel.as_ref().is_some_and(|c| c.load(Ordering::SeqCst));
+        match continuum::par::exchange().filter(|e| e.size() > 1) {
+            Some(ex) => ex.all_gather_bytes(&[u8::from(mine)]).iter().any(|b| b.first() == Some(&1)),
+            None => mine,
+        }
+    };
     let save = |sim: &Simulation<D>,
                 snaps: &Snapshots,
                 max_kinetic: f64,

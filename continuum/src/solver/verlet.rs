@@ -29,7 +29,7 @@ impl<const D: usize> Simulation<D> {
         let step = self.step + 1;
         let dt = self.dt;
         let cause = "time step too large or a domain sheared past its limit (use cpdi1 or ddmp)";
-        self.build_stencil().map_err(|o| stencil_error(step, &o, cause))?;
+        self.build_stencil(None).map_err(|o| stencil_error(step, &o, cause))?;
         self.correct_gradients(step)?;
         let c = self.wave_speed();
         self.map_velocities(step)?;
@@ -40,7 +40,7 @@ impl<const D: usize> Simulation<D> {
         let l_old = self.points.vel_grad.clone();
         // Drift with v^{n+1/2} and the first half of the FLIP increment.
         self.move_points();
-        self.build_stencil().map_err(|o| stencil_error(step, &o, cause))?;
+        self.build_stencil(None).map_err(|o| stencil_error(step, &o, cause))?;
         self.correct_gradients(step)?;
         self.velocity_gradients();
         self.filter_velocity_gradients(step)?;

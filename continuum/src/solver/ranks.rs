@@ -1,0 +1,289 @@
+//! The explicit step's per-point work split over MPI ranks (issue 14 stage 2; continuum/README.md
+//! "MPI"). Every rank still holds every point (replicated state), but computes only the points
+//! of the slab tiles it owns ([`par::tile_owner`], the tiles whose scatter buffers it fills):
+//! their stencil rows, velocity gradients, deformation, closures, viscosity, motion and the
+//! guard's check. At the end of the step the updated point state is all-gathered, each rank's
+//! points packed tile by tile in tile order and each tile's in ascending index, and unpacked by
+//! every rank in the same order: every rank then holds the bits one process computes (each
+//! point's update reads only its own state and the nodal fields, which every rank reduces in
+//! the same tile order), whatever the number of ranks.
+//!
+//! A failure on any rank (a point off the grid, an inverted point, a closure error, a
+//! non-finite point) is agreed at the phase where it happens: every rank calls [`agree`] after
+//! each fallible per-point phase, with its own lowest failing point or none, and every rank
+//! returns the error of the lowest point over all ranks (the one a single process reports), so
+//! all ranks stop at the same phase of the same step and no collective is left waiting.
+
+use super::*;
+use crate::closure::ClosureError;
+use crate::par::TileExchange;
+
+impl<const D: usize> Simulation<D> {
+    /// The exchange to split this step's per-point work over: set over more than one rank and
+    /// when the step is one whose per-point passes read only their own point and the nodal
+    /// fields (the explicit integrators, no gradient correction, nullspace filter, diffusion,
+    /// IMPM or improved CPDI, closures that are pointwise). Otherwise `None`: every rank
+    /// computes every point (replicated, stage 1; only the scatters are split).
+    pub(super) fn split_ranks(&self) -> Option<&'static dyn TileExchange> {
+        let ex = par::exchange().filter(|e| e.size() > 1)?;
+        let explicit =
+            matches!(self.integrator, TimeIntegrator::Dhakal | TimeIntegrator::Leapfrog | TimeIntegrator::Usl | TimeIntegrator::Usf);
+        let scheme = !matches!(self.scheme, SchemeKind::Impm | SchemeKind::CpdiImproved);
+        let extras = self.gradient_correction == GradientCorrection::None
+            && self.nullspace_filter == NullspaceFilter::None
+            && self.diffusion.is_none();
+        let closures = self.closures.iter().all(|c| c.repeatable());
+        (explicit && scheme && extras && closures).then_some(ex)
+    }
+
+    /// Values per point in [`Simulation::share_points`].
+    fn shared_per_point(&self) -> usize {
+        let plastic = usize::from(!self.points.plastic_strain.is_empty());
+        // x, v, corners, F, V, L, sigma, q, q_p, e, plastic strain.
+        D + D + (1 << D) * D + 9 + 1 + 9 + 9 + 9 + 1 + 1 + plastic
+    }
+
+    /// Gives every rank every point's end-of-step state: each rank sends its own points (tile
+    /// order, then point order) and unpacks the others' in the same order.
+    pub(super) fn share_points(&mut self, ex: &dyn TileExchange) {
+        let (rank, size, nt) = (ex.rank(), ex.size(), self.tiles.count());
+        let per = self.shared_per_point();
+        let nc = 1usize << D;
+        let pts = &mut self.points;
+        let plastic = !pts.plastic_strain.is_empty();
+        let mine: Vec<usize> =
+            (0..nt).filter(|&t| par::tile_owner(t, nt, size) == rank).flat_map(|t| self.tiles.points(t).iter().copied()).collect();
+        let mut pack = Vec::with_capacity(mine.len() * per);
+        for &p in &mine {
+            pack.extend_from_slice(&pts.x[p]);
+            pack.extend_from_slice(&pts.v[p]);
+            for c in &pts.corners[p * nc..(p + 1) * nc] {
+                pack.extend_from_slice(c);
+            }
+            pack.extend(pts.def_grad[p].iter().flatten());
+            pack.push(pts.volume[p]);
+            pack.extend(pts.vel_grad[p].iter().flatten());
+            pack.extend(pts.stress[p].iter().flatten());
+            pack.extend(pts.visc_stress[p].iter().flatten());
+            pack.push(pts.visc_pressure[p]);
+            pack.push(pts.internal_energy[p]);
+            if plastic {
+                pack.push(pts.plastic_strain[p]);
+            }
+        }
+        let all = ex.all_gather(&pack);
+        let mat = |v: &[f64]| -> Mat3 { std::array::from_fn(|i| std::array::from_fn(|j| v[3 * i + j])) };
+        for (r, buf) in all.iter().enumerate().filter(|(r, _)| *r != rank) {
+            let theirs = (0..nt).filter(|&t| par::tile_owner(t, nt, size) == r).flat_map(|t| self.tiles.points(t).iter().copied());
+            let mut k = 0;
+            for p in theirs {
+                let v = &buf[k..k + per];
+                k += per;
+                let mut o = 0;
+                let mut take = |n: usize| {
+                    let s = &v[o..o + n];
+                    o += n;
+                    s
+                };
+                let s = take(D);
+                pts.x[p] = std::array::from_fn(|a| s[a]);
+                let s = take(D);
+                pts.v[p] = std::array::from_fn(|a| s[a]);
+                for c in &mut pts.corners[p * nc..(p + 1) * nc] {
+                    let s = take(D);
+                    *c = std::array::from_fn(|a| s[a]);
+                }
+                pts.def_grad[p] = mat(take(9));
+                pts.volume[p] = take(1)[0];
+                pts.vel_grad[p] = mat(take(9));
+                pts.stress[p] = mat(take(9));
+                pts.visc_stress[p] = mat(take(9));
+                pts.visc_pressure[p] = take(1)[0];
+                pts.internal_energy[p] = take(1)[0];
+                if plastic {
+                    pts.plastic_strain[p] = take(1)[0];
+                }
+            }
+            assert_eq!(k, buf.len(), "rank {r} sent {} values for its points, {k} expected", buf.len());
+        }
+    }
+}
+
+/// Advances this rank's points (`owned`) of every body, each maximal run of consecutive owned
+/// points of a body as one batch (the closures are pointwise: [`Simulation::split_ranks`]
+/// admits only repeatable ones). Every batch is prepared before any is advanced, as on one
+/// process. On failure: the start of the first failing run (a key that orders failures over
+/// ranks as their points do, the runs being disjoint) and the error.
+pub(super) fn advance_owned_closures<const D: usize>(
+    pts: &mut Particles<D>,
+    closures: &mut [Box<dyn Closure>],
+    body_ranges: &[std::ops::Range<usize>],
+    owned: &[bool],
+    step: u64,
+    dt: f64,
+    evaluations: &mut u64,
+) -> Result<(), (usize, SolverError)> {
+    let mut runs: Vec<(usize, std::ops::Range<usize>)> = Vec::new();
+    for (b, range) in body_ranges.iter().enumerate() {
+        let mut p = range.start;
+        while p < range.end {
+            if !owned[p] {
+                p += 1;
+                continue;
+            }
+            let start = p;
+            while p < range.end && owned[p] {
+                p += 1;
+            }
+            runs.push((b, start..p));
+        }
+    }
+    for prepare in [true, false] {
+        for (b, run) in &runs {
+            let batch = pts.batch(step, run.clone());
+            let r = if prepare { closures[*b].prepare(&batch, dt) } else { closures[*b].advance(batch, dt) };
+            r.map_err(|source| (run.start, SolverError::Closure { step, source }))?;
+        }
+    }
+    // The count of one process: every point of every body.
+    for range in body_ranges {
+        *evaluations = evaluations.saturating_add(range.len() as u64);
+    }
+    Ok(())
+}
+
+/// Agrees over the ranks of `ex` on the outcome of a per-point phase: `local` is this rank's
+/// lowest failing point (a key ordering failures as one process meets them) and its error.
+/// Every rank gets the error of the lowest key over all ranks, or `Ok` when no rank failed.
+/// Without `ex` (one process), `local`'s error as it is.
+pub(super) fn agree(ex: Option<&dyn TileExchange>, local: Result<(), (usize, SolverError)>) -> Result<(), SolverError> {
+    let Some(ex) = ex else {
+        return local.map_err(|(_, e)| e);
+    };
+    let mine = match &local {
+        Ok(()) => Vec::new(),
+        Err((key, e)) => encode(*key, e),
+    };
+    let all = ex.all_gather_bytes(&mine);
+    let lowest = all.iter().enumerate().filter(|(_, b)| !b.is_empty()).min_by_key(|(r, b)| (key_of(b), *r));
+    match lowest {
+        None => Ok(()),
+        Some((r, _)) if r == ex.rank() => local.map_err(|(_, e)| e),
+        Some((_, b)) => Err(decode(b)),
+    }
+}
+
+fn key_of(b: &[u8]) -> u64 {
+    u64::from_le_bytes(b[..8].try_into().expect("8 bytes"))
+}
+
+/// The error's whole chain, as `mscale` prints it (each source's message once).
+fn chain(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut out = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        let m = c.to_string();
+        if !out.ends_with(&m) {
+            out.push_str(": ");
+            out.push_str(&m);
+        }
+        cause = c.source();
+    }
+    out
+}
+
+/// `[key u64][kind u8][step u64][len u32][what][len u32][cause]`: kind 0 a divergence (what,
+/// cause), 1 a closure's failure (its error's chain, no cause).
+fn encode(key: usize, e: &SolverError) -> Vec<u8> {
+    let (kind, step, what, cause) = match e {
+        SolverError::Diverged { step, what, cause } => (0u8, *step, what.clone(), cause.to_string()),
+        SolverError::Closure { step, source } => (1u8, *step, chain(source), String::new()),
+    };
+    let mut b = Vec::new();
+    b.extend((key as u64).to_le_bytes());
+    b.push(kind);
+    b.extend(step.to_le_bytes());
+    for s in [what, cause] {
+        b.extend((s.len() as u32).to_le_bytes());
+        b.extend(s.into_bytes());
+    }
+    b
+}
+
+/// The error another rank encoded ([`encode`]).
+fn decode(b: &[u8]) -> SolverError {
+    let step = u64::from_le_bytes(b[9..17].try_into().expect("8 bytes"));
+    let mut k = 17;
+    let mut text = || {
+        let n = u32::from_le_bytes(b[k..k + 4].try_into().expect("4 bytes")) as usize;
+        let s = String::from_utf8_lossy(&b[k + 4..k + 4 + n]).into_owned();
+        k += 4 + n;
+        s
+    };
+    let (what, cause) = (text(), text());
+    match b[8] {
+        // The cause of a divergence is a fixed text; the run stops here, so leaking the one
+        // copy received is harmless.
+        0 => SolverError::Diverged { step, what, cause: Box::leak(cause.into_boxed_str()) },
+        _ => SolverError::Closure { step, source: ClosureError::Other(what) },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One rank of a pretend exchange: the other ranks' contributions are given.
+    struct Fake {
+        rank: usize,
+        theirs: Vec<Vec<u8>>,
+    }
+
+    impl TileExchange for Fake {
+        fn rank(&self) -> usize {
+            self.rank
+        }
+        fn size(&self) -> usize {
+            self.theirs.len()
+        }
+        fn all_gather(&self, _: &[f64]) -> Vec<Vec<f64>> {
+            unreachable!("agree gathers bytes only")
+        }
+        fn all_gather_bytes(&self, mine: &[u8]) -> Vec<Vec<u8>> {
+            let mut all = self.theirs.clone();
+            all[self.rank] = mine.to_vec();
+            all
+        }
+    }
+
+    fn diverged(p: usize) -> SolverError {
+        SolverError::Diverged { step: 5, what: format!("particle {p} left the grid"), cause: "a cause" }
+    }
+
+    #[test]
+    fn every_rank_gets_the_error_of_the_lowest_failing_point() {
+        let closure = SolverError::Closure { step: 5, source: ClosureError::NonFinite { point: 3, law: "neo-hookean", jacobian: -1.0 } };
+        let want = chain(&closure);
+        let (c3, d7) = (encode(3, &closure), encode(7, &diverged(7)));
+        // Rank 1 failed at point 7, rank 0 at point 3 (a closure), rank 2 not at all: rank 1
+        // and rank 2 report rank 0's error, message for message.
+        for rank in [1, 2] {
+            let ex = Fake { rank, theirs: vec![c3.clone(), d7.clone(), Vec::new()] };
+            let local = if rank == 1 { Err((7, diverged(7))) } else { Ok(()) };
+            let e = agree(Some(&ex), local).expect_err("rank 0 failed");
+            assert_eq!(chain(&e), want, "rank {rank}");
+            assert!(matches!(e, SolverError::Closure { step: 5, .. }), "{e:?}");
+        }
+        // Rank 0 keeps its own error (its type and source intact).
+        let ex = Fake { rank: 0, theirs: vec![Vec::new(), d7.clone(), Vec::new()] };
+        let e = agree(Some(&ex), Err((3, closure))).expect_err("failed");
+        assert!(matches!(e, SolverError::Closure { source: ClosureError::NonFinite { point: 3, .. }, .. }), "{e:?}");
+        // A divergence crosses ranks whole.
+        let ex = Fake { rank: 2, theirs: vec![Vec::new(), d7.clone(), Vec::new()] };
+        let e = agree(Some(&ex), Ok(())).expect_err("rank 1 failed");
+        assert_eq!(chain(&e), chain(&diverged(7)));
+        // No failure anywhere: every rank goes on.
+        let ex = Fake { rank: 1, theirs: vec![Vec::new(); 3] };
+        assert!(agree(Some(&ex), Ok(())).is_ok());
+    }
+}
