@@ -801,19 +801,27 @@ struct SegmentEnd {
     h: f64,
 }
 
-/// One integration segment, from the problem's start to `next_stop` or the first switch, with
-/// the linear solver `L`. `y` follows the accepted steps; `None` when the caller stopped it.
+/// One integration segment, from the problem's start (time `t_seg`, the integrator's local time
+/// 0) to `next_stop` or the first switch, with the linear solver `L`. `y` follows the accepted
+/// steps; `None` when the caller stopped it.
+///
+/// Each segment runs in its own time from 0 (the equations are autonomous), so the steps right
+/// after a switch, ~1e-18 s at 1e5 cells, are not below the rounding of the absolute time
+/// (ulp(0.295 s) = 5.6e-17 s: with the absolute time the 1e5-cell run's first switch, at
+/// 0.2951 s, could not be stepped past, "step size is too small").
+#[allow(clippy::too_many_arguments)]
 fn segment<L: LaLinearSolver<M> + Default>(
     problem: &diffsol::OdeSolverProblem<CellEqn>,
     model: &Model,
     monitor: &Monitor<'_>,
+    t_seg: f64,
     next_stop: f64,
     stats: &mut Stats,
     y: &mut Vec<f64>,
     on_snapshot: &mut dyn FnMut(&Snapshot<'_>) -> Control,
 ) -> Result<Option<SegmentEnd>, SolveError> {
     let fail = |t: f64, steps: u64, e: diffsol::DiffsolError| SolveError::Integrator { t, steps, why: e.to_string() };
-    let t = problem.t0 * T_UNIT;
+    let t = t_seg;
     // The start is consistent by construction (phi from the exact Poisson solve), so
     // diffsol's own initial-condition Newton is not needed: dy = f(y) on the differential
     // rows, and phi' from the differentiated constraint (index 1: M phi' = -(e/eps0)(p' - n')),
@@ -821,10 +829,11 @@ fn segment<L: LaLinearSolver<M> + Default>(
     let mut state = BdfState::new(problem, 1).map_err(|e| fail(t, stats.steps, e))?;
     state.as_mut().dy.for_each_batch_host([], |dy, [], _| model.solve_poisson_derivative(dy));
     let mut solver = problem.bdf_solver::<TimedLu<L>>(state).map_err(|e| fail(t, stats.steps, e))?;
-    solver.set_stop_time(next_stop / T_UNIT).map_err(|e| fail(t, stats.steps, e))?;
+    solver.set_stop_time((next_stop - t_seg) / T_UNIT).map_err(|e| fail(t, stats.steps, e))?;
     let base = stats.clone();
     loop {
-        let before = solver.state().t * T_UNIT;
+        let before_local = solver.state().t;
+        let before = t_seg + before_local * T_UNIT;
         let reason = solver.step().map_err(|e| fail(before, stats.steps, e))?;
         let st = solver.get_statistics();
         stats.steps = base.steps.saturating_add(st.number_of_steps as u64);
@@ -832,20 +841,20 @@ fn segment<L: LaLinearSolver<M> + Default>(
         stats.newton_iterations = base.newton_iterations.saturating_add(st.number_of_nonlinear_solver_iterations as u64);
         stats.newton_failures = base.newton_failures.saturating_add(st.number_of_nonlinear_solver_fails as u64);
         stats.lu_setups = base.lu_setups.saturating_add(st.number_of_linear_solver_setups as u64);
-        if let OdeSolverStopReason::RootFound(tau_root, _) = reason {
-            let t_root = tau_root * T_UNIT;
+        if let OdeSolverStopReason::RootFound(tau_root, k) = reason {
+            let t_root = t_seg + tau_root * T_UNIT;
             solver.state_mut_back(tau_root).map_err(|e| fail(t_root, stats.steps, e))?;
             let state = solver.state();
-            // Which switch: the root function closest to zero.
+            // Which switch: the root function whose sign changed, as the root finder reports
+            // it. (Not the one closest to zero: a latched-open interface's function is its
+            // |dphi|, which may well be closer to zero than the one that crossed.)
             let yr = state.y.clone_as_vec();
-            let mut g = vec![0.0; model.interfaces.len()];
-            model.switch_functions(&yr, &problem.eqn.open.borrow(), &mut g);
-            let k = (0..g.len()).min_by(|&a, &b| g[a].abs().total_cmp(&g[b].abs())).unwrap_or(0);
             return Ok(Some(SegmentEnd { t: t_root, y: yr, switched: Some(k), h: state.h }));
         }
         let state = solver.state();
-        let tn = state.t * T_UNIT;
-        let step = tn - before;
+        // The stop time exactly where the segment reached it.
+        let tn = if reason == OdeSolverStopReason::TstopReached { next_stop } else { t_seg + state.t * T_UNIT };
+        let step = (state.t - before_local) * T_UNIT;
         stats.min_step = stats.min_step.min(step.abs());
         stats.max_step = stats.max_step.max(step.abs());
         stats.t = tn;
@@ -885,7 +894,7 @@ fn bdf(
     let mut problem = OdeBuilder::<M>::new()
         .rtol(settings.rtol)
         .atol(atol)
-        .t0(t_start / T_UNIT)
+        .t0(0.0)
         .h0(h0)
         .build_from_eqn(eqn)
         .map_err(|e| fail(t_start, stats.steps, e))?;
@@ -910,8 +919,8 @@ fn bdf(
         // How the segment ended: at a switch (its root: time, state, interface) or at the stop
         // time; with the step size to restart from.
         let segment = match settings.linear_solver {
-            LinearSolver::Banded => segment::<BandedLu>(&problem, model, monitor, next_stop, stats, &mut y, on_snapshot)?,
-            LinearSolver::SparseLu => segment::<FaerSparseLU<f64>>(&problem, model, monitor, next_stop, stats, &mut y, on_snapshot)?,
+            LinearSolver::Banded => segment::<BandedLu>(&problem, model, monitor, t, next_stop, stats, &mut y, on_snapshot)?,
+            LinearSolver::SparseLu => segment::<FaerSparseLU<f64>>(&problem, model, monitor, t, next_stop, stats, &mut y, on_snapshot)?,
         };
         stats.jacobian_evaluations = problem.eqn.jac_evals.get();
         stats.rhs_evaluations = problem.eqn.rhs_calls.get();
@@ -952,7 +961,6 @@ fn bdf(
         model.solve_poisson(&mut yr);
         let h0 = h.abs().max(1e-6);
         *problem.eqn.y_start.borrow_mut() = yr.clone();
-        problem.t0 = t / T_UNIT;
         problem.h0 = h0;
         let open = problem.eqn.open.borrow().clone();
         let restart = Restart { t, y: yr, open, h0, outputs_done, stats: stats.clone() };
@@ -1177,6 +1185,67 @@ mod diagnosis {
             norms.push((sum / n3 as f64).sqrt());
         }
         (norms, defects)
+    }
+
+    /// A restart point saved by `diagnose_from_a_restart_point` (validation.rs), env R: one
+    /// backward Euler step of size H (s) by modified Newton; where the weighted correction sits.
+    #[test]
+    #[ignore = "diagnosis tool: needs a saved restart point (env R)"]
+    fn newton_from_a_saved_restart_point() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/pnp-full-cell.toml");
+        let text = std::fs::read_to_string(path).unwrap();
+        let mut scene = crate::scene::parse(&text, &BTreeMap::new(), "t").unwrap();
+        scene.grid.cells = env("N", 100_000usize);
+        let r: Restart = serde_json::from_slice(&std::fs::read(std::env::var("R").unwrap()).unwrap()).unwrap();
+        let model = Model::new(&scene);
+        let (res, scale) = model.poisson_residual(&r.y, &r.open);
+        eprintln!("Poisson residual {res:e} of {scale:e}");
+        let mut yp = r.y.clone();
+        model.solve_poisson(&mut yp);
+        let dphi = (0..model.n).map(|i| (yp[3 * i + 2] - r.y[3 * i + 2]).abs()).fold(0.0, f64::max);
+        eprintln!("re-projection moves phi by {dphi:e} V; residual after it {:e}", model.poisson_residual(&yp, &r.open).0);
+        let r = Restart { y: yp, ..r };
+        for h in [env("H", 1e-20), 1e-24] {
+            let eqn = CellEqn::new(model.clone(), r.y.clone(), r.open.clone());
+            let c = h / T_UNIT;
+            let y0 = &r.y;
+            let n3 = y0.len();
+            let mut vals = vec![0.0; eqn.row_idx.len()];
+            eqn.fd_jacobian(y0, &mut vals);
+            for j in 0..n3 {
+                for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
+                    let rr = eqn.row_idx[k];
+                    vals[k] = if rr == j && rr % 3 != 2 { 1.0 } else { 0.0 } - c * vals[k];
+                }
+            }
+            let (kl, ku) = BandLu::bandwidths(&eqn.col_ptr, &eqn.row_idx);
+            let mut lu = BandLu::new(n3, kl, ku);
+            lu.factor_csc(&eqn.col_ptr, &eqn.row_idx, &vals);
+            let ws = model.invariants(&r.open);
+            let dirs = Directions::new(&ws, &eqn.col_ptr, &eqn.row_idx, &vals, &lu).expect("a closed cell");
+            let weight: Vec<f64> = y0.iter().map(|v| 1e-6 * v.abs() + 1e-9).collect();
+            let mut y = y0.to_vec();
+            let mut f = vec![0.0; n3];
+            for it in 0..4 {
+                eqn.eval(&y, &mut f);
+                let b: Vec<f64> = (0..n3).map(|j| -if j % 3 != 2 { (y[j] - y0[j]) - c * f[j] } else { -c * f[j] }).collect();
+                let mut x = b.clone();
+                lu.solve(&mut x);
+                dirs.apply(&ws, &b, &mut x);
+                for j in 0..n3 {
+                    y[j] += x[j];
+                }
+                let mut worst: Vec<(f64, usize)> = (0..n3).map(|j| ((y[j] - y0[j]) / weight[j], j)).collect();
+                let norm = (worst.iter().map(|w| w.0 * w.0).sum::<f64>() / n3 as f64).sqrt();
+                worst.sort_by(|a, b| b.0.abs().total_cmp(&a.0.abs()));
+                let per_kind: Vec<f64> =
+                    (0..3).map(|k| (worst.iter().filter(|w| w.1 % 3 == k).map(|w| w.0 * w.0).sum::<f64>() / n3 as f64).sqrt()).collect();
+                eprintln!(
+                    "h {h:e} it {it}: |y - y0| weighted RMS {norm:e} (p, n, phi: {per_kind:?}); worst {:?}",
+                    &worst[..6].iter().map(|w| (w.0, w.1 / 3, w.1 % 3, y0[w.1], y[w.1])).collect::<Vec<_>>()
+                );
+            }
+        }
     }
 
     /// The diagnosis of cell/README.md "1e5 cells: why the steps were small": at 1e5 cells the
