@@ -24,7 +24,7 @@
 //! at second order on the manufactured solution at G = 0.1 (tests/tlmpm.rs). Its linear bound
 //! (hats, 2 points per cell, FLIP) is c dt / h <= sqrt 3, not 1: the F update sees the
 //! re-mapped velocity, whose symbol r = 1 - (3/4) sin^2(theta / 2) softens the sawtooth
-//! ([`crate::stability`] derives it for any points per cell and blend).
+//! (the `stability` module derives it for any points per cell and blend).
 //!
 //! Everything the step carries lives on the points (the nodal velocity is re-mapped from them
 //! every step), so a checkpoint of the points resumes bit for bit.
