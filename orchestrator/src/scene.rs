@@ -920,6 +920,13 @@ end_time = 1e-12
             assert!(parse_with(&["scheme.particles_per_cell=1", &i, "scheme.timestep=2.3e-4"]).is_ok(), "{ok}");
         }
         assert!(parse_with(&["scheme.particles_per_cell=1", "scheme.timestep=2.2e-4"]).is_ok());
+        // Found by the scene fuzzer: E = 5e-324 halves to a zero shear modulus, so no wave
+        // speed; the resolved scene's cfl was 0 and could not be read again. Refused up front.
+        let e = err(&["bodies.bar.material.youngs_modulus=5e-324"]);
+        assert!(e.contains("the largest wave speed plus body speed is 0e0 m/s, which sets no time step"), "{e}");
+        // A tiny but representable speed whose CFL number underflows: refused by the time step.
+        let e = err(&["bodies.bar.material.youngs_modulus=1e-300", "domain.max=[1e300]", "bodies.bar.max=[1e300]"]);
+        assert!(e.contains("underflows to 0"), "{e}");
         let e = err(&["scheme.integrator=stormer-verlet", "scheme.flip_fraction=0.5"]);
         assert!(e.contains("`scheme.flip_fraction` = 0.5: the Stormer-Verlet step updates the point velocities by FLIP only"), "{e}");
     }

@@ -799,6 +799,14 @@ impl Scene {
         finite_positive(loc, "scheme.end_time", s.end_time, "the end time (s)")?;
         let h = self.domain.cell_size.iter().cloned().fold(f64::INFINITY, f64::min);
         let speed = max_speed + self.bodies.values().flat_map(|b| b.velocity.iter()).fold(0.0_f64, |m, v| m.max(v.abs()));
+        if !(speed > 0.0 && speed.is_finite()) {
+            // A modulus at the bottom of the denormals halves to 0 in the Lame constants.
+            return Err(loc.err(
+                "bodies",
+                "",
+                format!("the largest wave speed plus body speed is {speed:e} m/s, which sets no time step; check the materials' moduli and densities"),
+            ));
+        }
         let implicit = s.integrator == continuum::solver::TimeIntegrator::ImplicitTrapezoidal;
         if implicit {
             implicit_supported(loc, kind, s.artificial_viscosity, &self.bodies)?;
@@ -851,6 +859,15 @@ impl Scene {
                 if dt > bound {
                     let form = if tlmpm.is_some() { format!("tlmpm's {cfl_limit} h / (c + |v|)") } else { "h / (c + |v|)".to_string() };
                     return Err(loc.err("scheme.timestep", dt, format!("exceeds the stability bound {form} = {bound:.6e} s (h = {h:e} m, c + |v| = {speed:e} m/s); use a smaller time step or `cfl`")));
+                }
+                // The resolved scene carries cfl = c dt / h, which must be positive to be read
+                // again: a wave speed that small (a denormal modulus) cannot be stepped.
+                if !(dt * speed / h > 0.0) {
+                    return Err(loc.err(
+                        "scheme.timestep",
+                        dt,
+                        format!("gives a CFL number c dt / h that underflows to 0 (h = {h:e} m, c + |v| = {speed:e} m/s): the materials' wave speed is too small to step; check their moduli and densities"),
+                    ));
                 }
                 dt
             }
