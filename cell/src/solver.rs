@@ -1140,11 +1140,17 @@ mod diagnosis {
         std::env::var(k).ok().and_then(|v| v.parse().ok()).unwrap_or(d)
     }
 
-    /// Backward Euler from the state y0 with step h, solved by modified Newton (the Jacobian
-    /// of y0) over the banded LU, with or without the charge-exact correction; returns the
-    /// weighted RMS norms of the corrections (rtol 1e-6, atol 1e-9) and the charge defects of
-    /// the LU's solutions (e/nm^2).
-    fn newton(model: &Model, y0: &[f64], open: &[bool], h: f64, charge_exact: bool, its: usize) -> (Vec<f64>, Vec<f64>) {
+    /// One backward Euler step's system at y0 as the integrator builds it: M - c J (finite
+    /// differences) in band LU, the cell's invariants and their charge-exact directions.
+    struct Shifted {
+        eqn: CellEqn,
+        c: f64,
+        lu: BandLu,
+        ws: Vec<Vec<f64>>,
+        dirs: Directions,
+    }
+
+    fn shifted(model: &Model, y0: &[f64], open: &[bool], h: f64) -> Shifted {
         let eqn = CellEqn::new(model.clone(), y0.to_vec(), open.to_vec());
         let c = h / T_UNIT;
         let n3 = y0.len();
@@ -1161,6 +1167,16 @@ mod diagnosis {
         lu.factor_csc(&eqn.col_ptr, &eqn.row_idx, &vals);
         let ws = model.invariants(open);
         let dirs = Directions::new(&ws, &eqn.col_ptr, &eqn.row_idx, &vals, &lu).expect("a closed cell");
+        Shifted { eqn, c, lu, ws, dirs }
+    }
+
+    /// Backward Euler from the state y0 with step h, solved by modified Newton (the Jacobian
+    /// of y0) over the banded LU, with or without the charge-exact correction; returns the
+    /// weighted RMS norms of the corrections (rtol 1e-6, atol 1e-9) and the charge defects of
+    /// the LU's solutions (e/nm^2).
+    fn newton(model: &Model, y0: &[f64], open: &[bool], h: f64, charge_exact: bool, its: usize) -> (Vec<f64>, Vec<f64>) {
+        let Shifted { eqn, c, lu, ws, dirs } = shifted(model, y0, open, h);
+        let n3 = y0.len();
         // The net charge: +dx on p, -dx on n.
         let w: Vec<f64> = (0..n3).map(|j| [model.dx, -model.dx, 0.0][j % 3]).collect();
         let weight: Vec<f64> = y0.iter().map(|v| 1e-6 * v.abs() + 1e-9).collect();
@@ -1206,23 +1222,9 @@ mod diagnosis {
         eprintln!("re-projection moves phi by {dphi:e} V; residual after it {:e}", model.poisson_residual(&yp, &r.open).0);
         let r = Restart { y: yp, ..r };
         for h in [env("H", 1e-20), 1e-24] {
-            let eqn = CellEqn::new(model.clone(), r.y.clone(), r.open.clone());
-            let c = h / T_UNIT;
             let y0 = &r.y;
+            let Shifted { eqn, c, lu, ws, dirs } = shifted(&model, y0, &r.open, h);
             let n3 = y0.len();
-            let mut vals = vec![0.0; eqn.row_idx.len()];
-            eqn.fd_jacobian(y0, &mut vals);
-            for j in 0..n3 {
-                for k in eqn.col_ptr[j]..eqn.col_ptr[j + 1] {
-                    let rr = eqn.row_idx[k];
-                    vals[k] = if rr == j && rr % 3 != 2 { 1.0 } else { 0.0 } - c * vals[k];
-                }
-            }
-            let (kl, ku) = BandLu::bandwidths(&eqn.col_ptr, &eqn.row_idx);
-            let mut lu = BandLu::new(n3, kl, ku);
-            lu.factor_csc(&eqn.col_ptr, &eqn.row_idx, &vals);
-            let ws = model.invariants(&r.open);
-            let dirs = Directions::new(&ws, &eqn.col_ptr, &eqn.row_idx, &vals, &lu).expect("a closed cell");
             let weight: Vec<f64> = y0.iter().map(|v| 1e-6 * v.abs() + 1e-9).collect();
             let mut y = y0.to_vec();
             let mut f = vec![0.0; n3];
