@@ -289,7 +289,7 @@ enum WorkersCommand {
         /// The md-worker program, on a path every node sees (default: the one next to mscale).
         #[arg(long, value_name = "PATH")]
         worker_bin: Option<PathBuf>,
-        /// First port of the pool's workers (default: a range of its own from 52000).
+        /// First port of the pool's workers (default: a range of its own from 24000, below the ephemeral ports).
         #[arg(long, value_name = "PORT")]
         port_base: Option<u16>,
         /// Directory of the batch script and the job's output (on a shared file system).

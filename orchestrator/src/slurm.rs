@@ -23,8 +23,13 @@ use std::time::{Duration, Instant};
 
 /// Slurm job name of every pool.
 pub const JOB_NAME: &str = "mscale-pool";
-/// First port of the pools' ranges, and the size of each range.
-pub const FIRST_PORT: u16 = 52000;
+/// First port of the pools' ranges, and the size of each range. The ranges lie below Linux's
+/// default ephemeral range (32768-60999, `/proc/sys/net/ipv4/ip_local_port_range`), where any
+/// outgoing connection on a node may hold a port and a worker's listen would fail with
+/// "Address already in use" (seen once in CI with the old base 52000): 24000 + 100 k, k < 87.
+pub const FIRST_PORT: u16 = 24000;
+/// The end (exclusive) of the default ranges: the start of the ephemeral range.
+pub const LAST_PORT_END: u16 = 32768;
 pub const PORTS_PER_POOL: u16 = 100;
 
 /// What `mscale workers launch --slurm` asks Slurm for.
@@ -256,10 +261,10 @@ pub fn launch(orch: &Orchestrator, req: &PoolRequest) -> Result<i32> {
         Some(b) => b,
         None => {
             let used: Vec<u16> = running_pools()?.iter().filter_map(|(_, j)| parse_comment(&j.comment)).map(|(b, _)| b).collect();
-            (0..u16::MAX / PORTS_PER_POOL)
-                .map(|k| FIRST_PORT.saturating_add(k * PORTS_PER_POOL))
+            (FIRST_PORT..LAST_PORT_END - PORTS_PER_POOL + 1)
+                .step_by(PORTS_PER_POOL as usize)
                 .find(|b| !used.contains(b))
-                .context("no free port range for another pool")?
+                .context("no free port range for another pool below the ephemeral ports: give --port-base")?
         }
     };
     std::fs::create_dir_all(&req.dir).with_context(|| format!("--dir {}", req.dir.display()))?;
