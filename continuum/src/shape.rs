@@ -72,7 +72,7 @@ impl SchemeKind {
     /// name `cpdi1` or `cpdi2`).
     pub fn supports_dimension(self, dim: usize) -> bool {
         match self {
-            SchemeKind::Cpdi | SchemeKind::Impm => dim == 1,
+            SchemeKind::Cpdi => dim == 1,
             _ => (1..=3).contains(&dim),
         }
     }

@@ -331,10 +331,23 @@ fn manufactured_solution_converges_at_second_order_in_2d() {
     }
 }
 
+/// IMPM on Gong's 2D manufactured solution (his Figs 5.7-5.8; notes A.9 T3: displacement order
+/// at least 1.8 at G = 0.1 over 1/8 ... 1/32), and at the small-strain amplitude 1e-4; its 3D
+/// form on the cube at 1e-4 over 1/4 ... 1/16 is in the ignored full-range test.
+#[test]
+fn impm_converges_at_second_order_in_2d() {
+    for g in [0.1, 1e-4] {
+        let e: Vec<f64> = [8, 16, 32].iter().map(|&n| manufactured::<2>(SchemeKind::Impm, n, g, TimeIntegrator::Leapfrog).0).collect();
+        let o = orders(&e);
+        eprintln!("2D Impm G = {g}: errors {e:?} orders {o:?}");
+        assert!(o.iter().all(|&v| v >= 1.8), "2D Impm G = {g}: errors {e:?}, orders {o:?}");
+    }
+}
+
 #[test]
 #[ignore = "heavy (h = 1/64 in 2D, h = 1/16 in 3D): run with --ignored; figures in continuum/README.md"]
 fn manufactured_solution_converges_at_second_order_full_range() {
-    for scheme in [SchemeKind::Ddmp, SchemeKind::Cpdi1, SchemeKind::Cpdi2] {
+    for scheme in [SchemeKind::Ddmp, SchemeKind::Cpdi1, SchemeKind::Cpdi2, SchemeKind::Impm] {
         let e: Vec<f64> = [8, 16, 32, 64].iter().map(|&n| manufactured::<2>(scheme, n, 1e-4, TimeIntegrator::Leapfrog).0).collect();
         let o = orders(&e);
         eprintln!("2D {scheme:?}: errors {e:?} orders {o:?}");
@@ -342,7 +355,10 @@ fn manufactured_solution_converges_at_second_order_full_range() {
         let e: Vec<f64> = [4, 8, 16].iter().map(|&n| manufactured::<3>(scheme, n, 1e-4, TimeIntegrator::Leapfrog).0).collect();
         let o = orders(&e);
         eprintln!("3D {scheme:?}: errors {e:?} orders {o:?}");
-        assert!(o.iter().all(|&v| v >= 1.8), "3D {scheme:?}: errors {e:?}, orders {o:?}");
+        // IMPM on 4^3 cells is short of its asymptotic range (measured orders 1.71, 1.98: the
+        // quadratic MLS at the centres next to the rollers spans most of the cube).
+        let first = if scheme == SchemeKind::Impm { 1.6 } else { 1.8 };
+        assert!(o[0] >= first && o[1] >= 1.8, "3D {scheme:?}: errors {e:?}, orders {o:?}");
     }
 }
 
@@ -411,6 +427,34 @@ fn every_scheme_conserves_mass_and_momentum_in_1d_and_2d() {
         assert!(drift <= 1e-13, "1D {scheme:?}: momentum drift {drift:e} of the scale");
     }
     for (scheme, sub) in registry(2) {
+        if scheme == SchemeKind::Impm {
+            // The free block: the points' mass exactly; momentum drifts (velocity map and
+            // quadrature mass, as in 1D; the free surfaces' cells add to it) and falls with h.
+            let drift: Vec<f64> = [1, 2]
+                .iter()
+                .map(|&refine| {
+                    let h = 0.1 / refine as f64;
+                    let grid = Grid::<2> { origin: [0.0; 2], h: [h; 2], cells: [16 * refine, 12 * refine], faces: free() };
+                    let pts = points(&grid, [0.4, 0.3], [1.2, 0.9], 2, 1e3, |x| [3.0 * (3.0 * x[1]).sin() + 0.5, -4.0 * (x[0] - 0.8)]);
+                    let c = ((lame(1e7, 0.3).0 + 2.0 * lame(1e7, 0.3).1) / 1e3).sqrt();
+                    let mut s = Simulation::new(grid, pts, scheme, vec![neo()], Viscosity::None, 0.2 * h / c).expect("builds");
+                    s.integrator = TimeIntegrator::Leapfrog;
+                    let (p0, scale) = momentum(&s);
+                    let m0 = s.totals().mass;
+                    let mut worst: f64 = 0.0;
+                    for _ in 0..100 * refine {
+                        s.step().unwrap_or_else(|e| panic!("2D {scheme:?}: {e}"));
+                        let p = momentum(&s).0;
+                        worst = (0..2).map(|a| (p[a] - p0[a]).abs() / scale).fold(worst, f64::max);
+                    }
+                    assert_eq!(s.totals().mass, m0);
+                    worst
+                })
+                .collect();
+            eprintln!("2D {scheme:?}: momentum drift {drift:?} of the momentum scale at h = 0.1, 0.05 (not conserved by the scheme)");
+            assert!(drift[1] <= 0.5 * drift[0], "2D {scheme:?}: momentum drift {drift:?} of the scale does not fall with h");
+            continue;
+        }
         let drift = conservation(free_block_2d(scheme, sub), 100);
         eprintln!("2D {scheme:?}: momentum drift {drift:e} of the momentum scale");
         assert!(drift <= 1e-13, "2D {scheme:?}: momentum drift {drift:e} of the scale");

@@ -867,7 +867,9 @@ end_time = 1e-12
             err(&["bodies.bar.material={ law = \"linear-elastic\", youngs_modulus = 1e7, poisson_ratio = 0.3 }"]).contains("neo-hookean")
         );
         assert!(err(&["scheme.cfl=0.95"]).contains("manufactured particle speed"), "{}", err(&["scheme.cfl=0.95"]));
-        assert!(err(&["scheme.method=impm"]).contains("`scheme.method` = \"impm\": `impm` is 1D only"));
+        assert!(err(&["scheme.method=cpdi"]).contains("`scheme.method` = \"cpdi\": `cpdi` is the 1D CPDI"));
+        let impm_2d: Vec<String> = vec!["scheme.method=impm".into()];
+        assert_eq!(parse("mms-2d.toml", &text, &impm_2d, &base, "mms-2d").map(|l| l.resolved.scheme), Ok(continuum::SchemeKind::Impm));
         let text_1d = std::fs::read_to_string(base.join("mms-1d.toml")).unwrap();
         let one = |sets: &[&str]| {
             let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();

@@ -24,7 +24,7 @@ report scenes/mms-1d.toml --sweep scheme.method=ddmp-subpoints $m --set scheme.s
 merge mms-1d-g0.1 "$out/mms-a" "$out/mms-b"
 cp "$out/mms-a/report.png" "$here/mms-1d-g0.1.png"
 m2="--sweep domain.cells=[8,8],[16,16],[32,32],[64,64]"
-report scenes/mms-2d.toml --sweep scheme.method=mpm,ugimp,cpgimp,cpdi1,cpdi2,cpdi-improved,ddmp $m2 --out "$out/mms2d-a"
+report scenes/mms-2d.toml --sweep scheme.method=mpm,ugimp,cpgimp,cpdi1,cpdi2,cpdi-improved,impm,ddmp $m2 --out "$out/mms2d-a"
 report scenes/mms-2d.toml --sweep scheme.method=ddmp-subpoints $m2 --sweep scheme.sub_points=4,8,16 --out "$out/mms2d-b"
 merge mms-2d-g0.1 "$out/mms2d-a"
 merge mms-2d-g0.1-subpoints "$out/mms2d-b"   # one more column (the sub-points swept)
