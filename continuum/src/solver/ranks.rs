@@ -15,7 +15,7 @@
 //! all ranks stop at the same phase of the same step and no collective is left waiting.
 
 use super::*;
-use crate::closure::ClosureError;
+use crate::closure::{ClosureError, error_chain as chain};
 use crate::par::TileExchange;
 
 impl<const D: usize> Simulation<D> {
@@ -152,6 +152,81 @@ pub(super) fn advance_owned_closures<const D: usize>(
     Ok(())
 }
 
+/// Prepares, then advances over `dt` (`None`: initializes) every body's closure over its whole
+/// batch, as one process does, adding the advanced points to `evaluations`. Over more than one
+/// MPI rank a closure that is [`Closure::computed_once`] (the MD closure) is called on rank 0
+/// only: the ranks agree on the outcome (rank 0's failure stops every rank with its message),
+/// then rank 0's stresses (and plastic strains) of those bodies are all-gathered (rank 0 the
+/// only sender) into every rank's points. Every other closure runs on every rank (replicated).
+pub(super) fn advance_all_closures<const D: usize>(
+    pts: &mut Particles<D>,
+    closures: &mut [Box<dyn Closure>],
+    body_ranges: &[std::ops::Range<usize>],
+    step: u64,
+    dt: Option<f64>,
+    evaluations: &mut u64,
+) -> Result<(), SolverError> {
+    let once = par::exchange().filter(|e| e.size() > 1).filter(|_| closures.iter().any(|c| c.computed_once()));
+    let skip = |c: &dyn Closure| once.is_some_and(|ex| ex.rank() != 0 && c.computed_once());
+    let n = pts.len();
+    let mut local = Ok(());
+    'passes: for (pass, prepare) in [true, false].into_iter().enumerate() {
+        for (b, range) in body_ranges.iter().enumerate() {
+            let closure = &mut closures[b];
+            let r = if skip(closure.as_ref()) {
+                Ok(())
+            } else {
+                let batch = pts.batch(step, range.clone());
+                match (prepare, dt) {
+                    (true, _) => closure.prepare(&batch, dt.unwrap_or(0.0)),
+                    (false, Some(dt)) => closure.advance(batch, dt),
+                    (false, None) => closure.initialize(batch),
+                }
+            };
+            if let Err(source) = r {
+                // The order one process meets failures in: the prepare pass, then the advance
+                // pass, each in body order.
+                local = Err((pass * n + range.start, SolverError::Closure { step, source }));
+                break 'passes;
+            }
+            if !prepare {
+                *evaluations = evaluations.saturating_add(range.len() as u64);
+            }
+        }
+    }
+    let Some(ex) = once else {
+        return local.map_err(|(_, e)| e);
+    };
+    agree(Some(ex), local)?;
+    let plastic = !pts.plastic_strain.is_empty();
+    let bodies: Vec<std::ops::Range<usize>> =
+        body_ranges.iter().zip(closures.iter()).filter(|(_, c)| c.computed_once()).map(|(r, _)| r.clone()).collect();
+    let mut pack = Vec::new();
+    if ex.rank() == 0 {
+        for p in bodies.iter().flat_map(|r| r.clone()) {
+            pack.extend(pts.stress[p].iter().flatten());
+            if plastic {
+                pack.push(pts.plastic_strain[p]);
+            }
+        }
+    }
+    let all = ex.all_gather(&pack);
+    if ex.rank() != 0 {
+        let per = 9 + usize::from(plastic);
+        let from = &all[0];
+        let count: usize = bodies.iter().map(|r| r.len()).sum();
+        assert_eq!(from.len(), count * per, "rank 0 sent {} values for {count} points of computed-once closures", from.len());
+        for (k, p) in bodies.iter().flat_map(|r| r.clone()).enumerate() {
+            let v = &from[k * per..(k + 1) * per];
+            pts.stress[p] = std::array::from_fn(|i| std::array::from_fn(|j| v[3 * i + j]));
+            if plastic {
+                pts.plastic_strain[p] = v[9];
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Agrees over the ranks of `ex` on the outcome of a per-point phase: `local` is this rank's
 /// lowest failing point (a key ordering failures as one process meets them) and its error.
 /// Every rank gets the error of the lowest key over all ranks, or `Ok` when no rank failed.
@@ -175,21 +250,6 @@ pub(super) fn agree(ex: Option<&dyn TileExchange>, local: Result<(), (usize, Sol
 
 fn key_of(b: &[u8]) -> u64 {
     u64::from_le_bytes(b[..8].try_into().expect("8 bytes"))
-}
-
-/// The error's whole chain, as `mscale` prints it (each source's message once).
-fn chain(e: &(dyn std::error::Error + 'static)) -> String {
-    let mut out = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        let m = c.to_string();
-        if !out.ends_with(&m) {
-            out.push_str(": ");
-            out.push_str(&m);
-        }
-        cause = c.source();
-    }
-    out
 }
 
 /// `[key u64][kind u8][step u64][len u32][what][len u32][cause]`: kind 0 a divergence (what,
