@@ -288,7 +288,7 @@ impl<const D: usize> Simulation<D> {
         };
         // Initialization is not counted as closure evaluations.
         let mut uncounted = 0;
-        ranks::advance_all_closures(&mut sim.points, &mut sim.closures, &sim.body_ranges, 0, None, &mut uncounted)?;
+        ranks::advance_all_closures(par::exchange(), &mut sim.points, &mut sim.closures, &sim.body_ranges, 0, None, &mut uncounted)?;
         sim.initial = sim.totals();
         Ok(sim)
     }
@@ -744,7 +744,15 @@ impl<const D: usize> Simulation<D> {
         // one call for all their bodies; then each is advanced (over MPI ranks, a closure
         // computed once runs on rank 0 and its stresses are given to every rank).
         if ranks.is_none() {
-            ranks::advance_all_closures(pts, &mut self.closures, &self.body_ranges, step, Some(dt), &mut self.closure_evaluations)?;
+            ranks::advance_all_closures(
+                par::exchange(),
+                pts,
+                &mut self.closures,
+                &self.body_ranges,
+                step,
+                Some(dt),
+                &mut self.closure_evaluations,
+            )?;
         }
         let (old_stress, old_q, old_volume) = (&self.old_stress, &self.old_q, &self.old_volume);
         let h = self.grid.min_spacing();
