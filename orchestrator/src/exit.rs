@@ -13,6 +13,10 @@ pub const BAD_INPUT: i32 = 2;
 #[error("{} ({:?})", .0.message(), .0.code())]
 pub struct Refused(pub tonic::Status);
 
+/// The message of an error and its chain of sources, joined by `: `; one function with the
+/// continuum's, which carries a closure's failure across MPI ranks in the same words.
+pub use continuum::closure::error_chain as message;
+
 /// The exit code of a failed verb: [`BAD_INPUT`] when anything in the error's chain is bad
 /// input (a scene that does not validate, a body that cannot be set up from its scene, a
 /// request the job service refused as invalid), [`RUN_FAILED`] otherwise.

@@ -496,7 +496,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         let result = sim.step();
         continuum_s += t.elapsed().as_secs_f64();
         if let Err(e) = result {
-            failure = Some(continuum::closure::error_chain(&e));
+            failure = Some(crate::exit::message(&e));
             break;
         }
         if let Some(f) = film.as_mut() {
