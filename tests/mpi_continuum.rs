@@ -457,6 +457,19 @@ fn a_coupled_bar_over_2_and_3_ranks_and_2_workers_has_the_digest_of_one_process(
     for n in [2, 3] {
         assert_eq!(digest(&exe, tmp.path(), scene, &set, Some(n)), one, "in-process MD, mpirun -np {n}");
     }
+    // A checkpoint of 2 ranks (rank 0's boxes in it) resumed on 3 from step 4: rank 0 restores
+    // the boxes into its pool, the other ranks into their null pools.
+    let ckpt = tmp.path().join("md-ckpt");
+    let mut args = vec!["run".to_string(), repo().join(scene).display().to_string(), "--out".into(), ckpt.display().to_string()];
+    args.extend(["--checkpoint-every".to_string(), "2".into()]);
+    for s in &set {
+        args.extend(["--set".to_string(), s.clone()]);
+    }
+    assert_eq!(run_digest(&exe, &args, &ckpt, Some(2)), one, "2 ranks with checkpoints");
+    std::fs::remove_file(ckpt.join("summary.json")).expect("summary.json");
+    assert!(ckpt.join("checkpoints/step-000000000004.ckpt").is_file(), "the step-4 checkpoint");
+    let args = vec!["run".to_string(), "--resume".into(), ckpt.display().to_string()];
+    assert_eq!(run_digest(&exe, &args, &ckpt, Some(3)), one, "resumed on 3 ranks from the step-4 checkpoint of 2");
     let ((_a, a, ma), (_b, b, mb)) = (md_worker_with_metrics(), md_worker_with_metrics());
     let with_workers = |ranks: Option<usize>| {
         let before = atom_steps(&ma) + atom_steps(&mb);
