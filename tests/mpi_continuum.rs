@@ -1,8 +1,10 @@
 //! The continuum over MPI ranks (continuum's and orchestrator's cargo feature `mpi`, issue 14
 //! stages 1 and 2): `mpirun -np N mscale run SCENE` gives the `state_digest` of the
 //! single-process run for N = 1, 2, 3 (and 4 on the 3D scene; oversubscribed), on a 1D, a 2D
-//! and a 3D scene and several gradient schemes; a checkpoint written on 2 ranks resumes on 3 to
-//! the uninterrupted digest.
+//! and a 3D scene under every gradient scheme the validator offers in that dimension; a
+//! checkpoint written on 2 ranks resumes on 3 to the uninterrupted digest; the coupled bar
+//! (md bodies, in-process MD or two `md-worker serve`) has the one-process digest over 2 and 3
+//! ranks with each box computed once.
 //!
 //! Needs an `mscale` built with `--features mpi` (`bash deploy/setup.sh mpi`, then
 //! `cargo build -p orchestrator --features mpi --bin mscale`); set `MSCALE_MPI_MSCALE` to that
@@ -75,6 +77,48 @@ fn sets(base: &[&str], method: Option<&str>) -> Vec<String> {
     v
 }
 
+/// The 1D schemes besides the weak shock tube's own ddmp-subpoints (each with its own
+/// settings after a `;`): with it, every scheme `scheme.method` offers in 1D
+/// ([`every_gradient_scheme_of_each_dimension_is_covered`]).
+const METHODS_1D: &[&str] = &[
+    "mpm",
+    "ugimp",
+    "cpgimp",
+    "cpdi",
+    "cpdi1",
+    "cpdi2",
+    "ddmp",
+    "impm;scheme.integrator=\"leapfrog\"",
+    "cpdi-improved",
+    "tlmpm;scheme.integrator=\"leapfrog\"",
+];
+
+/// The 2D schemes besides mms-2d's own cpdi1. UGIMP's undeformed point domains cross the
+/// grid's x faces at the scene's amplitude G = 0.1 (a point leaves the grid at step 3, the
+/// failure test below): it runs at G = 0.01.
+const METHODS_2D: &[&str] = &[
+    "mpm",
+    "ugimp;reference.amplitude=0.01",
+    "cpgimp",
+    "cpdi2",
+    "cpdi-improved",
+    "ddmp",
+    "ddmp-subpoints;scheme.sub_points=4",
+    "tlmpm;scheme.integrator=\"leapfrog\"",
+];
+
+/// The 3D schemes besides the cube's own cpdi1 (see [`METHODS_2D`] for UGIMP's amplitude).
+const METHODS_3D: &[&str] = &[
+    "mpm",
+    "ugimp;reference.amplitude=0.01",
+    "cpgimp",
+    "cpdi2",
+    "cpdi-improved",
+    "ddmp",
+    "ddmp-subpoints;scheme.sub_points=4",
+    "tlmpm;scheme.integrator=\"leapfrog\"",
+];
+
 /// One scene: every scheme's digest over 1, 2 and 3 ranks equals the one-process digest, and
 /// the scene's own scheme gives `pinned` (tests/golden/digests.toml). The other schemes run
 /// with `extra` appended to `base` (a later `--set` wins).
@@ -126,7 +170,7 @@ fn a_1d_shock_tube_has_one_digest_over_1_2_3_ranks() {
     same_digest_over_ranks(
         "scenes/shock-tube-weak.toml",
         &["scheme.end_time=2e-3", "output.snapshots=0", "output.particles=false", "output.vtk=false", "output.plots=false"],
-        &["mpm", "ugimp", "cpgimp", "cpdi", "cpdi1", "cpdi2", "ddmp", "impm;scheme.integrator=\"leapfrog\"", "cpdi-improved"],
+        METHODS_1D,
         // The scene's 16 sub-points are ddmp-subpoints' only.
         &["scheme.sub_points=1"],
         "be47117a901fadf612bc199660357700bbb301ce431937378c343839156a694b",
@@ -150,7 +194,7 @@ fn a_2d_manufactured_solution_has_one_digest_over_1_2_3_ranks() {
             "output.vtk=false",
             "output.plots=false",
         ],
-        &["mpm", "cpgimp", "cpdi2", "cpdi-improved", "ddmp", "ddmp-subpoints;scheme.sub_points=4"],
+        METHODS_2D,
         // 12 rows: three slab tiles of 4 rows, one per rank at N = 3 (8 rows are two tiles).
         &["domain.cells=[8,12]"],
         "6c5ece78afd33a6fc6db7853845043f4d2891cea7005bad174bf50a5ae9b8f32",
@@ -237,7 +281,7 @@ fn a_3d_block_has_one_digest_over_1_2_3_4_ranks() {
     same_digest_over(
         "scenes/mms-2d.toml",
         CUBE,
-        &["mpm", "cpdi2", "ddmp-subpoints;scheme.sub_points=4"],
+        METHODS_3D,
         &[],
         None,
         &[1, 2, 3],
@@ -312,5 +356,141 @@ fn copy_dir(from: &Path, to: &Path) {
         } else {
             std::fs::copy(e.path(), dest).expect("copy");
         }
+    }
+}
+
+#[test]
+#[cfg_attr(
+    not(require_mpi),
+    ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_MSCALE=<mscale built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
+)]
+fn every_gradient_scheme_of_each_dimension_is_covered() {
+    // The schemes the tests above run in each dimension are the ones the scene validator
+    // offers there (`mscale check`'s refusal lists them): a new scheme fails this test until
+    // it runs over ranks too.
+    let exe = mpi_mscale();
+    let allowed = |scene: &str, set: &[&str], method: &str, marker: &str| -> Vec<String> {
+        let mut cmd = Command::new(&exe);
+        cmd.arg("check").arg(repo().join(scene));
+        for s in set.iter().copied().chain([format!("scheme.method=\"{method}\"").as_str()]) {
+            cmd.args(["--set", s]);
+        }
+        let o = cmd.current_dir(repo()).output().expect("mscale check");
+        assert_eq!(o.status.code(), Some(2), "{method} is refused: {}", String::from_utf8_lossy(&o.stderr));
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        let list = err.split_once(marker).unwrap_or_else(|| panic!("no {marker:?} in {err}")).1;
+        list.lines().next().expect("a line").split(", ").map(|m| m.trim().to_string()).collect()
+    };
+    let names = |own: &str, methods: &[&str]| -> Vec<String> {
+        let mut v: Vec<String> = methods.iter().map(|m| m.split(';').next().expect("name").to_string()).collect();
+        v.push(own.to_string());
+        v.sort();
+        v
+    };
+    let sorted = |mut v: Vec<String>| {
+        v.sort();
+        v
+    };
+    // Every scheme is offered in 1D (the unknown name's refusal lists them all); 2D and 3D
+    // refuse the 1D-only `cpdi` with their own list.
+    let all = sorted(allowed("scenes/shock-tube-weak.toml", &[], "no-such-scheme", "allowed: "));
+    let two = sorted(allowed("scenes/mms-2d.toml", &[], "cpdi", "a 2D scene allows: "));
+    let three = sorted(allowed("scenes/mms-2d.toml", CUBE, "cpdi", "a 3D scene allows: "));
+    assert_eq!(names("ddmp-subpoints", METHODS_1D), all, "1D");
+    assert_eq!(names("cpdi1", METHODS_2D), two, "2D");
+    assert_eq!(names("cpdi1", METHODS_3D), three, "3D");
+}
+
+/// An `md-worker serve` on loopback with its Prometheus port: (the process, its address, its
+/// metrics address).
+fn md_worker_with_metrics() -> (mscale_tests::Proc, String, String) {
+    use std::io::BufRead;
+    let mut cmd = Command::new(mscale_tests::binary("md-worker", "md-worker"));
+    cmd.args(["serve", "--listen", "127.0.0.1:0", "--threads", "1", "--metrics", "127.0.0.1:0"])
+        .env("RUST_LOG", "warn")
+        .stdout(std::process::Stdio::piped());
+    let mut proc = mscale_tests::Proc::spawn(&mut cmd);
+    let mut out = std::io::BufReader::new(proc.child.stdout.take().expect("stdout is piped"));
+    let mut line = |prefix: &str| {
+        let mut l = String::new();
+        out.read_line(&mut l).expect("read a line");
+        l.trim().strip_prefix(prefix).unwrap_or_else(|| panic!("expected {prefix:?}..., got {l:?}")).to_string()
+    };
+    let addr = line("listening on ");
+    let metrics = line("metrics on ");
+    (proc, addr, metrics)
+}
+
+/// MD atom-steps a worker has computed so far (its `mdworker_atom_steps` counter).
+fn atom_steps(metrics: &str) -> u64 {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(metrics).expect("connect to the metrics port");
+    s.write_all(format!("GET /metrics HTTP/1.1\r\nHost: {metrics}\r\nConnection: close\r\n\r\n").as_bytes()).expect("request");
+    let mut body = String::new();
+    s.read_to_string(&mut body).expect("response");
+    body.lines()
+        .find_map(|l| l.strip_prefix("mdworker_atom_steps_total "))
+        .unwrap_or_else(|| panic!("no mdworker_atom_steps_total in {body}"))
+        .trim()
+        .parse()
+        .expect("a count")
+}
+
+#[test]
+#[cfg_attr(
+    not(require_mpi),
+    ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_MSCALE=<mscale built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
+)]
+fn a_coupled_bar_over_2_and_3_ranks_and_2_workers_has_the_digest_of_one_process() {
+    // tests/data/md-small.toml (two md bodies, 12 points of 32-atom boxes, 5 steps): the MD
+    // closures are computed once, on rank 0 (`Closure::computed_once`), which drives the pool;
+    // the other ranks get the stresses. In-process MD and two remote workers, under 2 and 3
+    // ranks, give the one-process digest (the pinned one), and the workers compute exactly the
+    // atom-steps of the one-process run (a rank driving them too would double them: each rank
+    // would open its own session of every box).
+    let exe = mpi_mscale();
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let base = ["output.snapshots=0", "output.particles=false", "output.vtk=false", "output.plots=false"];
+    let set: Vec<String> = base.iter().map(|s| s.to_string()).collect();
+    let scene = "tests/data/md-small.toml";
+    let one = digest(&exe, tmp.path(), scene, &set, None);
+    // tests/golden/digests.toml's md-small entry.
+    assert_eq!(one, "12bb9d09553963d1220d54b95b49b4cef6c26ac0d8cc0ffdd16f35cb6bae3880", "the pinned digest");
+    for n in [2, 3] {
+        assert_eq!(digest(&exe, tmp.path(), scene, &set, Some(n)), one, "in-process MD, mpirun -np {n}");
+    }
+    // A checkpoint of 2 ranks (rank 0's boxes in it) resumed on 3 from step 4: rank 0 restores
+    // the boxes into its pool, the other ranks into their null pools.
+    let ckpt = tmp.path().join("md-ckpt");
+    let mut args = vec!["run".to_string(), repo().join(scene).display().to_string(), "--out".into(), ckpt.display().to_string()];
+    args.extend(["--checkpoint-every".to_string(), "2".into()]);
+    for s in &set {
+        args.extend(["--set".to_string(), s.clone()]);
+    }
+    assert_eq!(run_digest(&exe, &args, &ckpt, Some(2)), one, "2 ranks with checkpoints");
+    std::fs::remove_file(ckpt.join("summary.json")).expect("summary.json");
+    assert!(ckpt.join("checkpoints/step-000000000004.ckpt").is_file(), "the step-4 checkpoint");
+    let args = vec!["run".to_string(), "--resume".into(), ckpt.display().to_string()];
+    assert_eq!(run_digest(&exe, &args, &ckpt, Some(3)), one, "resumed on 3 ranks from the step-4 checkpoint of 2");
+    let ((_a, a, ma), (_b, b, mb)) = (md_worker_with_metrics(), md_worker_with_metrics());
+    let with_workers = |ranks: Option<usize>| {
+        let before = atom_steps(&ma) + atom_steps(&mb);
+        let out = tmp.path().join(format!("workers-{}", ranks.unwrap_or(0)));
+        let mut args = vec!["run".to_string(), repo().join(scene).display().to_string(), "--out".into(), out.display().to_string()];
+        args.extend(["--workers".to_string(), format!("{a},{b}")]);
+        for s in &set {
+            args.extend(["--set".to_string(), s.clone()]);
+        }
+        let d = run_digest(&exe, &args, &out, ranks);
+        (d, atom_steps(&ma) + atom_steps(&mb) - before)
+    };
+    let (d1, steps1) = with_workers(None);
+    assert_eq!(d1, one, "one process, two workers");
+    assert!(steps1 > 0, "the workers computed the boxes");
+    for n in [2, 3] {
+        let (d, steps) = with_workers(Some(n));
+        assert_eq!(d, one, "mpirun -np {n} with two workers");
+        assert_eq!(steps, steps1, "mpirun -np {n}: the workers' atom-steps against one process's");
+        eprintln!("md-small, two workers, {n} ranks: digest {d}, {steps} atom-steps on the workers (one process: {steps1})");
     }
 }

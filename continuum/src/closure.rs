@@ -97,6 +97,24 @@ pub enum ClosureError {
     Other(String),
 }
 
+/// The message of an error and its chain of sources, joined by `: ` (as `{:#}` of an
+/// `anyhow::Error` prints it); a source whose message its parent's already ends with is not
+/// repeated. How `mscale` prints a failure, and how a closure's failure crosses MPI ranks
+/// (`solver/ranks.rs`), so every rank reports it in the same words.
+pub fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut out = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        let m = c.to_string();
+        if !out.ends_with(&m) {
+            out.push_str(": ");
+            out.push_str(&m);
+        }
+        cause = c.source();
+    }
+    out
+}
+
 pub trait Closure: Send {
     /// Name as written in scene files.
     fn name(&self) -> &'static str;
@@ -121,6 +139,15 @@ pub trait Closure: Send {
     /// call (the implicit-trapezoidal integrator). The default (false) is
     /// right for closures with history (MD boxes), which the implicit integrator refuses.
     fn repeatable(&self) -> bool {
+        false
+    }
+    /// Whether the closure's work must be done once for all MPI ranks (a closure holding
+    /// state no rank may duplicate: the MD closure's boxes, each computed once). Over more than
+    /// one rank (continuum/README.md "MPI") only rank 0 calls `prepare`, `initialize` and
+    /// `advance` of such a closure, over every point of its body, and the solver gives the
+    /// other ranks the stresses (and plastic strains) it wrote; their copy of the closure is
+    /// never called. One process: no effect. The default (false): every rank calls its own copy.
+    fn computed_once(&self) -> bool {
         false
     }
     /// Whether [`Closure::tangent`] gives the material tangent (the analytic Jacobian of the

@@ -286,14 +286,9 @@ impl<const D: usize> Simulation<D> {
             sub_x: Vec::new(),
             ddmp_field: Vec::new(),
         };
-        for prepare in [true, false] {
-            for (b, range) in sim.body_ranges.clone().into_iter().enumerate() {
-                let batch = sim.points.batch(0, range);
-                let closure = &mut sim.closures[b];
-                let r = if prepare { closure.prepare(&batch, 0.0) } else { closure.initialize(batch) };
-                r.map_err(|source| SolverError::Closure { step: 0, source })?;
-            }
-        }
+        // Initialization is not counted as closure evaluations.
+        let mut uncounted = 0;
+        ranks::advance_all_closures(par::exchange(), &mut sim.points, &mut sim.closures, &sim.body_ranges, 0, None, &mut uncounted)?;
         sim.initial = sim.totals();
         Ok(sim)
     }
@@ -746,18 +741,18 @@ impl<const D: usize> Simulation<D> {
             ranks::agree(Some(ex), r)?;
         }
         // Every closure sees its batch first (`prepare`), so closures sharing a worker pool send
-        // one call for all their bodies; then each is advanced.
-        for prepare in [true, false].into_iter().filter(|_| ranks.is_none()) {
-            for (b, range) in self.body_ranges.iter().enumerate() {
-                let batch = pts.batch(step, range.clone());
-                let closure = &mut self.closures[b];
-                if prepare {
-                    closure.prepare(&batch, dt).map_err(|source| SolverError::Closure { step, source })?;
-                } else {
-                    closure.advance(batch, dt).map_err(|source| SolverError::Closure { step, source })?;
-                    self.closure_evaluations = self.closure_evaluations.saturating_add(range.len() as u64);
-                }
-            }
+        // one call for all their bodies; then each is advanced (over MPI ranks, a closure
+        // computed once runs on rank 0 and its stresses are given to every rank).
+        if ranks.is_none() {
+            ranks::advance_all_closures(
+                par::exchange(),
+                pts,
+                &mut self.closures,
+                &self.body_ranges,
+                step,
+                Some(dt),
+                &mut self.closure_evaluations,
+            )?;
         }
         let (old_stress, old_q, old_volume) = (&self.old_stress, &self.old_q, &self.old_volume);
         let h = self.grid.min_spacing();

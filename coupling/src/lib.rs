@@ -310,6 +310,12 @@ impl Closure for MdClosure {
         self.settings.wave_speed
     }
 
+    /// Each box is computed once: over MPI continuum ranks only rank 0 drives the pool (the
+    /// other ranks' closures stand over a `null` pool and are never called).
+    fn computed_once(&self) -> bool {
+        true
+    }
+
     fn prepare(&mut self, b: &ClosureBatch<'_>, dt: f64) -> Result<(), ClosureError> {
         let mut shared = self.lock()?;
         let (plan, work) = self.plan_of(&shared, b, dt);

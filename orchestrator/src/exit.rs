@@ -13,22 +13,9 @@ pub const BAD_INPUT: i32 = 2;
 #[error("{} ({:?})", .0.message(), .0.code())]
 pub struct Refused(pub tonic::Status);
 
-/// The message of an error and its chain of sources, joined by `: ` (as `{:#}` of an
-/// `anyhow::Error` prints it); a source whose message its parent's already ends with is not
-/// repeated.
-pub fn message(e: &(dyn std::error::Error + 'static)) -> String {
-    let mut out = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        let m = c.to_string();
-        if !out.ends_with(&m) {
-            out.push_str(": ");
-            out.push_str(&m);
-        }
-        cause = c.source();
-    }
-    out
-}
+/// The message of an error and its chain of sources, joined by `: `; one function with the
+/// continuum's, which carries a closure's failure across MPI ranks in the same words.
+pub use continuum::closure::error_chain as message;
 
 /// The exit code of a failed verb: [`BAD_INPUT`] when anything in the error's chain is bad
 /// input (a scene that does not validate, a body that cannot be set up from its scene, a

@@ -588,18 +588,14 @@ fn dispatch(cli: Cli) -> i32 {
             // Over MPI ranks (continuum/README.md "MPI"): every rank steps the same replicated
             // state; rank 0 writes the outputs and speaks, the others write theirs into a
             // private scratch directory removed at the end.
-            let (rank, ranks) = mpi_ranks();
-            if ranks > 1 && !workers.is_empty() {
-                if rank == 0 {
-                    eprintln!("mscale: --workers is not supported over MPI ranks yet (issue 14)");
-                }
-                return exit::BAD_INPUT;
-            }
+            let (rank, _) = mpi_ranks();
             let scratch = (rank > 0).then(|| std::env::temp_dir().join(format!("mscale-rank{rank}-{}", std::process::id())));
             let out = scratch.clone().unwrap_or(out);
             let _scratch = ScratchDir(scratch);
             let mut opts = run::RunOptions::new(out.clone(), std::env::args().collect());
-            opts.workers = workers;
+            // MD runs once, driven by rank 0 (`Closure::computed_once`): only rank 0 talks to
+            // the workers; the other ranks' md closures stand over a `null` pool (run.rs).
+            opts.workers = if rank == 0 { workers } else { Vec::new() };
             opts.checkpoint_every = checkpoint_every;
             opts.resume = resume.is_some();
             // Every rank resumes from the run's checkpoint (the state is the same on every rank

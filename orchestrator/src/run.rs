@@ -115,6 +115,14 @@ fn md_shared(loaded: &LoadedScene, opts: &RunOptions) -> Result<Option<Arc<Mutex
         anyhow::bail!("all md bodies of a run must share one potential; found {} and {}", first.display(), other.display());
     }
     let potential = md_worker::pool::PotentialSource::from_file(&first)?;
+    // Over MPI continuum ranks (continuum/README.md "MPI") the MD closures are computed once,
+    // by rank 0 (`Closure::computed_once`): rank 0 drives the pool (in-process or the
+    // workers); the other ranks' closures are never called and stand over a `null` pool (no
+    // atoms, no MD work, no connection), which still takes their checkpoints and resumes.
+    if continuum::par::exchange().is_some_and(|e| e.size() > 1 && e.rank() > 0) {
+        let pool = md_worker::pool::MdPool::new(vec![Box::new(md_worker::pool::InProcess::new("null", None))])?;
+        return Ok(Some(Arc::new(Mutex::new(MdShared::new(pool, potential)))));
+    }
     let mut pool = crate::md::pool(workers)?;
     if !weights.is_empty() {
         pool.set_weights(weights.to_vec())?;

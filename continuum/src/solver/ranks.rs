@@ -15,7 +15,7 @@
 //! all ranks stop at the same phase of the same step and no collective is left waiting.
 
 use super::*;
-use crate::closure::ClosureError;
+use crate::closure::{ClosureError, error_chain as chain};
 use crate::par::TileExchange;
 
 impl<const D: usize> Simulation<D> {
@@ -152,6 +152,82 @@ pub(super) fn advance_owned_closures<const D: usize>(
     Ok(())
 }
 
+/// Prepares, then advances over `dt` (`None`: initializes) every body's closure over its whole
+/// batch, as one process does, adding the advanced points to `evaluations`. Over the ranks of
+/// `ex` (the process's exchange, [`par::exchange`], when set over more than one rank) a closure that is [`Closure::computed_once`] (the MD closure) is called on rank 0
+/// only: the ranks agree on the outcome (rank 0's failure stops every rank with its message),
+/// then rank 0's stresses (and plastic strains) of those bodies are all-gathered (rank 0 the
+/// only sender) into every rank's points. Every other closure runs on every rank (replicated).
+pub(super) fn advance_all_closures<const D: usize>(
+    ex: Option<&dyn TileExchange>,
+    pts: &mut Particles<D>,
+    closures: &mut [Box<dyn Closure>],
+    body_ranges: &[std::ops::Range<usize>],
+    step: u64,
+    dt: Option<f64>,
+    evaluations: &mut u64,
+) -> Result<(), SolverError> {
+    let once = ex.filter(|e| e.size() > 1).filter(|_| closures.iter().any(|c| c.computed_once()));
+    let skip = |c: &dyn Closure| once.is_some_and(|ex| ex.rank() != 0 && c.computed_once());
+    let n = pts.len();
+    let mut local = Ok(());
+    'passes: for (pass, prepare) in [true, false].into_iter().enumerate() {
+        for (b, range) in body_ranges.iter().enumerate() {
+            let closure = &mut closures[b];
+            let r = if skip(closure.as_ref()) {
+                Ok(())
+            } else {
+                let batch = pts.batch(step, range.clone());
+                match (prepare, dt) {
+                    (true, _) => closure.prepare(&batch, dt.unwrap_or(0.0)),
+                    (false, Some(dt)) => closure.advance(batch, dt),
+                    (false, None) => closure.initialize(batch),
+                }
+            };
+            if let Err(source) = r {
+                // The order one process meets failures in: the prepare pass, then the advance
+                // pass, each in body order.
+                local = Err((pass * n + range.start, SolverError::Closure { step, source }));
+                break 'passes;
+            }
+            if !prepare {
+                *evaluations = evaluations.saturating_add(range.len() as u64);
+            }
+        }
+    }
+    let Some(ex) = once else {
+        return local.map_err(|(_, e)| e);
+    };
+    agree(Some(ex), local)?;
+    let plastic = !pts.plastic_strain.is_empty();
+    let bodies: Vec<std::ops::Range<usize>> =
+        body_ranges.iter().zip(closures.iter()).filter(|(_, c)| c.computed_once()).map(|(r, _)| r.clone()).collect();
+    let mut pack = Vec::new();
+    if ex.rank() == 0 {
+        for p in bodies.iter().flat_map(|r| r.clone()) {
+            pack.extend(pts.stress[p].iter().flatten());
+            if plastic {
+                pack.push(pts.plastic_strain[p]);
+            }
+        }
+    }
+    let all = ex.all_gather(&pack);
+    if ex.rank() != 0 {
+        let per = 9 + usize::from(plastic);
+        let from = &all[0];
+        let count: usize = bodies.iter().map(|r| r.len()).sum();
+        assert_eq!(from.len(), count * per, "rank 0 sent {} values for {count} points of computed-once closures", from.len());
+        for (k, p) in bodies.iter().flat_map(|r| r.clone()).enumerate() {
+            let v = &from[k * per..(k + 1) * per];
+            pts.stress[p] = std::array::from_fn(|i| std::array::from_fn(|j| v[3 * i + j]));
+            if plastic {
+                pts.plastic_strain[p] = v[9];
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Agrees over the ranks of `ex` on the outcome of a per-point phase: `local` is this rank's
 /// lowest failing point (a key ordering failures as one process meets them) and its error.
 /// Every rank gets the error of the lowest key over all ranks, or `Ok` when no rank failed.
@@ -175,21 +251,6 @@ pub(super) fn agree(ex: Option<&dyn TileExchange>, local: Result<(), (usize, Sol
 
 fn key_of(b: &[u8]) -> u64 {
     u64::from_le_bytes(b[..8].try_into().expect("8 bytes"))
-}
-
-/// The error's whole chain, as `mscale` prints it (each source's message once).
-fn chain(e: &(dyn std::error::Error + 'static)) -> String {
-    let mut out = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        let m = c.to_string();
-        if !out.ends_with(&m) {
-            out.push_str(": ");
-            out.push_str(&m);
-        }
-        cause = c.source();
-    }
-    out
 }
 
 /// `[key u64][kind u8][step u64][len u32][what][len u32][cause]`: kind 0 a divergence (what,
@@ -232,6 +293,7 @@ fn decode(b: &[u8]) -> SolverError {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::closure::ClosureBatch;
 
     /// One rank of a pretend exchange: the other ranks' contributions are given.
     struct Fake {
@@ -285,5 +347,112 @@ mod tests {
         // No failure anywhere: every rank goes on.
         let ex = Fake { rank: 1, theirs: vec![Vec::new(); 3] };
         assert!(agree(Some(&ex), Ok(())).is_ok());
+    }
+
+    /// One rank of a pretend exchange for [`advance_all_closures`]: the others' values given.
+    struct Pretend {
+        rank: usize,
+        floats: Vec<Vec<f64>>,
+        bytes: Vec<Vec<u8>>,
+    }
+
+    impl TileExchange for Pretend {
+        fn rank(&self) -> usize {
+            self.rank
+        }
+        fn size(&self) -> usize {
+            self.floats.len()
+        }
+        fn all_gather(&self, mine: &[f64]) -> Vec<Vec<f64>> {
+            let mut all = self.floats.clone();
+            all[self.rank] = mine.to_vec();
+            all
+        }
+        fn all_gather_bytes(&self, mine: &[u8]) -> Vec<Vec<u8>> {
+            let mut all = self.bytes.clone();
+            all[self.rank] = mine.to_vec();
+            all
+        }
+    }
+
+    /// Counts its calls and writes `value` into every stress component.
+    struct Counting {
+        once: bool,
+        value: f64,
+        calls: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+    }
+
+    impl Closure for Counting {
+        fn name(&self) -> &'static str {
+            "counting"
+        }
+        fn wave_speed(&self, _: &[f64], _: &[f64]) -> f64 {
+            1.0
+        }
+        fn prepare(&mut self, _: &ClosureBatch<'_>, _: f64) -> Result<(), ClosureError> {
+            self.calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            Ok(())
+        }
+        fn advance(&mut self, b: ClosureBatch<'_>, _: f64) -> Result<(), ClosureError> {
+            self.calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            b.stress.iter_mut().for_each(|s| *s = [[self.value; 3]; 3]);
+            Ok(())
+        }
+        fn computed_once(&self) -> bool {
+            self.once
+        }
+    }
+
+    #[test]
+    fn a_closure_computed_once_runs_on_rank_0_only_and_every_rank_gets_its_stresses() {
+        // Two bodies of two points: body 0's closure is computed once (as the MD closure),
+        // body 1's is pointwise. Rank 0 calls both; rank 1 calls only body 1's and takes
+        // body 0's stresses from rank 0's gather.
+        let points = || {
+            let mut pts = Particles::<1>::default();
+            for (b, x) in [(0, 0.1), (0, 0.2), (1, 0.3), (1, 0.4)] {
+                pts.push(b, [x], [0.0], 1.0, 0.1, [0.05], Particles::<1>::identity());
+            }
+            pts
+        };
+        let run = |ex: &Pretend, once_value: f64| {
+            let (once, other) = (std::sync::Arc::default(), std::sync::Arc::default());
+            let mut closures: Vec<Box<dyn Closure>> = vec![
+                Box::new(Counting { once: true, value: once_value, calls: std::sync::Arc::clone(&once) }),
+                Box::new(Counting { once: false, value: 2.0, calls: std::sync::Arc::clone(&other) }),
+            ];
+            let mut pts = points();
+            let ranges = pts.body_ranges();
+            let mut evaluations = 0;
+            advance_all_closures(Some(ex), &mut pts, &mut closures, &ranges, 1, Some(1e-3), &mut evaluations).expect("no failure");
+            let load = |c: &std::sync::Arc<std::sync::atomic::AtomicUsize>| c.load(std::sync::atomic::Ordering::Relaxed);
+            (pts, load(&once), load(&other), evaluations)
+        };
+        // Rank 0: both closures called (prepare and advance), its stresses of body 0 sent.
+        let ex0 = Pretend { rank: 0, floats: vec![Vec::new(); 2], bytes: vec![Vec::new(); 2] };
+        let (pts0, once0, other0, ev0) = run(&ex0, 1.0);
+        assert_eq!((once0, other0, ev0), (2, 2, 4));
+        assert_eq!(pts0.stress[0], [[1.0; 3]; 3]);
+        // Rank 1: the computed-once closure is never called (its own value 9 never appears);
+        // body 0's stresses are rank 0's, body 1's its own.
+        let sent: Vec<f64> = (0..2).flat_map(|_| [1.0; 9]).collect();
+        let ex1 = Pretend { rank: 1, floats: vec![sent, Vec::new()], bytes: vec![Vec::new(); 2] };
+        let (pts1, once1, other1, ev1) = run(&ex1, 9.0);
+        assert_eq!((once1, other1, ev1), (0, 2, 4), "rank 1 calls only the pointwise closure; counts as one process");
+        assert_eq!(pts1.stress, pts0.stress, "every rank holds rank 0's stresses");
+        // A failure of rank 0's computed-once closure reaches rank 1, which did not call it.
+        let failed = encode(0, &SolverError::Closure { step: 1, source: ClosureError::Other("MD at continuum step 1: box 3".into()) });
+        let ex1 = Pretend { rank: 1, floats: vec![Vec::new(); 2], bytes: vec![failed, Vec::new()] };
+        let (mut closures, mut pts) = (
+            vec![
+                Box::new(Counting { once: true, value: 9.0, calls: Default::default() }) as Box<dyn Closure>,
+                Box::new(Counting { once: false, value: 2.0, calls: Default::default() }),
+            ],
+            points(),
+        );
+        let ranges = pts.body_ranges();
+        let e = advance_all_closures(Some(&ex1), &mut pts, &mut closures, &ranges, 1, Some(1e-3), &mut 0).expect_err("rank 0 failed");
+        assert!(matches!(e, SolverError::Closure { step: 1, .. }), "{e:?}");
+        assert!(chain(&e).ends_with("MD at continuum step 1: box 3"), "{}", chain(&e));
     }
 }
