@@ -104,6 +104,7 @@ const METHODS_2D: &[&str] = &[
     "cpdi-improved",
     "ddmp",
     "ddmp-subpoints;scheme.sub_points=4",
+    "impm",
     "tlmpm;scheme.integrator=\"leapfrog\"",
 ];
 
@@ -116,6 +117,7 @@ const METHODS_3D: &[&str] = &[
     "cpdi-improved",
     "ddmp",
     "ddmp-subpoints;scheme.sub_points=4",
+    "impm",
     "tlmpm;scheme.integrator=\"leapfrog\"",
 ];
 
