@@ -384,7 +384,7 @@ fn heat_bar(scheme: SchemeKind, j: f64, dt: f64) -> Simulation<1> {
 /// (`Configuration::Lagrangian`: K0 = K J C^-1, V0, nodal values projected every step).
 /// - At F = I with the points at rest it is the current form on the same hats: the mpm run's
 ///   values to round-off, and Table 6.1's beta = 1 error at t = 0.005.
-/// - On a bar pre-stretched to J = 0.5 and 2 (a bar of length J in space), c_t = (K / J) c_XX in
+/// - On a bar pre-stretched to J = 0.5, 1.5 and 2 (a bar of length J in space), c_t = (K / J) c_XX in
 ///   X (K0 = K / J in 1D), so J steps of dt J give the unstretched run's values to round-off; with
 ///   K instead of K0 (or V instead of V0) the runs differ by a factor J (or J^2) in time.
 /// - The content changes by exactly the Dirichlet nodes' source.
@@ -417,7 +417,7 @@ fn tlmpm_diffusion_is_the_reference_form() {
     let drift = d.active_content(&tl.points) - d.initial_content - d.boundary_content;
     assert!(drift.abs() < 1e-13 * d.boundary_content.abs(), "content {drift:e} off the boundary source {:e}", d.boundary_content);
     assert!(d.boundary_content > 0.01, "heat entered: {}", d.boundary_content);
-    for j in [0.5, 2.0] {
+    for j in [0.5, 1.5, 2.0] {
         let stretched = run(SchemeKind::Tlmpm, j);
         let e = diff(&stretched, &tl);
         eprintln!("J = {j}: {steps} steps of {:e} s against J = 1: max |dc| = {e:e}", dt * j);
