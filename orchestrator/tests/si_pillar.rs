@@ -40,7 +40,7 @@ fn the_pillar_takes_lithium_through_its_free_surface_and_its_shell_is_compressed
     // saturation factor, which is 1 at c = 0 and falls as the surface fills.
     let full = flux * 1.5e-7 * time;
     eprintln!("inflow / (j A t) = {:.4}", inflow / full);
-    assert!(inflow <= full * (1.0 + 1e-12) && inflow > 0.8 * full, "inflow {inflow:e} against j A t = {full:e}");
+    assert!(inflow <= full * (1.0 + 1e-12) && inflow > 0.7 * full, "inflow {inflow:e} against j A t = {full:e}");
     // The particle file: the substrate holds no lithium, the shell is compressed and yields.
     let csv = std::fs::read_to_string(dir.path().join("particles_final.csv")).expect("particles_final.csv");
     let mut lines = csv.lines();
