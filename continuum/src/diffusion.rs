@@ -18,6 +18,17 @@
 //! kept from step to step (c_i += dt c_dot_i), Q_i = sum_p V0_p Q_p . G0_ip with
 //! Q_p = -K0 G0 c, K0 = K J C^-1 (6.71-6.72; K / J in 1D).
 //!
+//! **Under tlmpm** ([`Configuration::Lagrangian`], which the solver selects for the scheme
+//! `Tlmpm`): the same reference form on the solver's own stencil at X_p, but the nodal values
+//! projected from the points every step, as tlmpm re-maps its nodal velocity (6.34): the points
+//! carry the whole state, so a checkpoint of them resumes bit for bit, and both Dirichlet modes
+//! apply. (Carrying the nodal values, as the library form does, would make them state a resume
+//! has to restore; projected, they are a function of the points.)
+//!
+//! Sources on the points ([`Diffusion::surface_source`], battery thesis (7.16)-(7.18)): a
+//! surface point's j A_p, times the saturation factor, enters the nodes as
+//! S_i = sum_p S_ip j A_p f(c_p) and is counted in the boundary content.
+//!
 //! Conservation: sum_i G_ip = 0 (partition of unity), so the total content changes by exactly
 //! the boundary source (Dirichlet nodes' imposed rates and the face fluxes), to round-off
 //! ([`Diffusion::boundary_content`]).
@@ -60,9 +71,18 @@ pub enum DirichletMode {
 /// Where the diffusion is computed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Configuration {
+    /// On the solver's stencil at x^n with K and the current volumes V (the default).
     #[default]
     Current,
+    /// On a stencil of its own at x0, built once, with K0 = K J C^-1 and V0, the nodal values
+    /// carried from step to step (the library form of C.3; Dirichlet on the value).
     Reference,
+    /// The reference form on the solver's own stencil, which is at the reference positions
+    /// X_p (`tlmpm`): K0 = K J C^-1 (6.71-6.72) and V0 (6.73), the nodal values projected from
+    /// the points every step as the current form does and as tlmpm re-maps its velocities
+    /// (6.34), so the points carry everything (a checkpoint of them resumes bit for bit), and
+    /// either Dirichlet mode applies.
+    Lagrangian,
 }
 
 /// How the diffusivity of a point depends on its state: K times [`DiffusivityLaw::factor`].
@@ -126,6 +146,65 @@ pub struct Diffusion<const D: usize> {
     reference_stencil: Option<Stencil<D>>,
     /// Reference form: nodal values carried between steps.
     carried: bool,
+    /// The points that carry the field (empty: every point). The others take no part: no
+    /// capacity, no flux, no update (a substrate that holds no lithium); the field ends where
+    /// they begin, a no-flux boundary.
+    pub active: Vec<bool>,
+    /// Per point, the content per second its exposed surface takes in (j A_p, battery thesis
+    /// (7.16): a flux j on the area A_p the point exposes at t = 0), times the saturation factor
+    /// clamp(1 + 0.25 ln(1 - c_p), 0, 1) of (7.17); mapped to the nodes as a source
+    /// (7.18, S_ip-weighted). Empty: none.
+    pub surface_source: Vec<f64>,
+    node_source: Vec<f64>,
+}
+
+/// The saturation factor of the surface flux (battery thesis (7.17), natural log, clamped to
+/// [0, 1]: 1 at c = 0, 0 from c = 1 - e^-4 = 0.9817 on).
+pub fn saturation_factor(c: f64) -> f64 {
+    if c >= 1.0 { 0.0 } else { (1.0 + 0.25 * (1.0 - c).ln()).clamp(0.0, 1.0) }
+}
+
+/// The area each point exposes at t = 0 (battery thesis 7.1.3: surface points and their areas
+/// are found once): the points lie on the scene's regular lattice of `2 half_length` spacing;
+/// a face of an `include`d point is exposed where the lattice site beyond it holds no point
+/// (of any body) and lies inside the grid (a face against a grid wall or a symmetry plane is
+/// not exposed). The area of a face is the product of the point's widths along the other axes
+/// (2D: per unit depth). Points not included get 0.
+pub fn exposed_areas<const D: usize>(grid: &Grid<D>, pts: &Particles<D>, include: &[bool]) -> Vec<f64> {
+    use std::collections::HashSet;
+    let n = pts.len();
+    let key = |p: usize, a_shift: Option<(usize, i64)>| -> [i64; D] {
+        std::array::from_fn(|a| {
+            let w = 2.0 * pts.half_length[p][a];
+            let k = ((pts.x0[p][a] - grid.origin[a]) / w - 0.5).round() as i64;
+            match a_shift {
+                Some((b, s)) if b == a => k + s,
+                _ => k,
+            }
+        })
+    };
+    let occupied: HashSet<[i64; D]> = (0..n).map(|p| key(p, None)).collect();
+    (0..n)
+        .map(|p| {
+            if !include.get(p).copied().unwrap_or(true) {
+                return 0.0;
+            }
+            let mut area = 0.0;
+            for a in 0..D {
+                let w = 2.0 * pts.half_length[p][a];
+                let face: f64 = (0..D).filter(|&b| b != a).map(|b| 2.0 * pts.half_length[p][b]).product();
+                for s in [-1i64, 1] {
+                    let beyond = pts.x0[p][a] + s as f64 * w;
+                    let hi = grid.origin[a] + grid.cells[a] as f64 * grid.h[a];
+                    let inside = beyond > grid.origin[a] && beyond < hi;
+                    if inside && !occupied.contains(&key(p, Some((a, s)))) {
+                        area += face;
+                    }
+                }
+            }
+            area
+        })
+        .collect()
 }
 
 impl<const D: usize> Diffusion<D> {
@@ -146,12 +225,24 @@ impl<const D: usize> Diffusion<D> {
             node_content: Vec::new(),
             reference_stencil: None,
             carried: false,
+            active: Vec::new(),
+            surface_source: Vec::new(),
+            node_source: Vec::new(),
         }
     }
 
     /// Total content sum_p V0_p c_p.
     pub fn content(pts: &Particles<D>) -> f64 {
         pts.volume0.iter().zip(&pts.scalar).map(|(v, c)| v * c).sum()
+    }
+
+    /// Content sum_p V0_p c_p over the points that carry the field ([`Diffusion::active`]).
+    pub fn active_content(&self, pts: &Particles<D>) -> f64 {
+        (0..pts.len()).filter(|&p| self.is_active(p)).map(|p| pts.volume0[p] * pts.scalar[p]).sum()
+    }
+
+    fn is_active(&self, p: usize) -> bool {
+        self.active.get(p).copied().unwrap_or(true)
     }
 
     /// Sets the nodal values the reference form carries (otherwise projected from the points
@@ -203,23 +294,32 @@ impl<const D: usize> Diffusion<D> {
     ) -> Result<(), OutsideGrid> {
         let n_nodes = grid.node_count();
         let reference = self.configuration == Configuration::Reference;
+        // Both reference forms: K0 and V0 on a stencil at X_p.
+        let total = reference || self.configuration == Configuration::Lagrangian;
         if reference && self.reference_stencil.is_none() {
             self.reference_stencil = Some(stencil_at_x0(scheme, grid, pts)?);
         }
         let st = if reference { self.reference_stencil.as_ref().unwrap_or(stencil) } else { stencil };
-        for v in [&mut self.node_capacity, &mut self.node_flux, &mut self.node_rate, &mut self.node_content] {
+        for v in [&mut self.node_capacity, &mut self.node_flux, &mut self.node_rate, &mut self.node_content, &mut self.node_source] {
             v.clear();
             v.resize(n_nodes, 0.0);
         }
         let n = pts.len();
         if self.initial_content.is_nan() {
-            self.initial_content = Self::content(pts);
+            self.initial_content = self.active_content(pts);
         }
         for p in 0..n {
+            if !self.is_active(p) {
+                continue;
+            }
             let (nodes, w, _) = st.row(p);
+            let src = self.surface_source.get(p).map_or(0.0, |j| j * saturation_factor(pts.scalar[p]));
             for (&i, &s) in nodes.iter().zip(w) {
                 self.node_capacity[i] += s * pts.volume0[p];
                 self.node_content[i] += s * pts.volume0[p] * pts.scalar[p];
+                if src != 0.0 {
+                    self.node_source[i] += s * src;
+                }
             }
         }
         let floor = 1e-12 * pts.volume0.iter().cloned().fold(f64::INFINITY, f64::min);
@@ -241,6 +341,9 @@ impl<const D: usize> Diffusion<D> {
         }
         // Fluxes Q_i = sum_p V q_p . G_ip with q_p = -K grad c (current) or -K0 grad0 c (reference).
         for p in 0..n {
+            if !self.is_active(p) {
+                continue;
+            }
             let (nodes, _, grads) = st.row(p);
             let mut g = [0.0; D];
             for (&i, gi) in nodes.iter().zip(grads) {
@@ -252,20 +355,21 @@ impl<const D: usize> Diffusion<D> {
                 DiffusivityLaw::Constant => self.diffusivity,
                 law => self.diffusivity * law.factor(pts.scalar[p], pts.pressure(p)),
             };
-            let q: [f64; D] = if reference {
+            let q: [f64; D] = if total {
                 let k0 = reference_conductivity(&pts.def_grad[p], k);
                 std::array::from_fn(|a| -(0..D).map(|b| k0[a][b] * g[b]).sum::<f64>())
             } else {
                 std::array::from_fn(|a| -k * g[a])
             };
-            let vol = if reference { pts.volume0[p] } else { pts.volume[p] };
+            let vol = if total { pts.volume0[p] } else { pts.volume[p] };
             for (&i, gi) in nodes.iter().zip(grads) {
                 self.node_flux[i] += vol * (0..D).map(|a| q[a] * gi[a]).sum::<f64>();
             }
         }
         let mut source = 0.0;
         for i in 0..n_nodes {
-            let (dirichlet, flux_in) = conditions[i];
+            let (dirichlet, face_in) = conditions[i];
+            let flux_in = face_in + self.node_source[i];
             let cap = self.node_capacity[i];
             let rate = match dirichlet {
                 Some(_) if value_mode => 0.0,
@@ -289,6 +393,9 @@ impl<const D: usize> Diffusion<D> {
         self.boundary_content += source;
         let beta = self.flip;
         for p in 0..n {
+            if !self.is_active(p) {
+                continue;
+            }
             let (nodes, w, _) = st.row(p);
             let (mut inc, mut pic) = (0.0, 0.0);
             for (&i, &s) in nodes.iter().zip(w) {

@@ -228,20 +228,35 @@ pub(crate) fn gimp_row<const D: usize>(
         let reach = if lp > 0.0 { 1.0 + lp / h } else { 1.0 };
         let lo = (xi - reach).floor() as i64;
         let hi = (xi + reach).ceil() as i64;
+        // The folded part of a domain past the low face, added to the face node's entry.
+        let mut folded = (0.0, 0.0);
         for i in lo..=hi {
             let r = pts.x[p][a] - (grid.origin[a] + h * i as f64);
             let (s, ds) = if lp > 0.0 { gimp(r, h, lp) } else { hat(r, h) };
+            let (s, ds) = (s + folded.0, ds + folded.1);
+            folded = (0.0, 0.0);
             // Round-off at the edge of the support (a domain touching the grid's boundary)
             // must not reach a node outside the grid.
             if s.abs() < 1e-12 && (ds * h).abs() < 1e-9 {
                 continue;
             }
             let Some(node) = grid.wrap(a, i) else {
-                // A point inside the grid whose domain just pokes past a face (a point against
-                // a wall moves by round-off): the sliver's weight is dropped. A point outside
-                // the grid, or a domain well past the face, stops the run.
+                // A point inside the grid whose domain pokes past a face (a point against a wall
+                // or a symmetry plane, moved by round-off or pressed toward it): the weight and
+                // gradient of the node beyond the face go to the face node, so the row keeps
+                // its partition of unity (sum S = 1, sum G = 0: mass, momentum and diffused
+                // content are mapped whole; dropping the sliver, as this did before, lost
+                // content) and the face's condition acts on the material past it. A point
+                // outside the grid stops the run.
                 let inside = pts.x[p][a] >= grid.origin[a] && pts.x[p][a] <= grid.extent_max()[a];
-                if inside && s.abs() < 1e-4 {
+                if inside && i < 0 {
+                    folded = (s, ds);
+                    continue;
+                }
+                let last = grid.cells[a];
+                if inside && counts[a] > 0 && axis_terms[a][counts[a] - 1].0 == grid.wrap(a, last as i64).unwrap_or(usize::MAX) {
+                    axis_terms[a][counts[a] - 1].1 += s;
+                    axis_terms[a][counts[a] - 1].2 += ds;
                     continue;
                 }
                 return Err(OutsideGrid { point: p, axis: a, position: pts.x[p][a], inverted: false });

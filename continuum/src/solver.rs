@@ -674,6 +674,10 @@ impl<const D: usize> Simulation<D> {
             pts.scalar_rate[p] = given_at(p);
         }
         if let Some(d) = self.diffusion.as_mut() {
+            // tlmpm's stencil is at X_p: its diffusion is the reference form on it.
+            if self.scheme == SchemeKind::Tlmpm && d.configuration == crate::diffusion::Configuration::Current {
+                d.configuration = crate::diffusion::Configuration::Lagrangian;
+            }
             d.step(&self.grid, self.scheme, &self.stencil, pts, dt).map_err(|o| SolverError::Diverged {
                 step,
                 what: format!("particle {} lies outside the grid along axis {} at its reference position", o.point, o.axis),

@@ -367,3 +367,65 @@ fn heat_table_6_2() {
     assert!(blend.1[0].0 < blend.1[1].0 && blend.1[1].0 < blend.1[2].0, "beta = 0.995 errors grow {:?}", blend.1);
     assert!(blend.2.len() == 4 && blend.2.iter().all(|&e| e > 0.0), "beta = 0.995: a hotter centre {:?}", blend.2);
 }
+
+/// A bar on the reference interval [0, 1] (`cells` cells, 2 points per cell) with F = diag(j),
+/// both grid faces fixed (a uniform stress then moves nothing: the interior nodes' forces
+/// cancel), under `scheme`, heated from x = 0 (c = 1) against c = 0 at x = 1 (rate Dirichlet).
+fn heat_bar(scheme: SchemeKind, j: f64, dt: f64) -> Simulation<1> {
+    let (mut grid, pts) = bar(20, 2, j);
+    grid.faces = [(Face::Fixed, Face::Fixed)];
+    let law = LinearElastic { youngs_modulus: 1.0, poisson_ratio: 0.0, density0: 1.0 };
+    let mut sim = Simulation::new(grid, pts, scheme, vec![Box::new(law)], Viscosity::None, dt).expect("builds");
+    sim.diffusion = Some(Diffusion::new(1.0, [(Some(FaceCondition::Dirichlet(1.0)), Some(FaceCondition::Dirichlet(0.0)))]));
+    sim
+}
+
+/// Issue 19: diffusion under `tlmpm` is the reference form on its stencil at X_p
+/// (`Configuration::Lagrangian`: K0 = K J C^-1, V0, nodal values projected every step).
+/// - At F = I with the points at rest it is the current form on the same hats: the mpm run's
+///   values to round-off, and Table 6.1's beta = 1 error at t = 0.005.
+/// - On a bar pre-stretched to J = 0.5, 1.5 and 2 (a bar of length J in space), c_t = (K / J) c_XX in
+///   X (K0 = K / J in 1D), so J steps of dt J give the unstretched run's values to round-off; with
+///   K instead of K0 (or V instead of V0) the runs differ by a factor J (or J^2) in time.
+/// - The content changes by exactly the Dirichlet nodes' source.
+#[test]
+fn tlmpm_diffusion_is_the_reference_form() {
+    let dt = 1e-5;
+    let steps = 500;
+    let run = |scheme: SchemeKind, j: f64| {
+        let mut sim = heat_bar(scheme, j, dt * j);
+        for _ in 0..steps {
+            sim.step().expect("steps");
+        }
+        sim
+    };
+    let current = run(SchemeKind::Mpm, 1.0);
+    let tl = run(SchemeKind::Tlmpm, 1.0);
+    let d = tl.diffusion.as_ref().unwrap();
+    assert_eq!(d.configuration, Configuration::Lagrangian, "tlmpm switches its diffusion to the reference form");
+    let moved = tl.points.x.iter().zip(&tl.points.x0).fold(0.0f64, |m, (x, x0)| m.max((x[0] - x0[0]).abs()));
+    assert!(moved < 1e-15, "the bar stays at rest: {moved:e}");
+    let diff =
+        |a: &Simulation<1>, b: &Simulation<1>| a.points.scalar.iter().zip(&b.points.scalar).fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
+    let e = diff(&current, &tl);
+    eprintln!("tlmpm vs mpm at F = I: max |dc| = {e:e}");
+    assert!(e < 1e-13, "tlmpm at F = I is the current form: {e:e}");
+    let t = tl.time;
+    let err = rms(&tl, |x| heat_series(x, t, 1.0, 1.0, (0.0, 1.0, 0.0), 4000));
+    eprintln!("tlmpm RMS at t = {t}: {err:.5} (Table 6.1, beta = 1: 0.0375)");
+    assert!((err - 0.0375).abs() < 0.25 * 0.0375, "{err}");
+    let drift = d.active_content(&tl.points) - d.initial_content - d.boundary_content;
+    assert!(drift.abs() < 1e-13 * d.boundary_content.abs(), "content {drift:e} off the boundary source {:e}", d.boundary_content);
+    assert!(d.boundary_content > 0.01, "heat entered: {}", d.boundary_content);
+    for j in [0.5, 1.5, 2.0] {
+        let stretched = run(SchemeKind::Tlmpm, j);
+        let e = diff(&stretched, &tl);
+        eprintln!("J = {j}: {steps} steps of {:e} s against J = 1: max |dc| = {e:e}", dt * j);
+        assert!(e < 1e-12, "J = {j}: c_t = (K / J) c_XX: {e:e}");
+        // The series of the stretched bar (length J in space, diffusivity J K on c per
+        // reference volume: time scale J / K) is the same: the physics, not only the scaling.
+        let t = stretched.time;
+        let err = rms(&stretched, |x| heat_series(x, t, 1.0, 1.0 / j, (0.0, 1.0, 0.0), 4000));
+        assert!((err - 0.0375).abs() < 0.25 * 0.0375, "J = {j}: {err}");
+    }
+}

@@ -89,8 +89,9 @@ pub fn particles_csv<const D: usize>(pts: &Particles<D>, extra: &[(&str, Vec<f64
     s
 }
 
-/// ASCII VTK unstructured grid of the points as vertices, with velocity, density, pressure
-/// and stress (SI).
+/// ASCII VTK unstructured grid of the points as vertices, with velocity, density, pressure,
+/// mass, the concentration and equivalent plastic strain where the points carry them, the
+/// body index, and the stress (SI).
 pub fn particles_vtu<const D: usize>(pts: &Particles<D>) -> String {
     let n = pts.len();
     let mut s = String::with_capacity(n * 300);
@@ -133,6 +134,16 @@ pub fn particles_vtu<const D: usize>(pts: &Particles<D>) -> String {
         let _ = writeln!(s, "<DataArray type=\"Float64\" Name=\"{name}\" format=\"ascii\">");
         for p in 0..n {
             num(&mut s, f(p));
+            s.push(' ');
+        }
+        s.push_str("\n</DataArray>\n");
+    }
+    // The optional fields (concentration, equivalent plastic strain) and the body index.
+    let body: Vec<f64> = pts.body.iter().map(|&b| b as f64).collect();
+    for (name, values) in field_columns(pts).iter().map(|(n, v)| (*n, v.as_slice())).chain([("body", body.as_slice())]) {
+        let _ = writeln!(s, "<DataArray type=\"Float64\" Name=\"{name}\" format=\"ascii\">");
+        for v in values {
+            num(&mut s, *v);
             s.push(' ');
         }
         s.push_str("\n</DataArray>\n");

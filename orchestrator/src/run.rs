@@ -285,9 +285,33 @@ fn heat_series_errors<const D: usize>(loaded: &LoadedScene, sim: &Simulation<D>)
         "rms_points": num(particles),
         "rms_nodes": all_nodes.map(num),
         "rms_interior_nodes": interior_nodes.map(num),
-        "content_change": sim.diffusion.as_ref().map(|df| num(continuum::diffusion::Diffusion::content(pts) - df.initial_content)),
+        "content_change": sim.diffusion.as_ref().map(|df| num(df.active_content(pts) - df.initial_content)),
         "boundary_content": sim.diffusion.as_ref().map(|df| num(df.boundary_content)),
         "explicit_bound_s": d.bound,
+    }))
+}
+
+/// summary.json `diffusion` of a run with `[diffusion]`: the content of the points that carry
+/// the field against the boundary source (exact conservation: the content changes by exactly
+/// what the faces and surfaces added; both counted from the start of this session, a resumed
+/// run from its checkpoint), and the concentration range.
+fn diffusion_json<const D: usize>(sim: &Simulation<D>) -> Option<Value> {
+    let df = sim.diffusion.as_ref()?;
+    let pts = &sim.points;
+    let content = df.active_content(pts);
+    let change = content - df.initial_content;
+    let active: Vec<f64> = (0..pts.len()).filter(|&p| df.active.get(p).copied().unwrap_or(true)).map(|p| pts.scalar[p]).collect();
+    let num = |v: f64| if v.is_finite() { json!(v) } else { Value::Null };
+    Some(json!({
+        "content": num(content),
+        "initial_content": num(df.initial_content),
+        "content_change": num(change),
+        "boundary_content": num(df.boundary_content),
+        "conservation_error": num(change - df.boundary_content),
+        "relative_conservation_error": num((change - df.boundary_content) / df.boundary_content.abs().max(content.abs()).max(f64::MIN_POSITIVE)),
+        "concentration_max": num(active.iter().cloned().fold(f64::NEG_INFINITY, f64::max)),
+        "concentration_mean": num(active.iter().sum::<f64>() / active.len().max(1) as f64),
+        "configuration": format!("{:?}", df.configuration).to_lowercase(),
     }))
 }
 
@@ -600,6 +624,9 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         summary(loaded, opts, &sim, times, max_kinetic, max_abs_momentum, errors, direct_json, failure.as_deref(), md.as_ref())?;
     if let Some(q) = &quasi {
         summary["quasi_static"] = q.json();
+    }
+    if let Some(d) = diffusion_json(&sim) {
+        summary["diffusion"] = d;
     }
     output::write_atomic(&dir.join("summary.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
     report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, true);

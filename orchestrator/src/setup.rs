@@ -143,6 +143,17 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
         diffusion.flip = d.flip;
         diffusion.law = d.law;
         diffusion.dirichlet = d.dirichlet;
+        if scene.scheme == continuum::SchemeKind::Tlmpm {
+            diffusion.configuration = continuum::diffusion::Configuration::Lagrangian;
+        }
+        if !d.bodies.is_empty() {
+            diffusion.active = sim.points.body.iter().map(|b| d.bodies.contains(&(*b as usize))).collect();
+        }
+        if d.surface_flux > 0.0 {
+            let include = if diffusion.active.is_empty() { vec![true; sim.points.len()] } else { diffusion.active.clone() };
+            let areas = continuum::diffusion::exposed_areas(&sim.grid, &sim.points, &include);
+            diffusion.surface_source = areas.iter().map(|a| d.surface_flux * a).collect();
+        }
         sim.diffusion = Some(diffusion);
     }
     if !sim.points.scalar.is_empty() {

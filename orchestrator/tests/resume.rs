@@ -356,3 +356,29 @@ fn tlmpm_run_resumes_to_the_same_digest() {
         "10",
     );
 }
+
+/// Issue 19: diffusion under tlmpm (the reference form on the reference stencil, nodal values
+/// projected from the points every step) carries nothing but the points, so a resumed run
+/// ends with the uninterrupted digest; so does the pillar (its surface points, their areas and
+/// the diffusing bodies are found again from X_p at setup).
+#[test]
+fn diffusion_runs_resume_to_the_same_digest() {
+    // heat-1d under tlmpm, 80 steps; checkpoints after steps 60 and 80.
+    resume_matches(
+        "../scenes/heat-1d.toml",
+        &[
+            "scheme.method=\"tlmpm\"",
+            "scheme.integrator=\"leapfrog\"",
+            "scheme.end_time=0.0008",
+            "output.snapshots=2",
+            "output.plots=false",
+        ],
+        "20",
+    );
+    // The pillar, 40 steps at the faster flux.
+    resume_matches(
+        "../scenes/si-pillar-2d.toml",
+        &["diffusion.surface_flux=1e-8", "scheme.end_time=0.012", "output.snapshots=2", "output.vtk=false"],
+        "10",
+    );
+}

@@ -66,6 +66,10 @@ pub struct ResolvedDiffusion {
     pub faces: [(Option<continuum::diffusion::FaceCondition>, Option<continuum::diffusion::FaceCondition>); 3],
     /// The corrected explicit bound J_min h0^2 / (2 d K) (s).
     pub bound: f64,
+    /// Indices of the bodies that carry the field (empty: every body).
+    pub bodies: Vec<usize>,
+    /// The surface flux j into the diffusing bodies' exposed faces (0: none).
+    pub surface_flux: f64,
 }
 
 /// One body: its region, initial state, closure and number of material points.

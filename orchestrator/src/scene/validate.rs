@@ -332,7 +332,39 @@ impl Scene {
             DirichletSpec::Rate => DirichletMode::Rate,
             DirichletSpec::Value => DirichletMode::Value,
         };
-        Ok(Some(ResolvedDiffusion { diffusivity: d.diffusivity, law, flip: d.flip_fraction, dirichlet, faces, bound }))
+        let mut bodies = Vec::new();
+        for name in d.bodies.iter().flatten() {
+            match self.bodies.keys().position(|k| k == name) {
+                Some(i) if !bodies.contains(&i) => bodies.push(i),
+                Some(_) => return Err(loc.err("diffusion.bodies", name, "a body is named twice")),
+                None => {
+                    let known: Vec<&str> = self.bodies.keys().map(String::as_str).collect();
+                    return Err(loc.err("diffusion.bodies", name, format!("no such body; the scene's bodies: {}", known.join(", "))));
+                }
+            }
+        }
+        if d.bodies.as_ref().is_some_and(|b| b.is_empty()) {
+            return Err(loc.err("diffusion.bodies", "[]", "name at least one body (leave the key out for every body)"));
+        }
+        bodies.sort_unstable();
+        let surface_flux = d.surface_flux.unwrap_or(0.0);
+        if !(surface_flux.is_finite() && surface_flux >= 0.0) {
+            return Err(loc.err(
+                "diffusion.surface_flux",
+                surface_flux,
+                "the surface flux (content per unit area per second into the body) must be finite and >= 0",
+            ));
+        }
+        Ok(Some(ResolvedDiffusion {
+            diffusivity: d.diffusivity,
+            law,
+            flip: d.flip_fraction,
+            dirichlet,
+            faces,
+            bound,
+            bodies,
+            surface_flux,
+        }))
     }
 
     fn validate_domain(&mut self, loc: &Locator<'_>) -> Result<(), SceneError> {
@@ -694,11 +726,14 @@ impl Scene {
                     "tlmpm keeps its velocities at half steps (the first step kicks by dt / 2, battery thesis 6.1): set scheme.integrator = \"leapfrog\"",
                 ));
             }
-            if self.diffusion.is_some() {
+            // tlmpm takes the points' initial positions as X_p, where F = I: a body strained
+            // at t = 0 would have its forces (V0 P G0) and its reference diffusivity
+            // (K J C^-1) taken against the strained positions as if unstrained.
+            if let Some((name, b)) = self.bodies.iter().find(|(_, b)| b.initial_strain.iter().any(|e| *e != 0.0)) {
                 return Err(loc.err(
-                    "diffusion",
-                    "[diffusion]",
-                    "diffusion with tlmpm needs the reference-configuration form, whose carried nodal values the checkpoint does not hold in this build; use a current-configuration scheme (mpm, ugimp, ...) for [diffusion], or a prescribed [bodies.X.lithiation] rate with tlmpm",
+                    &format!("bodies.{name}.initial_strain"),
+                    vec_str(&b.initial_strain),
+                    "tlmpm takes the initial positions as the reference configuration (F = I there); a pre-strained body is not supported under tlmpm",
                 ));
             }
         }
