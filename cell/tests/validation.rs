@@ -683,12 +683,10 @@ fn newton_failures_by_cause() {
     let mut causes: BTreeMap<String, usize> = BTreeMap::new();
     let mut step = String::new();
     let mut since_step: Vec<&str> = vec![];
-    let mut steps_since_setup_change = 0usize;
     for l in &lines {
         if l.starts_with("Taking BDF step") {
             step = l.clone();
             since_step.clear();
-            steps_since_setup_change += 1;
             continue;
         }
         since_step.push(l);
@@ -714,7 +712,6 @@ fn newton_failures_by_cause() {
         st.steps, st.newton_failures, st.error_test_failures, st.newton_iterations, st.lu_setups, st.jacobian_evaluations
     );
     println!("by cause: {causes:?}");
-    let _ = steps_since_setup_change;
 }
 
 /// The refinement study to 2 s (the thesis's Fig. 8.5; issue 20): the full cell at
