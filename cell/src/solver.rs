@@ -78,6 +78,8 @@ pub struct BandedLu {
     lu: BandLu,
     /// z = A^{-1} u and w^T z for the charge-exact corrections (None: not made).
     charge_dir: Option<Directions>,
+    /// Scratch for a solve's right-hand side (no allocation per solve).
+    rhs: Cell<Vec<f64>>,
 }
 
 impl LaLinearSolver<M> for BandedLu {
@@ -103,9 +105,12 @@ impl LaLinearSolver<M> for BandedLu {
             let w = w.borrow();
             b.for_each_batch_host([], |b, [], _| {
                 if let Some(dirs) = self.charge_dir.as_ref().filter(|_| w.first().is_some_and(|w0| w0.len() == b.len())) {
-                    let rhs = b.to_vec();
+                    let mut rhs = self.rhs.take();
+                    rhs.clear();
+                    rhs.extend_from_slice(b);
                     self.lu.solve(b);
                     dirs.apply(&w, &rhs, b);
+                    self.rhs.set(rhs);
                 } else {
                     self.lu.solve(b);
                 }
@@ -142,6 +147,8 @@ impl BandedLu {
 pub(crate) struct Directions {
     z: Vec<Vec<f64>>,
     wz: Vec<f64>,
+    /// The range of indices where each weight is nonzero.
+    support: Vec<(usize, usize)>,
 }
 
 impl Directions {
@@ -156,23 +163,32 @@ impl Directions {
                 rowabs[row_idx[k]] += val[k].abs();
             }
         }
-        let z: Vec<Vec<f64>> = ws
+        let mut z: Vec<Vec<f64>> = ws.iter().map(|w| w.iter().zip(&rowabs).map(|(a, b)| a * b).collect()).collect();
+        // All K in one sweep over the factors (the solves are bound by reading them).
+        lu.solve_many(&mut z.iter_mut().map(|z| z.as_mut_slice()).collect::<Vec<_>>());
+        let wz = ws.iter().flat_map(|w| z.iter().map(move |z| w.iter().zip(z).map(|(a, b)| a * b).sum::<f64>())).collect::<Vec<f64>>();
+        // Where each weight is nonzero (a material's cells): the defects' sums skip the rest.
+        let support = ws
             .iter()
             .map(|w| {
-                let mut z: Vec<f64> = w.iter().zip(&rowabs).map(|(a, b)| a * b).collect();
-                lu.solve(&mut z);
-                z
+                let first = w.iter().position(|v| *v != 0.0).unwrap_or(0);
+                let end = w.iter().rposition(|v| *v != 0.0).map_or(first, |l| l + 1);
+                (first, end)
             })
             .collect();
-        let wz = ws.iter().flat_map(|w| z.iter().map(move |z| w.iter().zip(z).map(|(a, b)| a * b).sum::<f64>())).collect::<Vec<f64>>();
-        wz.iter().all(|v| v.is_finite()).then_some(Directions { z, wz })
+        wz.iter().all(|v| v.is_finite()).then_some(Directions { z, wz, support })
     }
 
     /// Moves the LU's solution x of `A x = b` so that `w_k^T M x = w_k^T b` for every k.
     pub(crate) fn apply(&self, ws: &[Vec<f64>], b: &[f64], x: &mut [f64]) {
         let k = ws.len();
         // M is the identity on the differential rows and 0 on the Poisson rows, where w = 0.
-        let mut d: Vec<f64> = ws.iter().map(|w| w.iter().zip(b.iter().zip(x.iter())).map(|(wj, (bj, xj))| wj * (bj - xj)).sum()).collect();
+        // (Summed over each weight's support only: the terms outside are zeros.)
+        let mut d: Vec<f64> = ws
+            .iter()
+            .zip(&self.support)
+            .map(|(w, &(lo, hi))| w[lo..hi].iter().zip(b[lo..hi].iter().zip(&x[lo..hi])).map(|(wj, (bj, xj))| wj * (bj - xj)).sum())
+            .collect();
         if d.iter().all(|v| *v == 0.0) || !d.iter().all(|v| v.is_finite()) {
             return;
         }
@@ -203,9 +219,10 @@ impl Directions {
         if !s.iter().all(|v| v.is_finite()) {
             return;
         }
-        for (sk, z) in s.iter().zip(&self.z) {
-            for (xj, zj) in x.iter_mut().zip(z) {
-                *xj += sk * zj;
+        // One pass over x (per entry, the same additions in the same order as K passes).
+        for (j, xj) in x.iter_mut().enumerate() {
+            for (sk, z) in s.iter().zip(&self.z) {
+                *xj += sk * z[j];
             }
         }
     }
@@ -792,6 +809,43 @@ fn explicit(
     Ok((y, open))
 }
 
+/// Flips every switch that is on the wrong side of its threshold in the state `y` (a closed
+/// interface with |dphi| >= threshold, or an open one below threshold - hysteresis), except
+/// `just_flipped` (the root the segment ended at, which sits on its threshold to rounding),
+/// logging each as a switch event at `t`. Returns how many were flipped.
+///
+/// Why: the root finder restarts at every restart point from the switch functions' values
+/// there and only reports sign changes, so a function that is already positive at a restart
+/// is never reported: both interfaces reach the threshold in the same step (the electrolyte's
+/// field is the same at both), and the one not reported stayed closed above its threshold.
+pub(crate) fn reconcile_switches(
+    model: &Model,
+    y: &[f64],
+    open: &mut [bool],
+    just_flipped: Option<usize>,
+    t: f64,
+    stats: &mut Stats,
+) -> usize {
+    if model.ramp.is_some() || open.is_empty() {
+        return 0;
+    }
+    let mut g = vec![0.0; open.len()];
+    model.switch_functions(y, open, &mut g);
+    let mut flipped = 0;
+    for (k, gk) in g.iter().enumerate() {
+        if Some(k) == just_flipped {
+            continue;
+        }
+        if (*gk >= 0.0 && !open[k]) || (*gk < 0.0 && open[k]) {
+            open[k] = !open[k];
+            stats.switch_events = stats.switch_events.saturating_add(1);
+            stats.switch_log.push((t, k, open[k]));
+            flipped += 1;
+        }
+    }
+    flipped
+}
+
 /// How an integration segment ended: at a switch (its root: time, state, interface) or at its
 /// stop time; with the step size to restart from.
 struct SegmentEnd {
@@ -884,7 +938,10 @@ fn bdf(
 ) -> Result<(Vec<f64>, Vec<bool>), SolveError> {
     let n = model.n;
     let atol: Vec<f64> = (0..3 * n).map(|j| if j % 3 == 2 { settings.atol_potential } else { settings.atol_concentration }).collect();
-    let Restart { t: t_start, y: y_start, open: open_start, h0, mut outputs_done, .. } = start;
+    let Restart { t: t_start, y: y_start, open: mut open_start, h0, mut outputs_done, .. } = start;
+    // A restart point whose switch states disagree with its potentials (from a checkpoint
+    // written before the check below existed) is put right before the first segment.
+    reconcile_switches(model, &y_start, &mut open_start, None, t_start, stats);
     let eqn = CellEqn::new(model.clone(), y_start.clone(), open_start);
     // The counters carry on from the restart point (a resumed run reports the whole run's).
     eqn.rhs_calls.set(stats.rhs_evaluations);
@@ -902,6 +959,15 @@ fn bdf(
     // Newton to well below the local error (default 0.2 of it): the Poisson rows, linear,
     // then hold to ~1e-12 of their terms.
     problem.ode_options.nonlinear_solver_tolerance = 1e-3;
+    // A fresh Jacobian every 10 steps (diffsol's default 50). The Newton matrix is reused
+    // across steps (modified Newton); with a Jacobian up to 50 steps old it contracts at only
+    // 0.4-0.7 per iteration, and against the tolerance above every one of the Newton failures
+    // of the 1e3-cell run to 2 s (18 in 999 steps) was diffsol's "will not converge in the
+    // iterations left" at such a rate, cured by the fresh Jacobian of its retry
+    // (`newton_failures_by_cause`, cell/README.md). A Jacobian costs 15 right-hand sides; with
+    // 10 the failures fall to 1 (1e3 cells) and 21 of 51 (1e4), the Newton iterations by
+    // 19-22 %, for ~30 % more factorisations.
+    problem.ode_options.update_rhs_jacobian_after_steps = 10;
     let mut y = y_start;
     let mut t = t_start;
     let end = settings.end_time;
@@ -959,6 +1025,9 @@ fn bdf(
         // for bit the run that never stopped.
         let mut yr = y_end;
         model.solve_poisson(&mut yr);
+        // An interface on the wrong side of its threshold at the restart is never found by
+        // the root finder (it only sees sign changes): flip it here.
+        reconcile_switches(model, &yr, &mut problem.eqn.open.borrow_mut(), switched, t, stats);
         let h0 = h.abs().max(1e-6);
         *problem.eqn.y_start.borrow_mut() = yr.clone();
         problem.h0 = h0;

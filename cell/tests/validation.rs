@@ -359,7 +359,7 @@ fn timings_to_two_seconds() {
             std::fs::write(Path::new(&dir).join(format!("final_{}.csv", n.trim())), out).expect("write the final profile");
         }
         eprintln!(
-            "{n} cells: {} steps, {} switches ({} error-test failures, {} Newton failures, {} Newton iterations, {} LU setups, {} Jacobians), wall {:.2} s: rhs {:.2}, Jacobian {:.2}, LU factor {:.2}, LU solve {:.2}; min p {:e}, cathode electrons {:.2}/nm^2, cation drift {:e}; switches (t, interface, open) {:?}",
+            "{n} cells: {} steps, {} switches ({} error-test failures, {} Newton failures, {} Newton iterations, {} LU setups, {} Jacobians), wall {:.2} s: rhs {:.2}, Jacobian {:.2}, LU factor {:.2}, LU solve {:.2}; min p {:e}, cathode electrons {:.2}/nm^2, cation drift {:e}, electron drift {:e}, Poisson residual {:e}; switches (t, interface, open) {:?}",
             st.steps,
             st.switch_events,
             st.error_test_failures,
@@ -375,6 +375,8 @@ fn timings_to_two_seconds() {
             st.min_p,
             tot.cathode_electrons,
             st.max_cation_drift,
+            st.max_electron_drift,
+            st.max_poisson_residual,
             st.switch_log
         );
         assert!(st.t >= s.scheme.end_time_s * (1.0 - 1e-12));
@@ -601,4 +603,202 @@ fn without_the_limiter_p_undershoots_at_the_cathode_interface_and_with_it_not() 
     for side in &sides_l {
         assert!(side.min_p >= -1e-12 && side.extrema <= 1, "van Leer next to an interface: {side:?}");
     }
+}
+
+/// Issue 20: the root finder restarts at every restart point and only reports sign changes, so
+/// a closed interface whose |dphi| is already at or above its threshold there (both interfaces
+/// reach the threshold in the same step; a checkpoint's switch states) would never open. Here a
+/// restart point of the full cell, taken before its first switch (both interfaces closed), is
+/// continued with the threshold lowered below both interfaces' |dphi|: they must open at the
+/// restart itself (logged there), and no accepted step may have a closed interface above its
+/// threshold.
+#[test]
+fn a_closed_interface_above_its_threshold_at_a_restart_is_opened_there() {
+    let sets = [("grid.cells", "100"), ("output.times_s", "[1e-4, 2e-4]"), ("scheme.end_time_s", "2e-4")];
+    let base = load("pnp-full-cell.toml", &sets);
+    let r = run_until(&base, 1e-4);
+    assert!(r.open.iter().all(|o| !o), "no switch before 0.1 ms at 100 cells (the first at 0.295 ms): {:?}", r.stats.switch_log);
+    let model = Model::new(&base);
+    let dphi: Vec<f64> = model.interfaces.iter().map(|&f| (r.y[3 * (f - 1) + 2] - r.y[3 * f + 2]).abs()).collect();
+    let threshold = 0.5 * dphi.iter().copied().fold(f64::INFINITY, f64::min);
+    assert!(threshold > 1e-3, "the interfaces are charged at 0.1 ms: {dphi:?}");
+    let thr = format!("{threshold:e}");
+    let s = load("pnp-full-cell.toml", &[sets[0], sets[1], sets[2], ("interface.threshold_v", &thr), ("interface.hysteresis_v", &thr)]);
+    let model = Model::new(&s);
+    let mut g = vec![0.0; model.interfaces.len()];
+    model.switch_functions(&r.y, &r.open, &mut g);
+    assert!(g.iter().all(|&v| v > 0.0), "the restart point's closed interfaces are above the lowered threshold: {g:?}");
+    let mut first_open = None;
+    let mut wrong_side = Vec::new();
+    let mut check = |snap: &solver::Snapshot<'_>| {
+        first_open.get_or_insert_with(|| snap.open.to_vec());
+        model.switch_functions(snap.y, snap.open, &mut g);
+        for (k, (&gk, &o)) in g.iter().zip(snap.open).enumerate() {
+            if !o && gk >= 0.0 {
+                wrong_side.push((snap.t, k, gk));
+            }
+        }
+        Control::Continue
+    };
+    let settings = Settings { start: Some(r.clone()), ..settings(&s) };
+    let (_y, open, stats) = solver::integrate(&model, &settings, &mut check).unwrap_or_else(|e| panic!("{e}"));
+    assert!(
+        wrong_side.is_empty(),
+        "closed interfaces above the threshold at accepted steps (t, interface, g): {:?}",
+        &wrong_side[..wrong_side.len().min(5)]
+    );
+    assert_eq!(first_open, Some(vec![true; open.len()]), "both interfaces open from the first step after the restart");
+    assert_eq!(open, vec![true; open.len()]);
+    let at_restart: Vec<_> = stats.switch_log.iter().filter(|(t, _, o)| *t == r.t && *o).map(|(_, k, _)| *k).collect();
+    assert_eq!(at_restart, (0..open.len()).collect::<Vec<_>>(), "opened at the restart time: {:?}", stats.switch_log);
+}
+
+/// The integrator's log lines (diffsol's debug and trace), for [`newton_failures_by_cause`].
+static LOG: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+
+struct Recorder;
+impl log::Log for Recorder {
+    fn enabled(&self, _: &log::Metadata<'_>) -> bool {
+        true
+    }
+    fn log(&self, r: &log::Record<'_>) {
+        LOG.lock().expect("log").push(format!("{}", r.args()));
+    }
+    fn flush(&self) {}
+}
+
+/// Diagnosis of the Newton failures (issue 20): the full cell to 2 s (MSCALE_CELL_TIMING_CELLS,
+/// default 1000; MSCALE_CELL_TIMING_END) with diffsol's log recorded; every failed Newton solve
+/// is printed with its step (time, size, order), its iterations' norms and the verdict, and the
+/// failures are counted by cause and by what preceded them.
+#[test]
+#[ignore = "diagnosis tool; run with --ignored --nocapture"]
+fn newton_failures_by_cause() {
+    let _ = log::set_logger(&Recorder).map(|()| log::set_max_level(log::LevelFilter::Trace));
+    let n = std::env::var("MSCALE_CELL_TIMING_CELLS").unwrap_or_else(|_| "1000".into());
+    let end = std::env::var("MSCALE_CELL_TIMING_END").unwrap_or_else(|_| "2.0".into());
+    let s = load("pnp-full-cell.toml", &[("grid.cells", n.as_str()), ("output.times_s", "[]"), ("scheme.end_time_s", end.as_str())]);
+    let (_y, _model, st) = run(&s);
+    let lines = std::mem::take(&mut *LOG.lock().expect("log"));
+    let mut causes: BTreeMap<String, usize> = BTreeMap::new();
+    let mut step = String::new();
+    let mut since_step: Vec<&str> = vec![];
+    for l in &lines {
+        if l.starts_with("Taking BDF step") {
+            step = l.clone();
+            since_step.clear();
+            continue;
+        }
+        since_step.push(l);
+        if l.starts_with("First convergence failure") || l.starts_with("Second convergence failure") {
+            let verdict =
+                since_step.iter().rev().find(|m| m.contains("Diverged")).map_or("max iterations", |m| {
+                    if m.contains("max iterations") { "projected past max iterations" } else { "rate > 0.9" }
+                });
+            let first = if l.starts_with("First") { "first" } else { "second" };
+            *causes.entry(format!("{first}: {verdict}")).or_default() += 1;
+            let norms: Vec<&str> = since_step
+                .iter()
+                .filter(|m| m.contains("check non-linear solver norm"))
+                .map(|m| m.rsplit("= ").next().unwrap_or(""))
+                .collect();
+            let rates: Vec<&str> = since_step.iter().filter(|m| m.contains("mean convergence rate")).map(|m| m.trim()).collect();
+            println!("{step}\n   {first} failure ({verdict}); norms {norms:?}; {:?}", rates.last());
+            since_step.clear();
+        }
+    }
+    println!(
+        "{n} cells: {} steps, {} Newton failures, {} error-test failures, {} Newton iterations, {} LU setups, {} Jacobians",
+        st.steps, st.newton_failures, st.error_test_failures, st.newton_iterations, st.lu_setups, st.jacobian_evaluations
+    );
+    println!("by cause: {causes:?}");
+}
+
+/// The refinement study to 2 s (the thesis's Fig. 8.5; issue 20): the full cell at
+/// MSCALE_CELL_REFINE_CELLS (default 100,300,1000,3000,10000) to MSCALE_CELL_TIMING_END
+/// (default 2 s), each final profile read from MSCALE_CELL_TIMING_SAVE/final_<cells>.csv when
+/// there (the timing runs write them; so a 1e5-cell run's can join) and otherwise computed (and
+/// saved there). Errors against the finest grid, (8.85): phi at the coarse cell centres (the
+/// finest interpolated linearly), the cumulative charge sum (p - n) dx left of each coarse face
+/// (eps0/e times the field there; the finest interpolated between its faces), and p, n at the
+/// centres (reported). Asserted: the phi and cumulative-charge errors fall monotonically.
+#[test]
+#[ignore = "heavy: about a minute here at 1e4 cells; run with --ignored --nocapture"]
+fn refinement_study_to_two_seconds() {
+    let cells: Vec<usize> = std::env::var("MSCALE_CELL_REFINE_CELLS")
+        .unwrap_or_else(|_| "100,300,1000,3000,10000".into())
+        .split(',')
+        .map(|v| v.trim().parse().expect("cells"))
+        .collect();
+    let end = std::env::var("MSCALE_CELL_TIMING_END").unwrap_or_else(|_| "2.0".into());
+    let dir = std::env::var("MSCALE_CELL_TIMING_SAVE").ok();
+    // (x, p, n, phi) per cell and the cell width.
+    let profile = |n: usize| -> (Vec<[f64; 4]>, f64) {
+        let s = load("pnp-full-cell.toml", &[("grid.cells", &n.to_string()), ("scheme.end_time_s", &end), ("output.times_s", "[]")]);
+        let path = dir.as_ref().map(|d| Path::new(d).join(format!("final_{n}.csv")));
+        let model = Model::new(&s);
+        if let Some(text) = path.as_ref().and_then(|p| std::fs::read_to_string(p).ok()) {
+            let rows: Vec<[f64; 4]> = text
+                .lines()
+                .skip(1)
+                .map(|l| {
+                    let v: Vec<f64> = l.split(',').map(|c| c.parse().expect("number")).collect();
+                    [v[0], v[1], v[2], v[3]]
+                })
+                .collect();
+            assert_eq!(rows.len(), n, "{}", path.as_ref().map(|p| p.display().to_string()).unwrap_or_default());
+            eprintln!("{n} cells: read {}", path.as_ref().map(|p| p.display().to_string()).unwrap_or_default());
+            return (rows, model.dx);
+        }
+        let (y, m, st) = run(&s);
+        eprintln!("{n} cells: {} steps, {:.2} s wall", st.steps, st.wall_s);
+        let rows: Vec<[f64; 4]> = (0..m.n).map(|i| [m.x[i], y[3 * i], y[3 * i + 1], y[3 * i + 2]]).collect();
+        if let Some(p) = &path {
+            let mut out = String::from("x_nm,p_per_nm3,n_per_nm3,phi_v\n");
+            for r in &rows {
+                out += &format!("{:e},{:e},{:e},{:e}\n", r[0], r[1], r[2], r[3]);
+            }
+            std::fs::write(p, out).expect("save the profile");
+        }
+        (rows, m.dx)
+    };
+    let runs: Vec<(Vec<[f64; 4]>, f64)> = cells.iter().map(|&n| profile(n)).collect();
+    let (fine, dxf) = runs.last().expect("finest");
+    let nf = fine.len();
+    // The finest grid's value of column c at x (linear between its centres).
+    let at = |x: f64, c: usize| -> f64 {
+        let k = ((x / dxf) - 0.5).floor().clamp(0.0, (nf - 2) as f64) as usize;
+        let w = (x - fine[k][0]) / dxf;
+        (1.0 - w) * fine[k][c] + w * fine[k + 1][c]
+    };
+    // The finest grid's cumulative charge at x (linear between its faces).
+    let mut qf = vec![0.0];
+    for r in fine {
+        qf.push(qf.last().copied().unwrap_or(0.0) + (r[1] - r[2]) * dxf);
+    }
+    let q_at = |x: f64| -> f64 {
+        let k = ((x / dxf).floor() as usize).min(nf - 1);
+        let w = x / dxf - k as f64;
+        (1.0 - w) * qf[k] + w * qf[k + 1]
+    };
+    let l2 = |e: &[f64]| (e.iter().map(|v| v * v).sum::<f64>() / e.len() as f64).sqrt();
+    let mut table = vec![];
+    for (rows, dx) in &runs[..runs.len() - 1] {
+        let ephi: Vec<f64> = rows.iter().map(|r| r[3] - at(r[0], 3)).collect();
+        let ep: Vec<f64> = rows.iter().map(|r| r[1] - at(r[0], 1)).collect();
+        let en: Vec<f64> = rows.iter().map(|r| r[2] - at(r[0], 2)).collect();
+        let mut q = 0.0;
+        let mut eq = vec![];
+        for (i, r) in rows.iter().enumerate() {
+            q += (r[1] - r[2]) * dx;
+            eq.push(q - q_at((i + 1) as f64 * dx));
+        }
+        table.push((rows.len(), l2(&ephi), l2(&eq), l2(&ep), l2(&en)));
+    }
+    eprintln!("L2 errors (8.85) against {nf} cells at {end} s: cells, phi (V), cumulative charge (e/nm^2), p (1/nm^3), n (1/nm^3)");
+    for (n, a, b, c, d) in &table {
+        eprintln!("  {n}: {a:.3e} {b:.3e} {c:.3e} {d:.3e}");
+    }
+    assert!(table.windows(2).all(|w| w[1].1 < w[0].1), "phi errors fall: {table:?}");
+    assert!(table.windows(2).all(|w| w[1].2 < w[0].2), "cumulative-charge errors fall: {table:?}");
 }
