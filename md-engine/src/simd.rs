@@ -396,7 +396,9 @@ pub(crate) fn eam_forces_one(
                 match (path, refilter) {
                     #[cfg(target_arch = "x86_64")]
                     (SimdPath::Avx512, false) => match &images {
-                        Some(img) => avx512::geometry4::<false>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
+                        // The filtered list is padded (below); the whole list is not.
+                        Some(img) if reuse => avx512::geometry4::<false, true>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
+                        Some(img) => avx512::geometry4::<false, false>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
                         None => avx512::geometry(xu[i1], js, codes, xp, sp, cut2, s, i1, np),
                     },
                     #[cfg(target_arch = "x86_64")]
@@ -491,6 +493,11 @@ pub(crate) fn eam_forces_one(
             rho[i] += rho_i;
         }
         i0 = i1;
+    }
+    if refilter {
+        // Padding for the unmasked offset reads of `geometry4::<_, true>`: atom 0.
+        inner.j.extend([0; 8]);
+        inner.code.extend([0; 8]);
     }
     s.inner = inner;
     // Embedding pass (as the scalar kernel).
@@ -652,7 +659,9 @@ pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut S
             // SAFETY: the path is supported (asserted in `Shared::new`); atoms and codes are
             // checked as they load; the buffers hold ne + PAD entries and np + js.len() <= ne.
             (Some(img), SimdPath::Avx512) => {
-                np = unsafe { avx512::geometry4::<true>(sh.xu[i], js, codes, sh.x4.as_ptr(), img, n, sh.tab.cut2, s, i, np, kb - kb0) }
+                np = unsafe {
+                    avx512::geometry4::<true, false>(sh.xu[i], js, codes, sh.x4.as_ptr(), img, n, sh.tab.cut2, s, i, np, kb - kb0)
+                }
             }
             #[cfg(target_arch = "x86_64")]
             // SAFETY: as above.
@@ -912,7 +921,11 @@ mod avx512 {
     /// `x4`: positions padded to 4 f64 per atom; `img`: image decoding of the list's codes.
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
-    pub(super) unsafe fn geometry4<const KEEP: bool>(
+    ///
+    /// `PADDED`: the caller guarantees that the 8 u32 from `js[k]` are readable atoms of the
+    /// box for every k < js.len() (the filtered list: later rows' entries, then 8 zeros),
+    /// so all 8 row offsets are read straight from `js` (no per-lane loop through memory).
+    pub(super) unsafe fn geometry4<const KEEP: bool, const PADDED: bool>(
         xi: [f64; 3],
         js: &[u32],
         codes: &[u16],
@@ -954,10 +967,15 @@ mod avx512 {
                     super::bad_list(n, img.ncodes);
                 }
                 // Row offsets straight from the list (extracting them from jv costs more).
-                let mut o = [0i32; 8];
-                for l in 0..rem {
-                    o[l] = (*js.get_unchecked(k + l) as i32) << 2;
-                }
+                let o: [i32; 8] = if PADDED {
+                    std::array::from_fn(|l| (*js.as_ptr().add(k + l) as i32) << 2)
+                } else {
+                    let mut o = [0i32; 8];
+                    for l in 0..rem {
+                        o[l] = (*js.get_unchecked(k + l) as i32) << 2;
+                    }
+                    o
+                };
                 let [xj, yj, zj, _] = rows4(x4, &o);
                 let (sx, sy, sz) = if let Some(t) = &lut {
                     // Table lookup: bit 3 of the index picks the table of a pair, bit 4 the pair.
