@@ -150,6 +150,10 @@ pub(crate) struct Scratch {
     j: Vec<i32>,
     /// List entry of each pair (only filled for the threaded kernel, `intra.rs`).
     k: Vec<i32>,
+    /// Spline row offset (7 m) and fraction of each pair, written by the AVX-512 density
+    /// pass and read by its force pass (offsets read from memory, not extracted from lanes).
+    m7: Vec<i32>,
+    frac: Vec<f64>,
     /// End of row i's pairs.
     row_end: Vec<u32>,
     /// A block's per-pair results.
@@ -308,12 +312,12 @@ pub(crate) fn eam_forces_one(
     assert!(t.masses.len() == 1 && t.nr >= 2 && xu.len() == f.len() && xu.len() + 1 == list.start.len());
     let n = xu.len();
     let cap = list.len() + PAD;
-    for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r] {
+    for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r, &mut s.frac] {
         if v.len() < cap {
             v.resize(cap, 0.0);
         }
     }
-    for v in [&mut s.i, &mut s.j] {
+    for v in [&mut s.i, &mut s.j, &mut s.m7] {
         if v.len() < cap {
             v.resize(cap, 0);
         }
@@ -460,7 +464,7 @@ pub(crate) fn eam_forces_one(
         }
         // Harmless lanes after the last pair (the vector passes read up to a full width).
         for q in np..np + 8 {
-            (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.i[q], s.j[q]) = (0.0, 0.0, 0.0, 1.0, 0, 0);
+            (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.i[q], s.j[q], s.m7[q], s.frac[q]) = (0.0, 0.0, 0.0, 1.0, 0, 0, 0, 0.0);
         }
         let len = np - q0;
         if s.blk.len() < len + 8 {
@@ -637,12 +641,12 @@ pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut S
     let ne = list.start[rows.end] as usize - kb0;
     assert!(vcol.len() == ne && rho_row.len() == rows.len());
     let cap = ne + PAD;
-    for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r] {
+    for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r, &mut s.frac] {
         if v.len() < cap {
             v.resize(cap, 0.0);
         }
     }
-    for v in [&mut s.i, &mut s.j, &mut s.k] {
+    for v in [&mut s.i, &mut s.j, &mut s.k, &mut s.m7] {
         if v.len() < cap {
             v.resize(cap, 0);
         }
@@ -687,7 +691,7 @@ pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut S
     }
     // Harmless lanes after the last pair (the vector passes read up to a full width).
     for q in np..np + 8 {
-        (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.i[q], s.j[q], s.k[q]) = (0.0, 0.0, 0.0, 1.0, 0, 0, 0);
+        (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.i[q], s.j[q], s.k[q], s.m7[q], s.frac[q]) = (0.0, 0.0, 0.0, 1.0, 0, 0, 0, 0, 0.0);
     }
     if s.blk.len() < np + 8 {
         s.blk.resize(np + 8, 0.0);
@@ -906,15 +910,6 @@ mod avx512 {
                 _mm512_shuffle_f64x2::<0b11_10_11_10>(u[2], u[6]),
             ]
         }
-    }
-
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
-    fn offsets(v: __m256i) -> [i32; 8] {
-        let mut o = [0i32; 8];
-        // SAFETY: o holds 8 i32.
-        unsafe { _mm256_storeu_si256(o.as_mut_ptr() as *mut __m256i, v) };
-        o
     }
 
     /// Row `i`'s list entries: pairs within the cut-off appended at `np` (in list order).
@@ -1160,18 +1155,32 @@ mod avx512 {
         np
     }
 
-    /// r = sqrt(r^2) in place and the density value of pairs q0..q0 + len into blk.
+    /// r = sqrt(r^2) in place, the spline offsets and fractions (`m7`, `frac`, kept for
+    /// [`force`]) and the density value of pairs q0..q0 + len into blk. Two loops: the
+    /// offsets go through memory, so the row loads of the second read them as plain integers.
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
     pub(super) unsafe fn density(t: &Tab, s: &mut Scratch, q0: usize, len: usize) {
         let mut k = 0;
         while k < len {
-            // SAFETY: q0 + k + 8 <= the padded end; spline rows m <= nr - 1 exist.
+            // SAFETY: q0 + k + 8 <= the padded end of every buffer.
             unsafe {
                 let q = q0 + k;
                 let r = _mm512_sqrt_pd(_mm512_loadu_pd(s.r.as_ptr().add(q)));
                 _mm512_storeu_pd(s.r.as_mut_ptr().add(q), r);
                 let (m7, p) = index(r, t);
-                let [c3, c4, c5, c6] = rows4(t.dens.add(3), &offsets(m7));
+                _mm256_storeu_si256(s.m7.as_mut_ptr().add(q) as *mut __m256i, m7);
+                _mm512_storeu_pd(s.frac.as_mut_ptr().add(q), p);
+            }
+            k += 8;
+        }
+        let mut k = 0;
+        while k < len {
+            // SAFETY: as above; spline rows m <= nr - 1 exist.
+            unsafe {
+                let q = q0 + k;
+                let o = &*(s.m7.as_ptr().add(q) as *const [i32; 8]);
+                let p = _mm512_loadu_pd(s.frac.as_ptr().add(q));
+                let [c3, c4, c5, c6] = rows4(t.dens.add(3), o);
                 let v = add(mul(add(mul(add(mul(c3, p), c4), p), c5), p), c6);
                 _mm512_storeu_pd(s.blk.as_mut_ptr().add(k), v);
             }
@@ -1191,11 +1200,12 @@ mod avx512 {
             unsafe {
                 let q = q0 + k;
                 let r = _mm512_loadu_pd(s.r.as_ptr().add(q));
-                let (m7, p) = index(r, t);
-                let o = offsets(m7);
-                let [d0, d1, d2, _] = rows4(t.dens, &o);
+                // The density pass's spline offsets and fractions (the same bits as `index`).
+                let o = &*(s.m7.as_ptr().add(q) as *const [i32; 8]);
+                let p = _mm512_loadu_pd(s.frac.as_ptr().add(q));
+                let [d0, d1, d2, _] = rows4(t.dens, o);
                 let rho_p = add(mul(add(mul(d0, p), d1), p), d2);
-                let [z0, z1, z2, z3, z4, z5, z6] = rows7(t.z2, &o);
+                let [z0, z1, z2, z3, z4, z5, z6] = rows7(t.z2, o);
                 let z2p = add(mul(add(mul(z0, p), z1), p), z2);
                 let z2v = add(mul(add(mul(add(mul(z3, p), z4), p), z5), p), z6);
                 let recip = _mm512_div_pd(one, r);
