@@ -234,6 +234,12 @@ pub fn with_simd<R>(path: SimdPath, f: impl FnOnce() -> R) -> R {
     f()
 }
 
+/// `f` on this thread's scratch of the vector paths (tests read its counters).
+#[cfg(test)]
+pub(crate) fn with_simd_scratch<R>(f: impl FnOnce(&crate::simd::Scratch) -> R) -> R {
+    SCRATCH.with(|s| f(&s.borrow().simd))
+}
+
 /// The path [`compute_forces`] takes on this thread now.
 pub fn simd_path() -> SimdPath {
     PATH.with(|p| p.get())
@@ -302,7 +308,21 @@ pub fn compute_forces(pot: &Potential, b: &mut BoxView, rho: &mut Vec<f64>, fp: 
             }
             Potential::Eam(t) if t.masses.len() == 1 => match simd_path() {
                 SimdPath::Scalar => eam_forces::<true>(t, b, s, rho, fp),
-                path => crate::simd::eam_forces_one(path, t, b.types, b.list, &s.xu, &s.shift, l, b.f, rho, fp, &mut s.simd),
+                path => crate::simd::eam_forces_one(
+                    path,
+                    t,
+                    b.types,
+                    b.list,
+                    &s.xu,
+                    &s.shift,
+                    b.meta.lo,
+                    l,
+                    b.meta.skin,
+                    b.f,
+                    rho,
+                    fp,
+                    &mut s.simd,
+                ),
             },
             Potential::Eam(t) => eam_forces::<false>(t, b, s, rho, fp),
             Potential::LjCut(lj) => lj_forces(lj, b, s),

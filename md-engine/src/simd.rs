@@ -150,12 +150,80 @@ pub(crate) struct Scratch {
     j: Vec<i32>,
     /// List entry of each pair (only filled for the threaded kernel, `intra.rs`).
     k: Vec<i32>,
+    /// Spline row offset (7 m) and fraction of each pair, written by the AVX-512 density
+    /// pass and read by its force pass (offsets read from memory, not extracted from lanes).
+    m7: Vec<i32>,
+    frac: Vec<f64>,
     /// End of row i's pairs.
     row_end: Vec<u32>,
     /// A block's per-pair results.
     blk: Vec<f64>,
     /// Unwrapped positions padded to 4 f64 per atom (row loads instead of gathers).
     x4: Vec<f64>,
+    /// The box kernel's filtered list ([`Inner`]).
+    inner: Inner,
+}
+
+/// Extra radius (A) beyond the cut-off of the box kernel's filtered list ([`Inner`]). The
+/// Mishin Cu fcc shell at 5.716 A lies 0.21 A beyond the 5.507 A cut-off, the next at 6.26 A;
+/// measured (md-engine/README.md, h15y log) against 0.1 and 0.3.
+pub const INNER_SKIN: f64 = 0.1;
+
+/// A filtered copy of a neighbour list for [`eam_forces_one`]: the entries of each row that
+/// were within `cut-off + INNER_SKIN` when it was filtered, in the list's order, and the
+/// unwrapped positions and box then. While no atom has moved more than half the margin from
+/// its affinely mapped filter-time position (the list builder's own criterion,
+/// `kernel::needs_rebuild`, with the inner radius), every pair of the list within the
+/// cut-off is in it, so the geometry pass reads only these entries and finds exactly the same
+/// pairs in the same order: the results are bitwise those of the whole list, and which steps
+/// re-filter (a function of the positions alone) changes nothing but the time. Kept per
+/// thread, keyed by the list's `generation` (unique per build in the process).
+#[derive(Default)]
+struct Inner {
+    /// `NeighborList::generation` it was filtered from (0: none), the cut-off^2 and skin bits.
+    key: (u64, u64, u64),
+    start: Vec<u32>,
+    j: Vec<u32>,
+    code: Vec<u16>,
+    xref: Vec<[f64; 3]>,
+    lo: [f64; 3],
+    l: [f64; 3],
+    /// Filters and evaluations in this thread (tests read them: the list must be reused).
+    filters: u64,
+    evaluations: u64,
+}
+
+impl Inner {
+    /// Whether the filtered list still holds every pair within `rc` of the list built with
+    /// key `key`, for unwrapped positions `xu` in the box (`lo`, `l`).
+    fn valid(&self, key: (u64, u64, u64), xu: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rc: f64) -> bool {
+        if key.0 == 0 || self.key != key || self.xref.len() != xu.len() || self.start.len() != xu.len() + 1 {
+            return false;
+        }
+        let ratio: [f64; 3] = std::array::from_fn(|d| l[d] / self.l[d]);
+        let min_ratio = ratio[0].min(ratio[1]).min(ratio[2]);
+        // As `kernel::needs_rebuild`, with a relative 1e-12 kept for round-off: an entry left
+        // out was at least rc + INNER_SKIN away (as computed) when filtered.
+        let margin = min_ratio * (rc + INNER_SKIN) * (1.0 - 1e-12) - rc * (1.0 + 1e-12);
+        if !(margin > 0.0) {
+            return false;
+        }
+        let lim = 0.25 * margin * margin;
+        xu.iter().zip(&self.xref).all(|(p, q)| {
+            let mut d2 = 0.0;
+            for d in 0..3 {
+                let e = p[d] - (lo[d] + (q[d] - self.lo[d]) * ratio[d]);
+                d2 += e * e;
+            }
+            d2 <= lim
+        })
+    }
+}
+
+/// (filters, evaluations) of [`eam_forces_one`]'s filtered list on this thread so far.
+#[cfg(test)]
+pub(crate) fn inner_counts() -> (u64, u64) {
+    crate::kernel::with_simd_scratch(|s| (s.inner.filters, s.inner.evaluations))
 }
 
 /// How the list's image codes decode (`neighbor::build`'s enumeration), and the box lengths.
@@ -231,7 +299,9 @@ pub(crate) fn eam_forces_one(
     list: &NeighborList,
     xu: &[[f64; 3]],
     shift: &[[f64; 3]],
+    lo: [f64; 3],
     l: [f64; 3],
+    skin: f64,
     f: &mut [[f64; 3]],
     rho: &mut Vec<f64>,
     fp: &mut Vec<f64>,
@@ -242,12 +312,12 @@ pub(crate) fn eam_forces_one(
     assert!(t.masses.len() == 1 && t.nr >= 2 && xu.len() == f.len() && xu.len() + 1 == list.start.len());
     let n = xu.len();
     let cap = list.len() + PAD;
-    for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r] {
+    for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r, &mut s.frac] {
         if v.len() < cap {
             v.resize(cap, 0.0);
         }
     }
-    for v in [&mut s.i, &mut s.j] {
+    for v in [&mut s.i, &mut s.j, &mut s.m7] {
         if v.len() < cap {
             v.resize(cap, 0);
         }
@@ -278,6 +348,33 @@ pub(crate) fn eam_forces_one(
     rho.resize(n, 0.0);
     s.row_end.clear();
     s.row_end.reserve(n);
+    // The filtered list: used while valid, else re-filtered in this evaluation's geometry pass
+    // (only with decodable images and a skin wider than the filter's).
+    let mut inner = std::mem::take(&mut s.inner);
+    let key = (list.generation, t.cutforcesq.to_bits(), skin.to_bits());
+    let filtering = images.is_some() && INNER_SKIN < skin;
+    let reuse = filtering && inner.valid(key, xu, lo, l, t.cutoff);
+    let refilter = filtering && !reuse;
+    inner.evaluations += 1;
+    if refilter {
+        inner.filters += 1;
+        inner.key = key;
+        inner.start.clear();
+        inner.start.push(0);
+        inner.j.clear();
+        inner.code.clear();
+        inner.xref.clear();
+        inner.xref.extend_from_slice(xu);
+        (inner.lo, inner.l) = (lo, l);
+        if s.k.len() < cap {
+            s.k.resize(cap, 0);
+        }
+        // The filtering geometry pass stores 8 entries at a time from the filtered length.
+        inner.j.reserve(cap);
+        inner.code.reserve(cap);
+    }
+    let rin = t.cutoff + INNER_SKIN;
+    let rin2 = rin * rin;
     // Density pass.
     let mut np = 0usize;
     let mut i0 = 0;
@@ -286,30 +383,88 @@ pub(crate) fn eam_forces_one(
         let mut i1 = i0;
         while i1 < n && np - q0 < BLOCK {
             let row = list.start[i1] as usize..list.start[i1 + 1] as usize;
-            let (js, codes) = (&list.j[row.clone()], &list.code[row]);
-            // SAFETY: the path is supported (asserted); js/codes index xu/shift (asserted);
-            // every buffer holds list.len() + PAD entries and np + js.len() <= list.len().
+            let (js, codes) = if reuse {
+                let r = inner.start[i1] as usize..inner.start[i1 + 1] as usize;
+                (&inner.j[r.clone()], &inner.code[r])
+            } else {
+                (&list.j[row.clone()], &list.code[row.clone()])
+            };
+            // Filtering: the pairs within the filter's radius (with their list entries), then
+            // those within the cut-off compacted in place.
+            let (cut2, kb) = if refilter { (rin2, row.start) } else { (tab.cut2, 0) };
+            let np0 = np;
+            // SAFETY: the path is supported (asserted); js/codes index xu/shift (asserted, or
+            // checked as they load); every buffer holds list.len() + PAD entries and
+            // np + js.len() <= list.len() (a filtered row is a part of its list row).
             np = unsafe {
-                match path {
+                match (path, refilter) {
                     #[cfg(target_arch = "x86_64")]
-                    SimdPath::Avx512 => match &images {
-                        Some(img) => avx512::geometry4::<false>(xu[i1], js, codes, x4, img, n, tab.cut2, s, i1, np, 0),
-                        None => avx512::geometry(xu[i1], js, codes, xp, sp, tab.cut2, s, i1, np),
+                    (SimdPath::Avx512, false) => match &images {
+                        // The filtered list is padded (below); the whole list is not.
+                        Some(img) if reuse => avx512::geometry4::<false, true>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
+                        Some(img) => avx512::geometry4::<false, false>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
+                        None => avx512::geometry(xu[i1], js, codes, xp, sp, cut2, s, i1, np),
                     },
                     #[cfg(target_arch = "x86_64")]
-                    SimdPath::Avx2 => match &images {
-                        Some(img) => avx2::geometry4::<false>(xu[i1], js, codes, x4, img, n, tab.cut2, s, i1, np, 0),
-                        None => avx2::geometry(xu[i1], js, codes, xp, sp, tab.cut2, s, i1, np),
+                    (SimdPath::Avx512, true) => match &images {
+                        Some(img) => {
+                            let no = inner.j.len();
+                            let (np1, no1) = avx512::geometry4_filter(
+                                xu[i1],
+                                &list.j[row.clone()],
+                                &list.code[row.clone()],
+                                x4,
+                                img,
+                                n,
+                                tab.cut2,
+                                rin2,
+                                s,
+                                i1,
+                                np,
+                                inner.j.as_mut_ptr(),
+                                inner.code.as_mut_ptr(),
+                                no,
+                            );
+                            inner.j.set_len(no1);
+                            inner.code.set_len(no1);
+                            np1
+                        }
+                        None => unreachable!("filtering needs images"),
+                    },
+                    #[cfg(target_arch = "x86_64")]
+                    (SimdPath::Avx2, false) => match &images {
+                        Some(img) => avx2::geometry4::<false>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
+                        None => avx2::geometry(xu[i1], js, codes, xp, sp, cut2, s, i1, np),
+                    },
+                    #[cfg(target_arch = "x86_64")]
+                    (SimdPath::Avx2, true) => match &images {
+                        Some(img) => avx2::geometry4::<true>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
+                        None => unreachable!("filtering needs images"),
                     },
                     _ => unreachable!("checked above"),
                 }
             };
+            if refilter && path != SimdPath::Avx512 {
+                let mut w = np0;
+                for q in np0..np {
+                    let k = s.k[q] as usize;
+                    inner.j.push(list.j[k]);
+                    inner.code.push(list.code[k]);
+                    let keep = s.r[q] < tab.cut2;
+                    (s.dx[w], s.dy[w], s.dz[w], s.r[w], s.j[w]) = (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.j[q]);
+                    w += keep as usize;
+                }
+                np = w;
+            }
+            if refilter {
+                inner.start.push(inner.j.len() as u32);
+            }
             s.row_end.push(np as u32);
             i1 += 1;
         }
         // Harmless lanes after the last pair (the vector passes read up to a full width).
         for q in np..np + 8 {
-            (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.i[q], s.j[q]) = (0.0, 0.0, 0.0, 1.0, 0, 0);
+            (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.i[q], s.j[q], s.m7[q], s.frac[q]) = (0.0, 0.0, 0.0, 1.0, 0, 0, 0, 0.0);
         }
         let len = np - q0;
         if s.blk.len() < len + 8 {
@@ -343,6 +498,12 @@ pub(crate) fn eam_forces_one(
         }
         i0 = i1;
     }
+    if refilter {
+        // Padding for the unmasked offset reads of `geometry4::<_, true>`: atom 0.
+        inner.j.extend([0; 8]);
+        inner.code.extend([0; 8]);
+    }
+    s.inner = inner;
     // Embedding pass (as the scalar kernel).
     let mut pe = 0.0;
     fp.clear();
@@ -480,12 +641,12 @@ pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut S
     let ne = list.start[rows.end] as usize - kb0;
     assert!(vcol.len() == ne && rho_row.len() == rows.len());
     let cap = ne + PAD;
-    for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r] {
+    for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r, &mut s.frac] {
         if v.len() < cap {
             v.resize(cap, 0.0);
         }
     }
-    for v in [&mut s.i, &mut s.j, &mut s.k] {
+    for v in [&mut s.i, &mut s.j, &mut s.k, &mut s.m7] {
         if v.len() < cap {
             v.resize(cap, 0);
         }
@@ -502,7 +663,9 @@ pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut S
             // SAFETY: the path is supported (asserted in `Shared::new`); atoms and codes are
             // checked as they load; the buffers hold ne + PAD entries and np + js.len() <= ne.
             (Some(img), SimdPath::Avx512) => {
-                np = unsafe { avx512::geometry4::<true>(sh.xu[i], js, codes, sh.x4.as_ptr(), img, n, sh.tab.cut2, s, i, np, kb - kb0) }
+                np = unsafe {
+                    avx512::geometry4::<true, false>(sh.xu[i], js, codes, sh.x4.as_ptr(), img, n, sh.tab.cut2, s, i, np, kb - kb0)
+                }
             }
             #[cfg(target_arch = "x86_64")]
             // SAFETY: as above.
@@ -528,7 +691,7 @@ pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut S
     }
     // Harmless lanes after the last pair (the vector passes read up to a full width).
     for q in np..np + 8 {
-        (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.i[q], s.j[q], s.k[q]) = (0.0, 0.0, 0.0, 1.0, 0, 0, 0);
+        (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.i[q], s.j[q], s.k[q], s.m7[q], s.frac[q]) = (0.0, 0.0, 0.0, 1.0, 0, 0, 0, 0, 0.0);
     }
     if s.blk.len() < np + 8 {
         s.blk.resize(np + 8, 0.0);
@@ -749,20 +912,15 @@ mod avx512 {
         }
     }
 
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
-    fn offsets(v: __m256i) -> [i32; 8] {
-        let mut o = [0i32; 8];
-        // SAFETY: o holds 8 i32.
-        unsafe { _mm256_storeu_si256(o.as_mut_ptr() as *mut __m256i, v) };
-        o
-    }
-
     /// Row `i`'s list entries: pairs within the cut-off appended at `np` (in list order).
     /// `x4`: positions padded to 4 f64 per atom; `img`: image decoding of the list's codes.
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
-    pub(super) unsafe fn geometry4<const KEEP: bool>(
+    ///
+    /// `PADDED`: the caller guarantees that the 8 u32 from `js[k]` are readable atoms of the
+    /// box for every k < js.len() (the filtered list: later rows' entries, then 8 zeros),
+    /// so all 8 row offsets are read straight from `js` (no per-lane loop through memory).
+    pub(super) unsafe fn geometry4<const KEEP: bool, const PADDED: bool>(
         xi: [f64; 3],
         js: &[u32],
         codes: &[u16],
@@ -804,10 +962,15 @@ mod avx512 {
                     super::bad_list(n, img.ncodes);
                 }
                 // Row offsets straight from the list (extracting them from jv costs more).
-                let mut o = [0i32; 8];
-                for l in 0..rem {
-                    o[l] = (*js.get_unchecked(k + l) as i32) << 2;
-                }
+                let o: [i32; 8] = if PADDED {
+                    std::array::from_fn(|l| (*js.as_ptr().add(k + l) as i32) << 2)
+                } else {
+                    let mut o = [0i32; 8];
+                    for l in 0..rem {
+                        o[l] = (*js.get_unchecked(k + l) as i32) << 2;
+                    }
+                    o
+                };
                 let [xj, yj, zj, _] = rows4(x4, &o);
                 let (sx, sy, sz) = if let Some(t) = &lut {
                     // Table lookup: bit 3 of the index picks the table of a pair, bit 4 the pair.
@@ -852,6 +1015,96 @@ mod avx512 {
             k += 8;
         }
         np
+    }
+
+    /// [`geometry4`] (without list entries) that also filters: the row's entries within
+    /// `rin2` appended to `oj` / `oc` (from `no`), the pairs within `cut2` to `s` at `np`.
+    /// Returns (np, no).
+    #[allow(clippy::too_many_arguments)]
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
+    pub(super) unsafe fn geometry4_filter(
+        xi: [f64; 3],
+        js: &[u32],
+        codes: &[u16],
+        x4: *const f64,
+        img: &super::Images,
+        n: usize,
+        cut2: f64,
+        rin2: f64,
+        s: &mut Scratch,
+        i: usize,
+        mut np: usize,
+        oj: *mut u32,
+        oc: *mut u16,
+        mut no: usize,
+    ) -> (usize, usize) {
+        let (x0, x1, x2) = (_mm512_set1_pd(xi[0]), _mm512_set1_pd(xi[1]), _mm512_set1_pd(xi[2]));
+        let (cut, rin) = (_mm512_set1_pd(cut2), _mm512_set1_pd(rin2));
+        let iv = _mm256_set1_epi32(i as i32);
+        let (nmax, cmax) = (_mm256_set1_epi32(n as i32), _mm256_set1_epi32(img.ncodes as i32));
+        let half = _mm512_set1_pd(0.5);
+        let (s12, inv12, s2, inv2) =
+            (_mm512_set1_pd(img.s12), _mm512_set1_pd(1.0 / img.s12), _mm512_set1_pd(img.s2), _mm512_set1_pd(1.0 / img.s2));
+        let h = [_mm512_set1_pd(img.h[0]), _mm512_set1_pd(img.h[1]), _mm512_set1_pd(img.h[2])];
+        let l = [_mm512_set1_pd(img.l[0]), _mm512_set1_pd(img.l[1]), _mm512_set1_pd(img.l[2])];
+        let len = js.len();
+        let mut k = 0;
+        while k < len {
+            let rem = (len - k).min(8);
+            let lane: __mmask8 = if rem == 8 { 0xff } else { (1u8 << rem) - 1 };
+            // SAFETY: as `geometry4`; the filtered entries of the row fit the caller's
+            // buffers from `no` (at least the row's length plus 8).
+            unsafe {
+                let jv = _mm256_maskz_loadu_epi32(lane, js.as_ptr().add(k) as *const i32);
+                let cv = _mm256_cvtepu16_epi32(_mm_maskz_loadu_epi16(lane, codes.as_ptr().add(k) as *const i16));
+                if _mm256_cmpge_epu32_mask(jv, nmax) | _mm256_cmpge_epu32_mask(cv, cmax) != 0 {
+                    super::bad_list(n, img.ncodes);
+                }
+                let mut o = [0i32; 8];
+                for l in 0..rem {
+                    o[l] = (*js.get_unchecked(k + l) as i32) << 2;
+                }
+                let [xj, yj, zj, _] = rows4(x4, &o);
+                let (sx, sy, sz) = if let Some(t) = &img.lut {
+                    let ix = _mm512_cvtepu32_epi64(cv);
+                    let upper = _mm512_test_epi64_mask(ix, _mm512_set1_epi64(16));
+                    let look = |t: &[f64; super::LUT]| {
+                        let a: [__m512d; 4] = std::array::from_fn(|q| _mm512_loadu_pd(t.as_ptr().add(8 * q)));
+                        _mm512_mask_blend_pd(upper, _mm512_permutex2var_pd(a[0], ix, a[1]), _mm512_permutex2var_pd(a[2], ix, a[3]))
+                    };
+                    (look(&t[0]), look(&t[1]), look(&t[2]))
+                } else {
+                    let c = _mm512_cvtepi32_pd(cv);
+                    let a = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(c, half), inv12));
+                    let rest = _mm512_sub_pd(c, _mm512_mul_pd(a, s12));
+                    let b = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(rest, half), inv2));
+                    let cc = _mm512_sub_pd(rest, _mm512_mul_pd(b, s2));
+                    (
+                        _mm512_mul_pd(_mm512_sub_pd(a, h[0]), l[0]),
+                        _mm512_mul_pd(_mm512_sub_pd(b, h[1]), l[1]),
+                        _mm512_mul_pd(_mm512_sub_pd(cc, h[2]), l[2]),
+                    )
+                };
+                let dx = _mm512_sub_pd(_mm512_sub_pd(x0, xj), sx);
+                let dy = _mm512_sub_pd(_mm512_sub_pd(x1, yj), sy);
+                let dz = _mm512_sub_pd(_mm512_sub_pd(x2, zj), sz);
+                let r2 = add(add(mul(dx, dx), mul(dy, dy)), mul(dz, dz));
+                let mi = _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(lane, r2, rin);
+                _mm256_storeu_si256(oj.add(no) as *mut __m256i, _mm256_maskz_compress_epi32(mi, jv));
+                _mm_storeu_si128(oc.add(no) as *mut __m128i, _mm256_cvtepi32_epi16(_mm256_maskz_compress_epi32(mi, cv)));
+                no += mi.count_ones() as usize;
+                let m = _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(lane, r2, cut);
+                _mm512_storeu_pd(s.dx.as_mut_ptr().add(np), _mm512_maskz_compress_pd(m, dx));
+                _mm512_storeu_pd(s.dy.as_mut_ptr().add(np), _mm512_maskz_compress_pd(m, dy));
+                _mm512_storeu_pd(s.dz.as_mut_ptr().add(np), _mm512_maskz_compress_pd(m, dz));
+                _mm512_storeu_pd(s.r.as_mut_ptr().add(np), _mm512_maskz_compress_pd(m, r2));
+                _mm256_storeu_si256(s.j.as_mut_ptr().add(np) as *mut __m256i, _mm256_maskz_compress_epi32(m, jv));
+                _mm256_storeu_si256(s.i.as_mut_ptr().add(np) as *mut __m256i, iv);
+                np += m.count_ones() as usize;
+            }
+            k += 8;
+        }
+        (np, no)
     }
 
     /// Row `i`'s list entries: pairs within the cut-off appended at `np` (in list order).
@@ -902,18 +1155,32 @@ mod avx512 {
         np
     }
 
-    /// r = sqrt(r^2) in place and the density value of pairs q0..q0 + len into blk.
+    /// r = sqrt(r^2) in place, the spline offsets and fractions (`m7`, `frac`, kept for
+    /// [`force`]) and the density value of pairs q0..q0 + len into blk. Two loops: the
+    /// offsets go through memory, so the row loads of the second read them as plain integers.
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
     pub(super) unsafe fn density(t: &Tab, s: &mut Scratch, q0: usize, len: usize) {
         let mut k = 0;
         while k < len {
-            // SAFETY: q0 + k + 8 <= the padded end; spline rows m <= nr - 1 exist.
+            // SAFETY: q0 + k + 8 <= the padded end of every buffer.
             unsafe {
                 let q = q0 + k;
                 let r = _mm512_sqrt_pd(_mm512_loadu_pd(s.r.as_ptr().add(q)));
                 _mm512_storeu_pd(s.r.as_mut_ptr().add(q), r);
                 let (m7, p) = index(r, t);
-                let [c3, c4, c5, c6] = rows4(t.dens.add(3), &offsets(m7));
+                _mm256_storeu_si256(s.m7.as_mut_ptr().add(q) as *mut __m256i, m7);
+                _mm512_storeu_pd(s.frac.as_mut_ptr().add(q), p);
+            }
+            k += 8;
+        }
+        let mut k = 0;
+        while k < len {
+            // SAFETY: as above; spline rows m <= nr - 1 exist.
+            unsafe {
+                let q = q0 + k;
+                let o = &*(s.m7.as_ptr().add(q) as *const [i32; 8]);
+                let p = _mm512_loadu_pd(s.frac.as_ptr().add(q));
+                let [c3, c4, c5, c6] = rows4(t.dens.add(3), o);
                 let v = add(mul(add(mul(add(mul(c3, p), c4), p), c5), p), c6);
                 _mm512_storeu_pd(s.blk.as_mut_ptr().add(k), v);
             }
@@ -933,11 +1200,12 @@ mod avx512 {
             unsafe {
                 let q = q0 + k;
                 let r = _mm512_loadu_pd(s.r.as_ptr().add(q));
-                let (m7, p) = index(r, t);
-                let o = offsets(m7);
-                let [d0, d1, d2, _] = rows4(t.dens, &o);
+                // The density pass's spline offsets and fractions (the same bits as `index`).
+                let o = &*(s.m7.as_ptr().add(q) as *const [i32; 8]);
+                let p = _mm512_loadu_pd(s.frac.as_ptr().add(q));
+                let [d0, d1, d2, _] = rows4(t.dens, o);
                 let rho_p = add(mul(add(mul(d0, p), d1), p), d2);
-                let [z0, z1, z2, z3, z4, z5, z6] = rows7(t.z2, &o);
+                let [z0, z1, z2, z3, z4, z5, z6] = rows7(t.z2, o);
                 let z2p = add(mul(add(mul(z0, p), z1), p), z2);
                 let z2v = add(mul(add(mul(add(mul(z3, p), z4), p), z5), p), z6);
                 let recip = _mm512_div_pd(one, r);
@@ -1319,6 +1587,77 @@ mod tests {
                     let got = forces_bits(&p, cells, a0, jitter, path);
                     assert!(got == want, "{name}, {cells:?} cells: path {path} differs from scalar");
                 }
+            }
+        }
+    }
+
+    /// Trajectory bits of a hot, deforming 500-atom box (both deformation modes) after 300
+    /// steps on `path`, and the filtered list's (filters, evaluations) on this thread meanwhile.
+    fn trajectory_bits(p: &Potential, mode: DeformMode, path: SimdPath) -> (Vec<u64>, (u64, u64)) {
+        let (mut x, l) = lattice::build_oriented(LatticeKind::Fcc, 3.615, [5, 5, 5], &crate::Orientation::CUBE).unwrap();
+        let n = x.len();
+        for (k, q) in x.iter_mut().enumerate() {
+            for d in 0..3 {
+                q[d] += 0.1 * (((k * 7 + d * 13) as f64 * 0.618_033_988_75).fract() - 0.5);
+            }
+        }
+        let masses = match p {
+            Potential::Eam(t) => t.masses.clone(),
+            Potential::LjCut(_) => unreachable!(),
+        };
+        // 1200 K: atoms move fast, so the filtered list is re-filtered many times per list.
+        let mut rng = lattice::rng_for(3, 0, 0, 0);
+        let mut v = lattice::maxwell_velocities(&mut rng, &vec![masses[0]; n], 1200.0);
+        lattice::remove_momentum(&mut v, &vec![masses[0]; n]);
+        let mut meta = BoxMeta {
+            id: 0,
+            lo: [0.0; 3],
+            l,
+            lo_build: [0.0; 3],
+            l_build: l,
+            mode,
+            seed: 0,
+            skin: 1.0,
+            step: 0,
+            pe: 0.0,
+            virial: [0.0; 6],
+            rebuilds: 0,
+        };
+        let types = vec![0u32; n];
+        let (mut f, mut xb, mut img) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n], vec![[0i32; 3]; n]);
+        let mut list = crate::neighbor::NeighborList::default();
+        let mut b =
+            BoxView { meta: &mut meta, types: &types, x: &mut x, v: &mut v, f: &mut f, x_build: &mut xb, img: &mut img, list: &mut list };
+        let g = [[0.5, 0.3, 0.0], [0.0, -0.4, 0.2], [0.1, 0.0, 0.3]];
+        let g = if mode == DeformMode::Affine { [[0.5, 0.0, 0.0], [0.0, -0.4, 0.0], [0.0, 0.0, 0.3]] } else { g };
+        let def = kernel::Deformation::new(mode, &g);
+        let before = inner_counts();
+        let (mut rho, mut fp) = (Vec::new(), Vec::new());
+        kernel::with_simd(path, || {
+            kernel::rebuild(p, &mut b);
+            kernel::compute_forces(p, &mut b, &mut rho, &mut fp);
+            kernel::run_steps(p, &masses, &mut b, &def, 300, 0.002, &mut rho, &mut fp).unwrap();
+        });
+        let after = inner_counts();
+        let mut out: Vec<u64> = b.x.iter().chain(b.v.iter()).chain(b.f.iter()).flatten().map(|c| c.to_bits()).collect();
+        out.push(b.meta.pe.to_bits());
+        out.extend(b.meta.virial.map(f64::to_bits));
+        assert!(b.meta.rebuilds > 3, "the list must be rebuilt a few times: {}", b.meta.rebuilds);
+        (out, (after.0 - before.0, after.1 - before.1))
+    }
+
+    #[test]
+    fn filtered_list_is_reused_and_gives_the_scalar_bits_over_a_hot_run() {
+        let p = pot("Cu_mishin1.eam.alloy");
+        for mode in [DeformMode::Affine, DeformMode::Seed] {
+            let (want, scalar) = trajectory_bits(&p, mode, SimdPath::Scalar);
+            assert_eq!(scalar, (0, 0), "the scalar kernel does not filter");
+            for path in SimdPath::supported().into_iter().filter(|p| *p != SimdPath::Scalar) {
+                let (got, (filters, evals)) = trajectory_bits(&p, mode, path);
+                eprintln!("{mode:?} {path}: {filters} filters in {evals} evaluations");
+                assert!(got == want, "{mode:?}: path {path} differs from scalar after 300 hot steps");
+                // Re-filtered more than once per list build, and reused most of the time.
+                assert!(filters > 10 && 2 * filters < evals, "{mode:?} {path}: {filters} filters in {evals} evaluations");
             }
         }
     }
