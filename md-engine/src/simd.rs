@@ -912,6 +912,69 @@ mod avx512 {
         }
     }
 
+    /// The periodic image shifts of 8 pairs from their list codes, as [`super::Images`] holds
+    /// them: the table lookup where the box has one, else the exact decoding.
+    struct Shifts {
+        half: __m512d,
+        s12: __m512d,
+        inv12: __m512d,
+        s2: __m512d,
+        inv2: __m512d,
+        h: [__m512d; 3],
+        l: [__m512d; 3],
+        lut: Option<[[__m512d; 4]; 3]>,
+    }
+
+    impl Shifts {
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
+        fn new(img: &super::Images) -> Self {
+            Shifts {
+                half: _mm512_set1_pd(0.5),
+                s12: _mm512_set1_pd(img.s12),
+                inv12: _mm512_set1_pd(1.0 / img.s12),
+                s2: _mm512_set1_pd(img.s2),
+                inv2: _mm512_set1_pd(1.0 / img.s2),
+                h: [_mm512_set1_pd(img.h[0]), _mm512_set1_pd(img.h[1]), _mm512_set1_pd(img.h[2])],
+                l: [_mm512_set1_pd(img.l[0]), _mm512_set1_pd(img.l[1]), _mm512_set1_pd(img.l[2])],
+                // SAFETY: each table holds LUT = 32 f64, read as four 8-lane vectors.
+                lut: img
+                    .lut
+                    .as_ref()
+                    .map(|t| t.map(|a| std::array::from_fn::<__m512d, 4, _>(|q| unsafe { _mm512_loadu_pd(a.as_ptr().add(8 * q)) }))),
+            }
+        }
+
+        /// (sx, sy, sz) of the 8 codes `cv` (each below the box's code count).
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2")]
+        fn of(&self, cv: __m256i) -> (__m512d, __m512d, __m512d) {
+            if let Some(t) = &self.lut {
+                // Table lookup: bit 3 of the index picks the table of a pair, bit 4 the pair.
+                let ix = _mm512_cvtepu32_epi64(cv);
+                let upper = _mm512_test_epi64_mask(ix, _mm512_set1_epi64(16));
+                let look = |t: &[__m512d; 4]| {
+                    _mm512_mask_blend_pd(upper, _mm512_permutex2var_pd(t[0], ix, t[1]), _mm512_permutex2var_pd(t[2], ix, t[3]))
+                };
+                (look(&t[0]), look(&t[1]), look(&t[2]))
+            } else {
+                // code = ((a + h0) s1 + b + h1) s2 + c + h2, decoded exactly in f64 (< 2^16).
+                let (h, l) = (&self.h, &self.l);
+                let c = _mm512_cvtepi32_pd(cv);
+                let a = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(c, self.half), self.inv12));
+                let rest = _mm512_sub_pd(c, _mm512_mul_pd(a, self.s12));
+                let b = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(rest, self.half), self.inv2));
+                let cc = _mm512_sub_pd(rest, _mm512_mul_pd(b, self.s2));
+                // shift = n * L, n exact: the same product as the scalar's shift table.
+                (
+                    _mm512_mul_pd(_mm512_sub_pd(a, h[0]), l[0]),
+                    _mm512_mul_pd(_mm512_sub_pd(b, h[1]), l[1]),
+                    _mm512_mul_pd(_mm512_sub_pd(cc, h[2]), l[2]),
+                )
+            }
+        }
+    }
+
     /// Row `i`'s list entries: pairs within the cut-off appended at `np` (in list order).
     /// `x4`: positions padded to 4 f64 per atom; `img`: image decoding of the list's codes.
     #[allow(clippy::too_many_arguments)]
@@ -937,16 +1000,7 @@ mod avx512 {
         let cut = _mm512_set1_pd(cut2);
         let iv = _mm256_set1_epi32(i as i32);
         let (nmax, cmax) = (_mm256_set1_epi32(n as i32), _mm256_set1_epi32(img.ncodes as i32));
-        let half = _mm512_set1_pd(0.5);
-        let (s12, inv12, s2, inv2) =
-            (_mm512_set1_pd(img.s12), _mm512_set1_pd(1.0 / img.s12), _mm512_set1_pd(img.s2), _mm512_set1_pd(1.0 / img.s2));
-        let h = [_mm512_set1_pd(img.h[0]), _mm512_set1_pd(img.h[1]), _mm512_set1_pd(img.h[2])];
-        let l = [_mm512_set1_pd(img.l[0]), _mm512_set1_pd(img.l[1]), _mm512_set1_pd(img.l[2])];
-        // SAFETY: each table holds LUT = 32 f64, read as four 8-lane vectors.
-        let lut = img
-            .lut
-            .as_ref()
-            .map(|t| t.map(|a| std::array::from_fn::<__m512d, 4, _>(|q| unsafe { _mm512_loadu_pd(a.as_ptr().add(8 * q)) })));
+        let shifts = Shifts::new(img);
         let len = js.len();
         let mut k = 0;
         while k < len {
@@ -972,28 +1026,7 @@ mod avx512 {
                     o
                 };
                 let [xj, yj, zj, _] = rows4(x4, &o);
-                let (sx, sy, sz) = if let Some(t) = &lut {
-                    // Table lookup: bit 3 of the index picks the table of a pair, bit 4 the pair.
-                    let ix = _mm512_cvtepu32_epi64(cv);
-                    let upper = _mm512_test_epi64_mask(ix, _mm512_set1_epi64(16));
-                    let look = |t: &[__m512d; 4]| {
-                        _mm512_mask_blend_pd(upper, _mm512_permutex2var_pd(t[0], ix, t[1]), _mm512_permutex2var_pd(t[2], ix, t[3]))
-                    };
-                    (look(&t[0]), look(&t[1]), look(&t[2]))
-                } else {
-                    // code = ((a + h0) s1 + b + h1) s2 + c + h2, decoded exactly in f64 (< 2^16).
-                    let c = _mm512_cvtepi32_pd(cv);
-                    let a = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(c, half), inv12));
-                    let rest = _mm512_sub_pd(c, _mm512_mul_pd(a, s12));
-                    let b = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(rest, half), inv2));
-                    let cc = _mm512_sub_pd(rest, _mm512_mul_pd(b, s2));
-                    // shift = n * L, n exact: the same product as the scalar's shift table.
-                    (
-                        _mm512_mul_pd(_mm512_sub_pd(a, h[0]), l[0]),
-                        _mm512_mul_pd(_mm512_sub_pd(b, h[1]), l[1]),
-                        _mm512_mul_pd(_mm512_sub_pd(cc, h[2]), l[2]),
-                    )
-                };
+                let (sx, sy, sz) = shifts.of(cv);
                 let dx = _mm512_sub_pd(_mm512_sub_pd(x0, xj), sx);
                 let dy = _mm512_sub_pd(_mm512_sub_pd(x1, yj), sy);
                 let dz = _mm512_sub_pd(_mm512_sub_pd(x2, zj), sz);
@@ -1042,11 +1075,7 @@ mod avx512 {
         let (cut, rin) = (_mm512_set1_pd(cut2), _mm512_set1_pd(rin2));
         let iv = _mm256_set1_epi32(i as i32);
         let (nmax, cmax) = (_mm256_set1_epi32(n as i32), _mm256_set1_epi32(img.ncodes as i32));
-        let half = _mm512_set1_pd(0.5);
-        let (s12, inv12, s2, inv2) =
-            (_mm512_set1_pd(img.s12), _mm512_set1_pd(1.0 / img.s12), _mm512_set1_pd(img.s2), _mm512_set1_pd(1.0 / img.s2));
-        let h = [_mm512_set1_pd(img.h[0]), _mm512_set1_pd(img.h[1]), _mm512_set1_pd(img.h[2])];
-        let l = [_mm512_set1_pd(img.l[0]), _mm512_set1_pd(img.l[1]), _mm512_set1_pd(img.l[2])];
+        let shifts = Shifts::new(img);
         let len = js.len();
         let mut k = 0;
         while k < len {
@@ -1065,26 +1094,7 @@ mod avx512 {
                     o[l] = (*js.get_unchecked(k + l) as i32) << 2;
                 }
                 let [xj, yj, zj, _] = rows4(x4, &o);
-                let (sx, sy, sz) = if let Some(t) = &img.lut {
-                    let ix = _mm512_cvtepu32_epi64(cv);
-                    let upper = _mm512_test_epi64_mask(ix, _mm512_set1_epi64(16));
-                    let look = |t: &[f64; super::LUT]| {
-                        let a: [__m512d; 4] = std::array::from_fn(|q| _mm512_loadu_pd(t.as_ptr().add(8 * q)));
-                        _mm512_mask_blend_pd(upper, _mm512_permutex2var_pd(a[0], ix, a[1]), _mm512_permutex2var_pd(a[2], ix, a[3]))
-                    };
-                    (look(&t[0]), look(&t[1]), look(&t[2]))
-                } else {
-                    let c = _mm512_cvtepi32_pd(cv);
-                    let a = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(c, half), inv12));
-                    let rest = _mm512_sub_pd(c, _mm512_mul_pd(a, s12));
-                    let b = _mm512_roundscale_pd::<0x0b>(_mm512_mul_pd(_mm512_add_pd(rest, half), inv2));
-                    let cc = _mm512_sub_pd(rest, _mm512_mul_pd(b, s2));
-                    (
-                        _mm512_mul_pd(_mm512_sub_pd(a, h[0]), l[0]),
-                        _mm512_mul_pd(_mm512_sub_pd(b, h[1]), l[1]),
-                        _mm512_mul_pd(_mm512_sub_pd(cc, h[2]), l[2]),
-                    )
-                };
+                let (sx, sy, sz) = shifts.of(cv);
                 let dx = _mm512_sub_pd(_mm512_sub_pd(x0, xj), sx);
                 let dy = _mm512_sub_pd(_mm512_sub_pd(x1, yj), sy);
                 let dz = _mm512_sub_pd(_mm512_sub_pd(x2, zj), sz);
