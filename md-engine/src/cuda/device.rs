@@ -70,7 +70,13 @@ pub fn nvrtc_compile(arch: &str, want_ptx: bool) -> Result<NvrtcOutput, MdError>
     let src = CString::new(super::KERNEL_SOURCE).map_err(|e| nvrtc_err(arch, "source", e))?;
     let name: &CStr = c"kernels.cu";
     let prog = nvrtc::create_program(&src, Some(name)).map_err(|e| nvrtc_err(arch, "create", e))?;
-    let opts = [format!("--gpu-architecture={arch}"), "--std=c++17".to_string()];
+    // MSCALE_CUDA_NVRTC_OPTIONS: extra NVRTC options, split at whitespace (tuning runs, e.g.
+    // `-DMD_MIN_BLOCKS=8`, see kernels.cu; md-worker/README.md "CUDA back end" has the effect).
+    let extra = std::env::var("MSCALE_CUDA_NVRTC_OPTIONS").unwrap_or_default();
+    let opts: Vec<String> = [format!("--gpu-architecture={arch}"), "--std=c++17".to_string()]
+        .into_iter()
+        .chain(extra.split_whitespace().map(str::to_string))
+        .collect();
     // SAFETY: prog was just created and is destroyed once below; src and name outlive it.
     let res = unsafe { nvrtc::compile_program(prog, &opts) };
     // SAFETY: as above.

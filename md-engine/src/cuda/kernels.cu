@@ -20,7 +20,13 @@
 #include "shim.h"
 #else
 #define DEVICE __device__
-#define KERNEL_ENTRY(name) extern "C" __global__ void __launch_bounds__(MD_NT) name(const Params p)
+// MD_MIN_BLOCKS: the blocks per SM the compiler must fit (a register cap that survives into
+// the PTX as .minnctapersm, unlike NVRTC's --maxrregcount, which the driver's JIT never sees);
+// set for tuning runs through MSCALE_CUDA_NVRTC_OPTIONS="-DMD_MIN_BLOCKS=N".
+#ifndef MD_MIN_BLOCKS
+#define MD_MIN_BLOCKS 1
+#endif
+#define KERNEL_ENTRY(name) extern "C" __global__ void __launch_bounds__(MD_NT, MD_MIN_BLOCKS) name(const Params p)
 #define BLOCK_INDEX ((int)blockIdx.x)
 #define SHARED_DECL(T, v) __shared__ T v
 // A phase: every thread of the block runs the body, then the block waits at a barrier.
