@@ -4,10 +4,7 @@
 # `md-worker bench` on 5,000 boxes of 500 Mishin Cu atoms at 300 K, 100 steps (each run
 # prints the median of 5 step calls). Logs land in $OUT.
 set -uo pipefail
-OUT=${OUT:-/tmp/gpu-out}
-mkdir -p "$OUT"
-export LD_LIBRARY_PATH=/usr/local/cuda/targets/x86_64-linux/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH} RUST_LOG=warn
-pot=md-worker/potentials/Cu_mishin1.eam.alloy
+source "$(dirname "$0")/gpu_env.sh"
 for i in 1 2 3 4; do
   for v in old new; do
     r=$(timeout 60 .gpu/md-worker-$v bench --potential $pot --lattice fcc --a0 3.615 --cells 5 --boxes 5000 --steps 100 \

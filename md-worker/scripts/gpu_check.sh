@@ -13,28 +13,16 @@
 # `md-worker bench` on 500- and 108-atom Mishin Cu boxes at 300 K for cuda (double, mixed)
 # and the cpu back end on the machine's cores. Logs land in $OUT.
 set -uo pipefail
-OUT=${OUT:-/tmp/gpu-out}
-mkdir -p "$OUT"
 log() { echo "== $*"; }
-# The test binaries find their data through the CARGO_MANIFEST_DIR they were built in.
-built=/work/main
-[ "$PWD" = "$built" ] || { mkdir -p "$(dirname "$built")"; [ -e "$built" ] || ln -s "$PWD" "$built"; }
+source "$(dirname "$0")/gpu_env.sh"
 log "device"
 nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm,clocks.max.sm --format=csv 2>&1 | tee "$OUT/nvidia-smi.txt"
-# cudarc (dynamic loading) looks for libnvrtc.so, libnvrtc.so.12, ...: the CUDA toolkit's and
-# the Python wheels' library folders go on the search path.
-for d in /usr/local/cuda/lib64 /usr/local/cuda/targets/x86_64-linux/lib \
-  $(python3 -c 'import nvidia, os; [print(os.path.join(p, "cuda_nvrtc", "lib")) for p in nvidia.__path__]' 2>/dev/null); do
-  [ -d "$d" ] && export LD_LIBRARY_PATH="$d${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
-done
 log "nvrtc on the path"
 for d in ${LD_LIBRARY_PATH//:/ }; do ls "$d"/libnvrtc* 2>/dev/null; done | head -8
-export RUST_LOG=warn RUST_BACKTRACE=1
 log "physics suite, cuda instantiation"
 timeout 240 .gpu/physics cuda:: --test-threads 1 2>&1 | tee "$OUT/physics.log" | tail -40
 log "tests/cuda.rs"
 timeout 120 .gpu/cuda --test-threads 1 --include-ignored 2>&1 | tee "$OUT/cuda.log" | tail -25
-pot=md-worker/potentials/Cu_mishin1.eam.alloy
 bench() { timeout 120 .gpu/md-worker bench --potential $pot --lattice fcc --a0 3.615 "$@" 2>&1 | tee -a "$OUT/bench.jsonl" | tail -2; }
 log "bench (median of 5; one step call of every box per repetition)"
 for boxes in 1000 10000; do

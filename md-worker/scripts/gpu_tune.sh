@@ -2,14 +2,9 @@
 # Occupancy sweep of the CUDA kernels on a real GPU (one device call; binaries as in
 # gpu_check.sh, carried in .gpu/): `md-worker bench` on 5,000 boxes of 500 Mishin Cu atoms
 # at 300 K, 100 steps, median of 5, for each NVRTC option set in MSCALE_CUDA_NVRTC_OPTIONS,
-# then the GPU physics suite under the last (fastest expected) setting. Logs land in $OUT.
+# then the GPU physics suite under MSCALE_TUNE_CHECK (default -DMD_MIN_BLOCKS=8). Logs land in $OUT.
 set -uo pipefail
-OUT=${OUT:-/tmp/gpu-out}
-mkdir -p "$OUT"
-built=/work/main
-[ "$PWD" = "$built" ] || { mkdir -p "$(dirname "$built")"; [ -e "$built" ] || ln -s "$PWD" "$built"; }
-export LD_LIBRARY_PATH=/usr/local/cuda/targets/x86_64-linux/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH} RUST_LOG=warn
-pot=md-worker/potentials/Cu_mishin1.eam.alloy
+source "$(dirname "$0")/gpu_env.sh"
 # -DMD_MIN_BLOCKS=N: at least N blocks of 128 threads per SM, i.e. at most 65536 / (128 N)
 # registers per thread (kernels.cu). (NVRTC's --maxrregcount did nothing: the PTX is compiled
 # by the driver's JIT, which never sees it; tune-maxrregcount.jsonl.)
