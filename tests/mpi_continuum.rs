@@ -288,6 +288,98 @@ vtk = false
 plots = false
 "#;
 
+#[test]
+#[cfg_attr(
+    not(require_mpi),
+    ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_MSCALE=<mscale built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
+)]
+fn the_tiles_shared_out_by_cost_change_who_computes_not_the_digest() {
+    // LOPSIDED: at the start 128 points in each of slab tiles 0 and 1 (moving up into tile 2)
+    // and 64 in tile 5, of 6 tiles. The even blocks of tiles (never rebalanced) give 2 ranks
+    // tiles 0-2 / 3-5 and 3 ranks 0-1 / 2-3 / 4-5 (256 / 0 / 64 points at the start). The
+    // first step shares them out by point counts, deterministically: 2 ranks 0 / 1-5
+    // (128 / 192), 3 ranks 0 / 1-4 / 5 (128 / 128 / 64: the empty tiles go to the earlier
+    // block); later shares use the costs the ranks
+    // measure (timings: not asserted). Whatever the split (never moved, once at the start,
+    // every step), the digest is the one-process digest.
+    let exe = mpi_mscale();
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let scene = tmp.path().join("lopsided.toml");
+    std::fs::write(&scene, LOPSIDED).expect("write the scene");
+    let run = |ranks: Option<usize>, every: Option<u64>| -> serde_json::Value {
+        let out = tmp.path().join(format!("lop-{}-{}", ranks.unwrap_or(0), every.map_or("default".into(), |e| e.to_string())));
+        let mut args = vec!["run".to_string(), scene.display().to_string(), "--out".into(), out.display().to_string()];
+        if let Some(e) = every {
+            args.extend(["--rebalance-every".to_string(), e.to_string()]);
+        }
+        run_digest(&exe, &args, &out, ranks);
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json")).expect("json")
+    };
+    let one = run(None, None);
+    assert!(one.get("ranks").is_none(), "one process reports no split: {}", one["ranks"]);
+    let steps = one["steps"].as_u64().expect("steps");
+    assert!((10..100).contains(&steps), "{steps} steps");
+    for n in [2usize, 3] {
+        let (even_cuts, count_cuts) = if n == 2 { (vec![0, 3, 6], vec![0, 1, 6]) } else { (vec![0, 2, 4, 6], vec![0, 1, 5, 6]) };
+        let even = run(Some(n), Some(0));
+        let once = run(Some(n), None);
+        let every_step = run(Some(n), Some(1));
+        for s in [&even, &once, &every_step] {
+            assert_eq!(s["state_digest"], one["state_digest"], "{n} ranks, split {}", s["ranks"]);
+            assert_eq!(s["ranks"]["ranks"], n as u64);
+        }
+        assert_eq!((&even["ranks"]["rebalances"], &even["ranks"]["tile_cuts"]), (&serde_json::json!(0), &serde_json::json!(even_cuts)));
+        // The default interval (100 steps) shares the tiles once in this run: at the start.
+        assert_eq!((&once["ranks"]["rebalances"], &once["ranks"]["tile_cuts"]), (&serde_json::json!(1), &serde_json::json!(count_cuts)));
+        assert_eq!(every_step["ranks"]["rebalances"], steps);
+        eprintln!(
+            "{n} ranks, one digest: points per rank at the end {} (even blocks), {} (by counts at the start), {} (by measured cost, every step)",
+            even["ranks"]["points_per_rank"], once["ranks"]["points_per_rank"], every_step["ranks"]["points_per_rank"]
+        );
+    }
+}
+
+/// A 2D scene lopsided over the slab tiles (8 x 24 cells: six tiles of 4 rows): a dense block
+/// in tiles 0-1 moving up at 50 m/s, a strip at rest in tile 5, nothing in between.
+const LOPSIDED: &str = r#"schema = 1
+name = "lopsided"
+
+[domain]
+dimension = 2
+min = [0.0, 0.0]
+max = [1.0, 3.0]
+cells = [8, 24]
+
+[bodies.dense]
+shape = "block"
+min = [0.0, 0.0]
+max = [1.0, 1.0]
+density = 1e3
+velocity = [0.0, 50.0]
+material = { law = "neo-hookean", youngs_modulus = 1e7, poisson_ratio = 0.3 }
+
+[bodies.strip]
+shape = "block"
+min = [0.0, 2.75]
+max = [1.0, 3.0]
+density = 1e3
+material = { law = "neo-hookean", youngs_modulus = 1e7, poisson_ratio = 0.3 }
+
+[scheme]
+method = "ddmp-subpoints"
+sub_points = 4
+particles_per_cell = 2
+integrator = "leapfrog"
+cfl = 0.5
+end_time = 0.008
+
+[output]
+snapshots = 0
+particles = false
+vtk = false
+plots = false
+"#;
+
 /// The 2D manufactured solution set up in 3D (a unit cube of neo-Hookean material, rollers on
 /// every face), 4 x 4 x 12 cells (three slab tiles), 6 steps.
 const CUBE: &[&str] = &[

@@ -309,6 +309,84 @@ fn the_cluster_sbatch_runs_a_job_survives_a_killed_worker_step_and_resumes_after
     assert!(workers.contains("SERVING") && workers.contains("listening on 0.0.0.0:"), "md-workers.sbatch:\n{workers}");
 }
 
+/// `MSCALE_MPI_MSCALE`: an mscale built with `--features mpi` (CI's mpi step builds it).
+fn mpi_mscale() -> PathBuf {
+    match std::env::var_os("MSCALE_MPI_MSCALE").filter(|p| !p.is_empty()) {
+        Some(p) if Path::new(&p).is_file() => PathBuf::from(p),
+        _ => panic!("MSCALE_MPI_MSCALE is unset or not a file: set it to an mscale built with --features mpi (see .ci/run)"),
+    }
+}
+
+/// mms-2d on 16 x 24 cells (six slab tiles), long enough to scancel mid-run.
+const MMS_OVER_RANKS: [&str; 6] = [
+    "domain.cells=[16,24]",
+    "scheme.end_time=0.4",
+    "output.snapshots=0",
+    "output.particles=false",
+    "output.vtk=false",
+    "output.plots=false",
+];
+
+#[test]
+#[cfg_attr(
+    not(require_slurm),
+    ignore = "needs a Slurm cluster: bash deploy/setup.sh slurm; runs with MSCALE_REQUIRE_SLURM=1 (CI) or -- --ignored"
+)]
+fn the_continuum_over_srun_ranks_has_the_one_process_digest_and_resumes_on_another_rank_count() {
+    let _one = CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
+    cluster_up();
+    let site = Site::new();
+    let bin = site.tmp.path().join("mpi-bin");
+    std::fs::create_dir_all(&bin).unwrap();
+    std::os::unix::fs::symlink(mpi_mscale(), bin.join("mscale")).unwrap();
+    let env = [("MSCALE_BIN", bin.display().to_string()), ("RUST_LOG", "warn".to_string())];
+    let mut args: Vec<&str> = vec![];
+    for s in &MMS_OVER_RANKS {
+        args.extend(["--set", s]);
+    }
+    // The one-process run (the same binary without srun: no exchange, the plain code path).
+    let straight = site.tmp.path().join("straight");
+    let mut cmd = Command::new(mpi_mscale());
+    cmd.args(["run", "scenes/mms-2d.toml", "--out", straight.to_str().unwrap()]).args(&args).current_dir(repo()).env("RUST_LOG", "warn");
+    ok(&mut cmd);
+    let digest = mscale_tests::state_digest(&straight);
+    let script = "deploy/slurm/mscale-run.sbatch";
+
+    // 1. The script as it is (2 tasks): one job step of 2 ranks, the scene to its end.
+    let dir = site.tmp.path().join("two");
+    let mut a_args = vec!["scenes/mms-2d.toml", dir.to_str().unwrap()];
+    a_args.extend(&args);
+    let a = site.sbatch(&[], script, &a_args, &env);
+    let state = wait_ended(&a, Duration::from_secs(300));
+    let out = site.output(&a);
+    assert_eq!(state, "COMPLETED exit 0:0", "{out}");
+    assert!(out.contains("mscale-run: scenes/mms-2d.toml on 2 ranks"), "{out}");
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["ranks"]["ranks"], 2, "not split over 2 srun ranks: {summary}");
+    assert_eq!(mscale_tests::state_digest(&dir), digest, "{out}");
+
+    // 2. scancel mid-run (SIGTERM to both ranks: they stop after the same step, rank 0 writes a
+    // checkpoint), then the same command on 3 tasks resumes it to the uninterrupted digest.
+    let dir = site.tmp.path().join("cut");
+    let mut b_args = vec!["scenes/mms-2d.toml", dir.to_str().unwrap(), "--checkpoint-every", "200"];
+    b_args.extend(&args);
+    let b = site.sbatch(&[], script, &b_args, &env);
+    wait_for_ckpt(&dir.join("checkpoints"), || is_final(&job_state(&b)).then(|| site.output(&b)));
+    ok(Command::new("scancel").arg(&b));
+    let state = wait_ended(&b, Duration::from_secs(60));
+    let out = site.output(&b);
+    assert!(state.starts_with("CANCELLED") || state.starts_with("FAILED"), "{state}: {out}");
+    assert!(!dir.join("summary.json").exists() || mscale_tests::state_digest(&dir) != digest, "the run ended before scancel: {out}");
+    let c = site.sbatch(&["--ntasks=3", "--overcommit"], script, &b_args, &env);
+    let state = wait_ended(&c, Duration::from_secs(300));
+    let out = site.output(&c);
+    assert_eq!(state, "COMPLETED exit 0:0", "{out}");
+    assert!(out.contains("resuming") && out.contains("on 3 ranks"), "{out}");
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["ranks"]["ranks"], 3, "{summary}");
+    assert_eq!(mscale_tests::state_digest(&dir), digest, "resumed on 3 srun ranks: {out}");
+}
+
 fn hostname() -> String {
     ok(Command::new("hostname").arg("-s")).trim().to_string()
 }

@@ -35,6 +35,9 @@ pub struct Tiles {
     start: Vec<usize>,
     order: Vec<usize>,
     tile: Vec<u32>,
+    /// Over MPI ranks: rank `r` owns tiles `cuts[r]..cuts[r + 1]` ([`Tiles::set_cuts`]); empty:
+    /// the even blocks of [`tile_owner`]. Kept by [`Tiles::assign`].
+    cuts: Vec<usize>,
 }
 
 impl Tiles {
@@ -66,7 +69,7 @@ impl Tiles {
     /// Keeps only the points of the tiles for which `keep(tile)` holds (the tiles a rank owns);
     /// the others become empty. Points keep their order.
     pub fn restrict(&self, keep: impl Fn(usize) -> bool) -> Tiles {
-        let mut out = Tiles { start: vec![0], order: Vec::new(), tile: self.tile.clone() };
+        let mut out = Tiles { start: vec![0], order: Vec::new(), tile: self.tile.clone(), cuts: self.cuts.clone() };
         for t in 0..self.count() {
             if keep(t) {
                 out.order.extend_from_slice(self.points(t));
@@ -90,6 +93,73 @@ impl Tiles {
     pub fn tile_of(&self, p: usize) -> usize {
         self.tile[p] as usize
     }
+
+    /// The rank owning tile `t` over `ranks` ranks: the block of [`Tiles::set_cuts`] holding
+    /// it, or the even blocks of [`tile_owner`] when no cuts for `ranks` ranks are set.
+    pub fn owner(&self, t: usize, ranks: usize) -> usize {
+        if self.cuts.len() == ranks + 1 {
+            self.cuts[1..].partition_point(|&c| c <= t).min(ranks - 1)
+        } else {
+            tile_owner(t, self.count(), ranks)
+        }
+    }
+
+    /// The tiles rank `rank` of `ranks` owns ([`Tiles::owner`]), in tile order.
+    pub fn owned_by(&self, rank: usize, ranks: usize) -> impl Iterator<Item = usize> + '_ {
+        (0..self.count()).filter(move |&t| self.owner(t, ranks) == rank)
+    }
+
+    /// Gives rank `r` the tiles `cuts[r]..cuts[r + 1]` from now on (`cuts` ascending from 0 to
+    /// the tile count, one more entry than ranks; see [`balanced_cuts`]; empty: the even blocks
+    /// again). Which rank sums a
+    /// tile never changes a result (the module's documentation), only who does the work.
+    pub fn set_cuts(&mut self, cuts: Vec<usize>) {
+        debug_assert!(cuts.is_empty() || (cuts[0] == 0 && cuts.windows(2).all(|w| w[0] <= w[1])));
+        self.cuts = cuts;
+    }
+
+    /// The cuts set by [`Tiles::set_cuts`] (empty: the even blocks).
+    pub fn cuts(&self) -> &[usize] {
+        &self.cuts
+    }
+}
+
+/// Contiguous blocks of tiles for `ranks` ranks whose largest summed `cost` is the smallest
+/// any contiguous split reaches (to 1e-9 of it): the returned `cuts` (`ranks + 1` entries,
+/// `cuts[0] = 0`, last `cost.len()`) give rank `r` the tiles `cuts[r]..cuts[r + 1]`. A
+/// bisection on the bottleneck, each probe a greedy left-to-right fill; the cuts depend only
+/// on `cost`, so every rank computing them from the same costs gets the same split.
+pub fn balanced_cuts(cost: &[f64], ranks: usize) -> Vec<usize> {
+    let ranks = ranks.max(1);
+    let fill = |cap: f64| -> Option<Vec<usize>> {
+        let mut cuts = vec![0];
+        let mut load = 0.0;
+        for (t, &c) in cost.iter().enumerate() {
+            if load + c > cap && t > *cuts.last().unwrap_or(&0) {
+                if cuts.len() == ranks {
+                    return None;
+                }
+                cuts.push(t);
+                load = 0.0;
+            }
+            load += c;
+        }
+        cuts.resize(ranks + 1, cost.len());
+        Some(cuts)
+    };
+    let total: f64 = cost.iter().sum();
+    let (mut lo, mut hi) = (cost.iter().copied().fold(0.0, f64::max), total);
+    if !(total > 0.0 && total.is_finite()) {
+        return (0..=ranks).map(|r| (r * cost.len()).div_ceil(ranks)).collect();
+    }
+    for _ in 0..100 {
+        if hi - lo <= 1e-9 * hi {
+            break;
+        }
+        let mid = 0.5 * (lo + hi);
+        if fill(mid).is_some() { hi = mid } else { lo = mid }
+    }
+    fill(hi).unwrap_or_else(|| (0..=ranks).map(|r| (r * cost.len()).div_ceil(ranks)).collect())
 }
 
 /// The slab tile of a position: `TILE_CELLS` cells of the last axis per tile, clamped into the
@@ -172,10 +242,10 @@ impl Scatter {
         match exchange().filter(|e| e.size() > 1) {
             None => self.tile_buffers(tiles, stride, span, body),
             Some(ex) => {
-                let (rank, size, nt) = (ex.rank(), ex.size(), tiles.count());
-                let mine = tiles.restrict(|t| tile_owner(t, nt, size) == rank);
+                let (rank, size) = (ex.rank(), ex.size());
+                let mine = tiles.restrict(|t| tiles.owner(t, size) == rank);
                 self.tile_buffers(&mine, stride, span, body);
-                self.share_tiles(ex, nt, stride);
+                self.share_tiles(ex, tiles, stride);
             }
         }
         reduce_in_order(&self.bufs, &self.spans, n_nodes, stride, out);
@@ -184,10 +254,9 @@ impl Scatter {
     /// Replaces every tile's buffer by its owner's (all ranks end with the same buffers): each
     /// rank packs the tiles it owns as `[tile, lo, hi, values...]` (integers exact in f64),
     /// the packs are all-gathered, and every rank unpacks all of them.
-    fn share_tiles(&mut self, ex: &dyn TileExchange, nt: usize, stride: usize) {
-        let (rank, size) = (ex.rank(), ex.size());
+    fn share_tiles(&mut self, ex: &dyn TileExchange, tiles: &Tiles, stride: usize) {
         let mut pack = Vec::new();
-        for t in (0..nt).filter(|&t| tile_owner(t, nt, size) == rank) {
+        for t in tiles.owned_by(ex.rank(), ex.size()) {
             let (lo, hi) = self.spans[t];
             pack.extend([t as f64, lo as f64, hi as f64]);
             pack.extend_from_slice(&self.bufs[t]);
@@ -279,12 +348,11 @@ pub struct ExchangeStats {
 }
 
 /// Per point whether the rank `rank` of `ranks` owns it: the points of the tiles it owns
-/// ([`tile_owner`]), the tiles [`Scatter::run_tiled`] fills on that rank.
+/// ([`Tiles::owner`]), the tiles [`Scatter::run_tiled`] fills on that rank.
 pub fn owned_points(tiles: &Tiles, rank: usize, ranks: usize, out: &mut Vec<bool>) {
     out.clear();
     out.resize(tiles.tile.len(), false);
-    let nt = tiles.count();
-    for t in (0..nt).filter(|&t| tile_owner(t, nt, ranks) == rank) {
+    for t in tiles.owned_by(rank, ranks) {
         for &p in tiles.points(t) {
             out[p] = true;
         }
@@ -306,8 +374,8 @@ pub fn exchange() -> Option<&'static dyn TileExchange> {
     EXCHANGE.get().map(|b| b.as_ref())
 }
 
-/// The rank owning tile `t` of `n_tiles` over `ranks` ranks: contiguous blocks of tiles, as
-/// even as the tile count allows.
+/// The rank owning tile `t` of `n_tiles` over `ranks` ranks before any [`Tiles::set_cuts`]:
+/// contiguous blocks of tiles, as even as the tile count allows.
 pub fn tile_owner(t: usize, n_tiles: usize, ranks: usize) -> usize {
     (t * ranks / n_tiles.max(1)).min(ranks.saturating_sub(1))
 }
@@ -491,5 +559,52 @@ mod tests {
                 assert_eq!(bits(&out), bits(&one), "{ranks} ranks");
             }
         }
+    }
+
+    #[test]
+    fn balanced_cuts_minimise_the_largest_block_and_set_the_owners() {
+        // The smallest bottleneck of a contiguous split, by brute force over every split.
+        fn best(cost: &[f64], ranks: usize) -> f64 {
+            fn go(cost: &[f64], ranks: usize) -> f64 {
+                if ranks == 1 {
+                    return cost.iter().sum();
+                }
+                (0..=cost.len()).map(|k| cost[..k].iter().sum::<f64>().max(go(&cost[k..], ranks - 1))).fold(f64::INFINITY, f64::min)
+            }
+            go(cost, ranks)
+        }
+        let block = |cost: &[f64], cuts: &[usize], r: usize| cost[cuts[r]..cuts[r + 1]].iter().sum::<f64>();
+        let cases: [&[f64]; 5] = [
+            &[1.0; 16],
+            &[9.0, 9.0, 9.0, 9.0, 9.0, 9.0, 9.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            &[0.0, 5.0, 1.0, 1.0, 7.0, 0.5, 2.0],
+            &[3.0],
+            &[0.0; 4],
+        ];
+        for cost in cases {
+            for ranks in 1..=4 {
+                let cuts = balanced_cuts(cost, ranks);
+                assert_eq!(cuts.len(), ranks + 1);
+                assert_eq!((cuts[0], cuts[ranks]), (0, cost.len()));
+                assert!(cuts.windows(2).all(|w| w[0] <= w[1]), "{cuts:?}");
+                let worst = (0..ranks).map(|r| block(cost, &cuts, r)).fold(0.0, f64::max);
+                assert!(worst <= best(cost, ranks) * (1.0 + 1e-9), "{cost:?} over {ranks}: {cuts:?} gives {worst}");
+                let mut tiles = Tiles::default();
+                tiles.assign(cost.len(), 0, |_| 0);
+                tiles.set_cuts(cuts.clone());
+                for t in 0..cost.len() {
+                    let r = tiles.owner(t, ranks);
+                    assert!(cuts[r] <= t && t < cuts[r + 1], "tile {t} given to rank {r} by {cuts:?}");
+                }
+                // Without cuts for this rank count, the even blocks.
+                tiles.set_cuts(Vec::new());
+                assert!((0..cost.len()).all(|t| tiles.owner(t, ranks) == tile_owner(t, cost.len(), ranks)));
+            }
+        }
+        // The jet-like case: heavy tiles first, light after: 2 ranks split the weight, not the count.
+        let jet = [9.0, 9.0, 9.0, 9.0, 9.0, 9.0, 9.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        assert_eq!(balanced_cuts(&jet, 2), vec![0, 4, 13]);
+        let even: f64 = (0..jet.len()).filter(|&t| tile_owner(t, jet.len(), 2) == 0).map(|t| jet[t]).sum();
+        assert_eq!((even, block(&jet, &balanced_cuts(&jet, 2), 0)), (63.0, 36.0));
     }
 }

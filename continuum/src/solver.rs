@@ -20,6 +20,7 @@ pub mod implicit;
 mod impm;
 mod nullspace;
 mod ranks;
+pub use ranks::{DEFAULT_REBALANCE_EVERY, LoadBalance};
 mod tlmpm;
 mod verlet;
 
@@ -191,6 +192,9 @@ pub struct Simulation<const D: usize> {
     /// Over MPI ranks with the per-point work split (see `solver/ranks.rs`): per point whether
     /// this rank computes it this step (the points of the tiles it owns). Empty: every point.
     owned: Vec<bool>,
+    /// Which rank computes which tiles when the per-point work is split over MPI ranks, and
+    /// how often that is chosen again from measured costs (see [`LoadBalance`]).
+    pub balance: LoadBalance,
     flat: Vec<f64>,
     sub_x: Vec<[f64; D]>,
     ddmp_field: Vec<f64>,
@@ -279,6 +283,7 @@ impl<const D: usize> Simulation<D> {
             scatter: Scatter::default(),
             tiles: par::Tiles::default(),
             owned: Vec::new(),
+            balance: LoadBalance::default(),
             flat: Vec::new(),
             old_stress: Vec::new(),
             old_q: Vec::new(),
@@ -345,6 +350,7 @@ impl<const D: usize> Simulation<D> {
         let step = self.step + 1;
         let dt = self.dt;
         let ranks = self.split_ranks();
+        let clock = ranks.map(|ex| (std::time::Instant::now(), ex.stats().seconds));
         let built = self.build_stencil(ranks);
         ranks::agree(
             ranks,
@@ -390,6 +396,10 @@ impl<const D: usize> Simulation<D> {
                 // rank takes the others' points and the neighbour-gap check (1D) runs on all.
                 ranks::agree(Some(ex), self.guard_points(step))?;
                 self.share_points(ex);
+                if let Some((start, inside)) = clock {
+                    let outside = start.elapsed().as_secs_f64() - (ex.stats().seconds - inside);
+                    self.balance.record(outside, self.owned.iter().filter(|&&o| o).count());
+                }
                 self.guard_gaps(step)?;
             }
         }
@@ -404,7 +414,10 @@ impl<const D: usize> Simulation<D> {
         let (grid, x) = (&self.grid, &self.points.x);
         self.tiles.assign(par::slab_tile_count(grid), n, |p| par::slab_tile(grid, &x[p]));
         match ranks {
-            Some(ex) => par::owned_points(&self.tiles, ex.rank(), ex.size(), &mut self.owned),
+            Some(ex) => {
+                self.rebalance(ex);
+                par::owned_points(&self.tiles, ex.rank(), ex.size(), &mut self.owned)
+            }
             None => self.owned.clear(),
         }
         if self.scheme.is_ddmp() {
@@ -740,8 +753,16 @@ impl<const D: usize> Simulation<D> {
         if let Some(ex) = ranks {
             // The closures are pointwise (`split_ranks`): each run of this rank's points is a
             // batch of its own.
-            let r =
-                ranks::advance_owned_closures(pts, &mut self.closures, &self.body_ranges, owned, step, dt, &mut self.closure_evaluations);
+            let r = ranks::advance_owned_closures(
+                pts,
+                &mut self.closures,
+                &self.body_ranges,
+                owned,
+                step,
+                dt,
+                &mut self.closure_evaluations,
+                &mut self.balance,
+            );
             ranks::agree(Some(ex), r)?;
         }
         // Every closure sees its batch first (`prepare`), so closures sharing a worker pool send

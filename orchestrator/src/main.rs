@@ -41,6 +41,11 @@ enum Command {
         /// replayed on the other workers.
         #[arg(long, value_name = "auto|SECONDS", default_value = "auto", value_parser = md_worker::recovery::StepDeadline::parse)]
         step_deadline: md_worker::recovery::StepDeadline,
+        /// Under `mpirun`/`srun` (feature `mpi`): share the grid's tiles out over the ranks again
+        /// every N steps by the cost each rank measured (0: even blocks of tiles, never moved).
+        /// The results do not depend on it.
+        #[arg(long, value_name = "N", default_value_t = continuum::solver::DEFAULT_REBALANCE_EVERY)]
+        rebalance_every: u64,
     },
     /// Run the job service (mscale.orchestrator.v1) with gRPC health and reflection.
     Serve {
@@ -571,7 +576,7 @@ fn dispatch(cli: Cli) -> i32 {
                 }
             }
         }
-        Command::Run { scene, out, set, workers, checkpoint_every, resume, step_deadline } => {
+        Command::Run { scene, out, set, workers, checkpoint_every, resume, step_deadline, rebalance_every } => {
             let scene = match (scene, &resume) {
                 (Some(s), _) => s,
                 (None, Some(dir)) => dir.join("scene.resolved.toml"),
@@ -602,6 +607,7 @@ fn dispatch(cli: Cli) -> i32 {
             // and for any rank count: a checkpoint of N ranks resumes on M).
             opts.resume_from = resume.clone();
             opts.step_deadline = step_deadline;
+            opts.rebalance_every = rebalance_every;
             match orchestrator::checkpoint::stop_on_signals() {
                 Ok(flag) => opts.cancel = Some(flag),
                 Err(e) => eprintln!("mscale: warning: cannot handle SIGINT/SIGTERM, no checkpoint will be written on them: {e}"),
@@ -610,14 +616,20 @@ fn dispatch(cli: Cli) -> i32 {
                 // The same replicated state as rank 0: the same outcome, reported by rank 0.
                 let outcome = loaded.run(&opts);
                 exchange_stats(rank);
-                return match outcome {
+                let agreed = outcome.is_ok();
+                let code = match outcome {
                     Ok(run::Outcome::Completed(_)) => exit::OK,
                     _ => exit::RUN_FAILED,
                 };
+                if agreed {
+                    ranks_done();
+                }
+                return code;
             }
             let outcome = loaded.run(&opts);
             exchange_stats(rank);
-            match outcome {
+            let agreed = outcome.is_ok();
+            let code = match outcome {
                 Ok(run::Outcome::Completed(summary)) => {
                     println!(
                         "completed {} steps in {:.2} s; outputs in {}",
@@ -659,8 +671,24 @@ fn dispatch(cli: Cli) -> i32 {
                     exit::RUN_FAILED
                 }
                 Err(e) => report(Err(e)),
+            };
+            if agreed {
+                ranks_done();
             }
+            code
         }
+    }
+}
+
+/// Over MPI ranks, after an outcome every rank reached at the same step (completed, cancelled,
+/// failed in an agreed phase): waits until every rank, rank 0 included, has written and printed
+/// all it will, so a launcher that ends the job at the first non-zero exit (`srun
+/// --kill-on-bad-exit`, mpirun) cannot cut rank 0's checkpoint or message short. A rank's own
+/// error (`Err`: rank 0 unable to write its outputs, say) skips it: that rank exits and the
+/// launcher stops the others.
+fn ranks_done() {
+    if let Some(ex) = continuum::par::exchange().filter(|e| e.size() > 1) {
+        ex.all_gather_bytes(&[]);
     }
 }
 

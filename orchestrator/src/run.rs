@@ -81,6 +81,9 @@ pub struct RunOptions {
     pub step_deadline: md_worker::recovery::StepDeadline,
     /// Told of every worker lost mid-run once its boxes live on the survivors.
     pub on_worker_lost: Option<LossFn>,
+    /// Over MPI ranks: steps between two shares of the tiles by measured cost (0: never;
+    /// see `continuum::solver::LoadBalance`).
+    pub rebalance_every: u64,
 }
 
 /// See [`RunOptions::on_worker_lost`].
@@ -102,6 +105,7 @@ impl RunOptions {
             md_hook: None,
             step_deadline: Default::default(),
             on_worker_lost: None,
+            rebalance_every: continuum::solver::DEFAULT_REBALANCE_EVERY,
         }
     }
 }
@@ -412,6 +416,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         hook(m);
     }
     let mut sim = setup::simulation::<D>(&loaded.resolved, md.as_ref())?;
+    sim.balance.every = opts.rebalance_every;
     let mut before = checkpoint::DriverState::default();
     if let Some((ck, path)) = &saved {
         let mut guard = md.as_ref().map(|m| m.lock()).transpose().map_err(|_| anyhow::anyhow!("MD state poisoned"))?;
@@ -988,6 +993,18 @@ fn summary<const D: usize>(
         v["seconds_per_newton_iteration"] = json!(st.seconds_total / st.newton_iterations.max(1) as f64);
         v["seconds_per_step"] = json!(st.seconds_total / st.accepted_steps.max(1) as f64);
         out["implicit"] = v;
+    }
+    // Over MPI ranks only: how the tiles were shared out (the last step's split; with the
+    // per-point work replicated, as in coupled scenes, only the scatters follow it).
+    if let Some(e) = continuum::par::exchange().filter(|e| e.size() > 1) {
+        let (cuts, points) = sim.tile_split(e.size());
+        out["ranks"] = json!({
+            "ranks": e.size(),
+            "rebalance_every": sim.balance.every,
+            "rebalances": sim.balance.rebalances,
+            "tile_cuts": cuts,
+            "points_per_rank": points,
+        });
     }
     Ok(out)
 }

@@ -1,6 +1,6 @@
 //! The explicit step's per-point work split over MPI ranks (issue 14 stage 2; continuum/README.md
 //! "MPI"). Every rank still holds every point (replicated state), but computes only the points
-//! of the slab tiles it owns ([`par::tile_owner`], the tiles whose scatter buffers it fills):
+//! of the slab tiles it owns ([`par::Tiles::owner`], the tiles whose scatter buffers it fills):
 //! their stencil rows, velocity gradients, deformation, closures, viscosity, motion and the
 //! guard's check. At the end of the step the updated point state is all-gathered, each rank's
 //! points packed tile by tile in tile order and each tile's in ascending index, and unpacked by
@@ -18,7 +18,109 @@ use super::*;
 use crate::closure::{ClosureError, error_chain as chain};
 use crate::par::TileExchange;
 
+/// Steps between two rebalances of the tiles over the ranks by default.
+pub const DEFAULT_REBALANCE_EVERY: u64 = 100;
+
+/// Which rank computes which tiles (the split path over MPI ranks), chosen by measured cost:
+/// on the first split step of a process by point counts, then every [`LoadBalance::every`]
+/// steps from what the ranks measured since the last choice: a tile costs, per point, the
+/// measured seconds of the step's per-point work outside the closures and collectives (one
+/// figure over all bodies) plus its body's measured closure seconds per point. Every rank
+/// all-gathers the measurements and cuts the same contiguous tile blocks
+/// ([`par::balanced_cuts`]), so the split is the same on every rank. The results never depend
+/// on the split: every scatter sums in tile order and every point's update reads only its own
+/// state and the nodal fields, whichever rank computes it (continuum/README.md "MPI").
+#[derive(Debug, Clone)]
+pub struct LoadBalance {
+    /// Rebalance every this many steps (0: never; the even tile blocks of [`par::tile_owner`]).
+    pub every: u64,
+    /// How many times the tiles were shared out (0 without a split).
+    pub rebalances: u64,
+    /// Since the last rebalance, on this rank: the seconds of the split steps outside the
+    /// collectives, the points this rank stepped (summed over the steps), and per body the
+    /// seconds in its closure and the points it advanced.
+    compute_s: f64,
+    point_steps: f64,
+    body_s: Vec<f64>,
+    body_points: Vec<f64>,
+}
+
+impl Default for LoadBalance {
+    fn default() -> Self {
+        LoadBalance {
+            every: DEFAULT_REBALANCE_EVERY,
+            rebalances: 0,
+            compute_s: 0.0,
+            point_steps: 0.0,
+            body_s: Vec::new(),
+            body_points: Vec::new(),
+        }
+    }
+}
+
+impl LoadBalance {
+    /// Adds one split step of this rank: `seconds` outside the collectives, `points` stepped.
+    pub(super) fn record(&mut self, seconds: f64, points: usize) {
+        self.compute_s += seconds;
+        self.point_steps += points as f64;
+    }
+}
+
 impl<const D: usize> Simulation<D> {
+    /// The tiles' owners for this step (`self.tiles` just assigned): rebalanced on the first
+    /// split step of the process and every [`LoadBalance::every`] steps ([`LoadBalance`]); a
+    /// collective, called by every rank at the same step (the condition reads replicated state
+    /// only).
+    pub(super) fn rebalance(&mut self, ex: &dyn TileExchange) {
+        let size = ex.size();
+        let lb = &mut self.balance;
+        let first = self.tiles.cuts().len() != size + 1;
+        if lb.every == 0 || (!first && !self.step.is_multiple_of(lb.every)) {
+            return;
+        }
+        let nb = self.body_ranges.len();
+        lb.body_s.resize(nb, 0.0);
+        lb.body_points.resize(nb, 0.0);
+        let mut mine = vec![lb.compute_s, lb.point_steps];
+        mine.extend_from_slice(&lb.body_s);
+        mine.extend_from_slice(&lb.body_points);
+        let mut sum = vec![0.0; mine.len()];
+        for r in ex.all_gather(&mine) {
+            for (s, v) in sum.iter_mut().zip(r) {
+                *s += v;
+            }
+        }
+        let (body_s, body_points) = sum[2..].split_at(nb);
+        let closures_s: f64 = body_s.iter().sum();
+        // Per point: the rest of the step's own work, plus its body's closure. Before any
+        // measurement (or when the clock saw nothing): one unit a point.
+        let base = if sum[1] > 0.0 && sum[0] > 0.0 { ((sum[0] - closures_s) / sum[1]).max(0.0) } else { 1.0 };
+        let per_body: Vec<f64> =
+            body_s.iter().zip(body_points).map(|(&s, &n)| base + if n > 0.0 && sum[0] > 0.0 { s / n } else { 0.0 }).collect();
+        let ends: Vec<usize> = self.body_ranges.iter().map(|r| r.end).collect();
+        let cost: Vec<f64> = (0..self.tiles.count())
+            .map(|t| self.tiles.points(t).iter().map(|&p| per_body.get(ends.partition_point(|&e| e <= p)).copied().unwrap_or(base)).sum())
+            .collect();
+        self.tiles.set_cuts(par::balanced_cuts(&cost, size));
+        let lb = &mut self.balance;
+        lb.rebalances += 1;
+        (lb.compute_s, lb.point_steps) = (0.0, 0.0);
+        lb.body_s.iter_mut().chain(lb.body_points.iter_mut()).for_each(|v| *v = 0.0);
+    }
+
+    /// The tiles' split over `ranks` ranks at the last step: the cuts (rank `r` owns tiles
+    /// `cuts[r]..cuts[r + 1]`) and the points each rank computed.
+    pub fn tile_split(&self, ranks: usize) -> (Vec<usize>, Vec<usize>) {
+        let nt = self.tiles.count();
+        let owner: Vec<usize> = (0..nt).map(|t| self.tiles.owner(t, ranks)).collect();
+        let cuts = (0..=ranks).map(|r| owner.partition_point(|&o| o < r)).collect();
+        let mut points = vec![0; ranks];
+        for (t, &r) in owner.iter().enumerate() {
+            points[r] += self.tiles.points(t).len();
+        }
+        (cuts, points)
+    }
+
     /// The exchange to split this step's per-point work over: set over more than one rank and
     /// when the step is one whose per-point passes read only their own point and the nodal
     /// fields (the explicit integrators, no gradient correction, nullspace filter, diffusion,
@@ -46,13 +148,12 @@ impl<const D: usize> Simulation<D> {
     /// Gives every rank every point's end-of-step state: each rank sends its own points (tile
     /// order, then point order) and unpacks the others' in the same order.
     pub(super) fn share_points(&mut self, ex: &dyn TileExchange) {
-        let (rank, size, nt) = (ex.rank(), ex.size(), self.tiles.count());
+        let (rank, size) = (ex.rank(), ex.size());
         let per = self.shared_per_point();
         let nc = 1usize << D;
         let pts = &mut self.points;
         let plastic = !pts.plastic_strain.is_empty();
-        let mine: Vec<usize> =
-            (0..nt).filter(|&t| par::tile_owner(t, nt, size) == rank).flat_map(|t| self.tiles.points(t).iter().copied()).collect();
+        let mine: Vec<usize> = self.tiles.owned_by(rank, size).flat_map(|t| self.tiles.points(t).iter().copied()).collect();
         let mut pack = Vec::with_capacity(mine.len() * per);
         for &p in &mine {
             pack.extend_from_slice(&pts.x[p]);
@@ -74,7 +175,7 @@ impl<const D: usize> Simulation<D> {
         let all = ex.all_gather(&pack);
         let mat = |v: &[f64]| -> Mat3 { std::array::from_fn(|i| std::array::from_fn(|j| v[3 * i + j])) };
         for (r, buf) in all.iter().enumerate().filter(|(r, _)| *r != rank) {
-            let theirs = (0..nt).filter(|&t| par::tile_owner(t, nt, size) == r).flat_map(|t| self.tiles.points(t).iter().copied());
+            let theirs = self.tiles.owned_by(r, size).flat_map(|t| self.tiles.points(t).iter().copied());
             let mut k = 0;
             for p in theirs {
                 let v = &buf[k..k + per];
@@ -114,6 +215,9 @@ impl<const D: usize> Simulation<D> {
 /// admits only repeatable ones). Every batch is prepared before any is advanced, as on one
 /// process. On failure: the start of the first failing run (a key that orders failures over
 /// ranks as their points do, the runs being disjoint) and the error.
+/// Also adds, per body, the seconds its batches took and their points to `balance` (the
+/// measured closure cost the tiles are balanced by).
+#[allow(clippy::too_many_arguments)]
 pub(super) fn advance_owned_closures<const D: usize>(
     pts: &mut Particles<D>,
     closures: &mut [Box<dyn Closure>],
@@ -122,6 +226,7 @@ pub(super) fn advance_owned_closures<const D: usize>(
     step: u64,
     dt: f64,
     evaluations: &mut u64,
+    balance: &mut LoadBalance,
 ) -> Result<(), (usize, SolverError)> {
     let mut runs: Vec<(usize, std::ops::Range<usize>)> = Vec::new();
     for (b, range) in body_ranges.iter().enumerate() {
@@ -138,10 +243,17 @@ pub(super) fn advance_owned_closures<const D: usize>(
             runs.push((b, start..p));
         }
     }
+    balance.body_s.resize(body_ranges.len(), 0.0);
+    balance.body_points.resize(body_ranges.len(), 0.0);
     for prepare in [true, false] {
         for (b, run) in &runs {
+            let clock = std::time::Instant::now();
             let batch = pts.batch(step, run.clone());
             let r = if prepare { closures[*b].prepare(&batch, dt) } else { closures[*b].advance(batch, dt) };
+            balance.body_s[*b] += clock.elapsed().as_secs_f64();
+            if !prepare {
+                balance.body_points[*b] += run.len() as f64;
+            }
             r.map_err(|source| (run.start, SolverError::Closure { step, source }))?;
         }
     }
