@@ -332,6 +332,11 @@ fn the_tiles_shared_out_by_cost_change_who_computes_not_the_digest() {
         // The default interval (100 steps) shares the tiles once in this run: at the start.
         assert_eq!((&once["ranks"]["rebalances"], &once["ranks"]["tile_cuts"]), (&serde_json::json!(1), &serde_json::json!(count_cuts)));
         assert_eq!(every_step["ranks"]["rebalances"], steps);
+        // Points crossed onto another rank's tiles and were sent whole (the digest above holds
+        // only if they were: the other ranks' copies of a point are stale but for x, v, e, V).
+        for s in [&once, &every_step] {
+            assert!(s["ranks"]["migrated_points"].as_u64().expect("migrated_points") > 0, "{n} ranks: no point migrated: {}", s["ranks"]);
+        }
         eprintln!(
             "{n} ranks, one digest: points per rank at the end {} (even blocks), {} (by counts at the start), {} (by measured cost, every step)",
             even["ranks"]["points_per_rank"], once["ranks"]["points_per_rank"], every_step["ranks"]["points_per_rank"]

@@ -195,6 +195,15 @@ pub struct Simulation<const D: usize> {
     /// Which rank computes which tiles when the per-point work is split over MPI ranks, and
     /// how often that is chosen again from measured costs (see [`LoadBalance`]).
     pub balance: LoadBalance,
+    /// After a split step: per point the rank that computed it, and whether the points other
+    /// ranks computed hold only their positions, velocities, internal energies and volumes
+    /// here (the rest is brought in by [`Simulation::share_all`], or by the migration of a point
+    /// onto this rank's tiles; `solver/ranks.rs`).
+    computed_by: Vec<u32>,
+    foreign_stale: bool,
+    /// Points sent whole to the rank that computes them next, summed over the steps (over MPI
+    /// ranks; 0 on one process).
+    pub migrated_points: u64,
     flat: Vec<f64>,
     sub_x: Vec<[f64; D]>,
     ddmp_field: Vec<f64>,
@@ -284,6 +293,9 @@ impl<const D: usize> Simulation<D> {
             tiles: par::Tiles::default(),
             owned: Vec::new(),
             balance: LoadBalance::default(),
+            computed_by: Vec::new(),
+            foreign_stale: false,
+            migrated_points: 0,
             flat: Vec::new(),
             old_stress: Vec::new(),
             old_q: Vec::new(),
@@ -337,6 +349,9 @@ impl<const D: usize> Simulation<D> {
 
     /// One explicit step.
     pub fn step(&mut self) -> Result<StepReport, SolverError> {
+        if self.foreign_stale && self.split_ranks().is_none() {
+            self.share_all();
+        }
         self.owned.clear();
         if self.scheme == SchemeKind::Tlmpm {
             return self.tlmpm_step();
@@ -395,7 +410,7 @@ impl<const D: usize> Simulation<D> {
                 // Each rank checks its own points, all agree on the lowest bad one, then every
                 // rank takes the others' points and the neighbour-gap check (1D) runs on all.
                 ranks::agree(Some(ex), self.guard_points(step))?;
-                self.share_points(ex);
+                self.share_moving(ex);
                 if let Some((start, inside)) = clock {
                     let outside = start.elapsed().as_secs_f64() - (ex.stats().seconds - inside);
                     self.balance.record(outside, self.owned.iter().filter(|&&o| o).count());
@@ -416,7 +431,10 @@ impl<const D: usize> Simulation<D> {
         match ranks {
             Some(ex) => {
                 self.rebalance(ex);
-                par::owned_points(&self.tiles, ex.rank(), ex.size(), &mut self.owned)
+                par::owned_points(&self.tiles, ex.rank(), ex.size(), &mut self.owned);
+                if self.foreign_stale {
+                    self.migrate(ex);
+                }
             }
             None => self.owned.clear(),
         }

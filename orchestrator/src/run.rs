@@ -517,6 +517,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
                 b.abandon();
             }
             let t = Instant::now();
+            sim.share_all();
             let path = save(&sim, &snaps, max_kinetic, max_abs_momentum, continuum_s, output_s + t.elapsed().as_secs_f64())?;
             report_progress(opts, &sim, loaded, session_start, first_step, max_kinetic, true);
             return Ok(Outcome::Cancelled { checkpoint: path, step: sim.step });
@@ -527,6 +528,12 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         if let Err(e) = result {
             failure = Some(crate::exit::message(&e));
             break;
+        }
+        // Over MPI ranks (split steps) each rank holds the whole state of its own points only;
+        // whatever reads more than positions, velocities and energies of every point shares it
+        // first (every rank at the same step: `share_all` is a collective).
+        if film.is_some() || quasi.is_some() {
+            sim.share_all();
         }
         if let Some(f) = film.as_mut() {
             f.observe(&sim);
@@ -548,11 +555,13 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         };
         if snapshot_due {
             let t = Instant::now();
+            sim.share_all();
             write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
             output_s += t.elapsed().as_secs_f64();
         }
         if checkpoint_every > 0 && sim.step % checkpoint_every == 0 && sim.step < loaded.steps {
             let t = Instant::now();
+            sim.share_all();
             save(&sim, &snaps, max_kinetic, max_abs_momentum, continuum_s, output_s)?;
             output_s += t.elapsed().as_secs_f64();
         }
@@ -596,6 +605,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         b.finish_and_clear();
     }
     let t = Instant::now();
+    sim.share_all();
     if failure.is_none() {
         write_snapshot(&sim, scene, dir, &mut snaps, md.as_ref())?;
     }
@@ -1004,6 +1014,7 @@ fn summary<const D: usize>(
             "rebalances": sim.balance.rebalances,
             "tile_cuts": cuts,
             "points_per_rank": points,
+            "migrated_points": sim.migrated_points,
         });
     }
     Ok(out)

@@ -145,68 +145,158 @@ impl<const D: usize> Simulation<D> {
         D + D + (1 << D) * D + 9 + 1 + 9 + 9 + 9 + 1 + 1 + plastic
     }
 
+    /// Appends point `p`'s whole end-of-step state to `pack` ([`Simulation::shared_per_point`]
+    /// values).
+    fn pack_point(&self, p: usize, pack: &mut Vec<f64>) {
+        let pts = &self.points;
+        let nc = 1usize << D;
+        pack.extend_from_slice(&pts.x[p]);
+        pack.extend_from_slice(&pts.v[p]);
+        for c in &pts.corners[p * nc..(p + 1) * nc] {
+            pack.extend_from_slice(c);
+        }
+        pack.extend(pts.def_grad[p].iter().flatten());
+        pack.push(pts.volume[p]);
+        pack.extend(pts.vel_grad[p].iter().flatten());
+        pack.extend(pts.stress[p].iter().flatten());
+        pack.extend(pts.visc_stress[p].iter().flatten());
+        pack.push(pts.visc_pressure[p]);
+        pack.push(pts.internal_energy[p]);
+        if !pts.plastic_strain.is_empty() {
+            pack.push(pts.plastic_strain[p]);
+        }
+    }
+
+    /// Sets point `p`'s whole state from `v`, as [`Simulation::pack_point`] wrote it.
+    fn unpack_point(&mut self, p: usize, v: &[f64]) {
+        let pts = &mut self.points;
+        let nc = 1usize << D;
+        let mat = |v: &[f64]| -> Mat3 { std::array::from_fn(|i| std::array::from_fn(|j| v[3 * i + j])) };
+        let mut o = 0;
+        let mut take = |n: usize| {
+            let s = &v[o..o + n];
+            o += n;
+            s
+        };
+        let s = take(D);
+        pts.x[p] = std::array::from_fn(|a| s[a]);
+        let s = take(D);
+        pts.v[p] = std::array::from_fn(|a| s[a]);
+        for c in &mut pts.corners[p * nc..(p + 1) * nc] {
+            let s = take(D);
+            *c = std::array::from_fn(|a| s[a]);
+        }
+        pts.def_grad[p] = mat(take(9));
+        pts.volume[p] = take(1)[0];
+        pts.vel_grad[p] = mat(take(9));
+        pts.stress[p] = mat(take(9));
+        pts.visc_stress[p] = mat(take(9));
+        pts.visc_pressure[p] = take(1)[0];
+        pts.internal_energy[p] = take(1)[0];
+        if !pts.plastic_strain.is_empty() {
+            pts.plastic_strain[p] = take(1)[0];
+        }
+    }
+
+    /// The points rank `r` computed in the last step: its tiles', tile by tile, each in
+    /// ascending index.
+    fn points_of(&self, r: usize, size: usize) -> Vec<usize> {
+        self.tiles.owned_by(r, size).flat_map(|t| self.tiles.points(t).iter().copied()).collect()
+    }
+
     /// Gives every rank every point's end-of-step state: each rank sends its own points (tile
     /// order, then point order) and unpacks the others' in the same order.
     pub(super) fn share_points(&mut self, ex: &dyn TileExchange) {
         let (rank, size) = (ex.rank(), ex.size());
         let per = self.shared_per_point();
-        let nc = 1usize << D;
-        let pts = &mut self.points;
-        let plastic = !pts.plastic_strain.is_empty();
-        let mine: Vec<usize> = self.tiles.owned_by(rank, size).flat_map(|t| self.tiles.points(t).iter().copied()).collect();
+        let mine = self.points_of(rank, size);
         let mut pack = Vec::with_capacity(mine.len() * per);
+        for &p in &mine {
+            self.pack_point(p, &mut pack);
+        }
+        let all = ex.all_gather(&pack);
+        for (r, buf) in all.iter().enumerate().filter(|(r, _)| *r != rank) {
+            let theirs = self.points_of(r, size);
+            assert_eq!(theirs.len() * per, buf.len(), "rank {r} sent {} values for its {} points", buf.len(), theirs.len());
+            for (k, &p) in theirs.iter().enumerate() {
+                self.unpack_point(p, &buf[k * per..(k + 1) * per]);
+            }
+        }
+    }
+
+    /// The end of a split step: every rank gets of every other rank's points only what the
+    /// next step and the per-step totals read of points a rank does not compute (positions,
+    /// for the tiles; velocity and internal energy, for the totals and the momentum scale;
+    /// volume, for the wave speed), packed as in [`Simulation::share_points`]. The rest of those
+    /// points' state stays as it was on this rank (stale) until [`Simulation::share_all`], or
+    /// until a point moves onto this rank's tiles ([`Simulation::migrate`]); every rank records
+    /// which rank computed each point.
+    pub(super) fn share_moving(&mut self, ex: &dyn TileExchange) {
+        let (rank, size) = (ex.rank(), ex.size());
+        let per = 2 * D + 2;
+        let mine = self.points_of(rank, size);
+        let mut pack = Vec::with_capacity(mine.len() * per);
+        let pts = &self.points;
         for &p in &mine {
             pack.extend_from_slice(&pts.x[p]);
             pack.extend_from_slice(&pts.v[p]);
-            for c in &pts.corners[p * nc..(p + 1) * nc] {
-                pack.extend_from_slice(c);
-            }
-            pack.extend(pts.def_grad[p].iter().flatten());
-            pack.push(pts.volume[p]);
-            pack.extend(pts.vel_grad[p].iter().flatten());
-            pack.extend(pts.stress[p].iter().flatten());
-            pack.extend(pts.visc_stress[p].iter().flatten());
-            pack.push(pts.visc_pressure[p]);
             pack.push(pts.internal_energy[p]);
-            if plastic {
-                pack.push(pts.plastic_strain[p]);
-            }
+            pack.push(pts.volume[p]);
         }
         let all = ex.all_gather(&pack);
-        let mat = |v: &[f64]| -> Mat3 { std::array::from_fn(|i| std::array::from_fn(|j| v[3 * i + j])) };
+        self.computed_by.clear();
+        self.computed_by.resize(self.points.len(), rank as u32);
         for (r, buf) in all.iter().enumerate().filter(|(r, _)| *r != rank) {
-            let theirs = self.tiles.owned_by(r, size).flat_map(|t| self.tiles.points(t).iter().copied());
-            let mut k = 0;
-            for p in theirs {
-                let v = &buf[k..k + per];
-                k += per;
-                let mut o = 0;
-                let mut take = |n: usize| {
-                    let s = &v[o..o + n];
-                    o += n;
-                    s
-                };
-                let s = take(D);
-                pts.x[p] = std::array::from_fn(|a| s[a]);
-                let s = take(D);
-                pts.v[p] = std::array::from_fn(|a| s[a]);
-                for c in &mut pts.corners[p * nc..(p + 1) * nc] {
-                    let s = take(D);
-                    *c = std::array::from_fn(|a| s[a]);
-                }
-                pts.def_grad[p] = mat(take(9));
-                pts.volume[p] = take(1)[0];
-                pts.vel_grad[p] = mat(take(9));
-                pts.stress[p] = mat(take(9));
-                pts.visc_stress[p] = mat(take(9));
-                pts.visc_pressure[p] = take(1)[0];
-                pts.internal_energy[p] = take(1)[0];
-                if plastic {
-                    pts.plastic_strain[p] = take(1)[0];
-                }
+            let theirs = self.points_of(r, size);
+            assert_eq!(theirs.len() * per, buf.len(), "rank {r} sent {} values for its {} points", buf.len(), theirs.len());
+            let pts = &mut self.points;
+            for (k, &p) in theirs.iter().enumerate() {
+                let v = &buf[k * per..(k + 1) * per];
+                pts.x[p] = std::array::from_fn(|a| v[a]);
+                pts.v[p] = std::array::from_fn(|a| v[D + a]);
+                pts.internal_energy[p] = v[2 * D];
+                pts.volume[p] = v[2 * D + 1];
+                self.computed_by[p] = r as u32;
             }
-            assert_eq!(k, buf.len(), "rank {r} sent {} values for its points, {k} expected", buf.len());
         }
+        self.foreign_stale = true;
+    }
+
+    /// The start of a split step after [`Simulation::share_moving`] (`self.tiles` and its
+    /// owners already set for this step): each point that changes rank is sent, whole, by the
+    /// rank that computed it last step (ascending index), and every rank takes them all.
+    pub(super) fn migrate(&mut self, ex: &dyn TileExchange) {
+        let (rank, size) = (ex.rank(), ex.size());
+        let per = 1 + self.shared_per_point();
+        let moving: Vec<usize> =
+            (0..self.points.len()).filter(|&p| self.computed_by[p] as usize != self.tiles.owner(self.tiles.tile_of(p), size)).collect();
+        let mut pack = Vec::new();
+        for &p in moving.iter().filter(|&&p| self.computed_by[p] as usize == rank) {
+            pack.push(p as f64);
+            self.pack_point(p, &mut pack);
+        }
+        let all = ex.all_gather(&pack);
+        for buf in all.iter().enumerate().filter(|(r, _)| *r != rank).map(|(_, b)| b) {
+            for v in buf.chunks_exact(per) {
+                self.unpack_point(v[0] as usize, &v[1..]);
+            }
+        }
+        self.migrated_points += moving.len() as u64;
+    }
+
+    /// Makes every point's whole state current on every rank (after split steps, the points a
+    /// rank did not compute hold only what [`Simulation::share_moving`] gives): a collective when
+    /// anything is stale, so every rank calls it at the same point of the run (before reading
+    /// stresses or deformation of all points: outputs, checkpoints, scores, the digest).
+    /// Nothing to do on one process or when nothing is stale.
+    pub fn share_all(&mut self) {
+        if !self.foreign_stale {
+            return;
+        }
+        if let Some(ex) = par::exchange().filter(|e| e.size() > 1) {
+            self.share_points(ex);
+        }
+        self.foreign_stale = false;
     }
 }
 
