@@ -171,6 +171,13 @@ pub struct Simulation<const D: usize> {
     /// Nullspace filter on the point velocity gradient (see `solver/nullspace.rs`); none by
     /// default.
     pub nullspace_filter: NullspaceFilter,
+    /// Under `tlmpm`: the moving-mesh form (battery thesis 6.25-6.28, 6.35), whose nodal
+    /// velocity is carried from step to step in [`Simulation::mesh_velocity`] instead of
+    /// re-mapped from the points (`solver/tlmpm.rs`). Off: total-Lagrangian MPM.
+    pub moving_mesh: bool,
+    /// The moving mesh's nodal velocity at the last half step (empty before its first step:
+    /// then mapped from the points). Checkpoints carry it.
+    pub mesh_velocity: Vec<[f64; D]>,
     stencil: Stencil<D>,
     node_mass: Vec<f64>,
     node_force: Vec<[f64; D]>,
@@ -265,6 +272,8 @@ impl<const D: usize> Simulation<D> {
             gradient_correction: GradientCorrection::None,
             node_correction: Vec::new(),
             nullspace_filter: NullspaceFilter::None,
+            moving_mesh: false,
+            mesh_velocity: Vec::new(),
             grid,
             points,
             scheme,

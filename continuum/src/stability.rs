@@ -291,6 +291,22 @@ pub fn tlmpm_bound_of(flip_fraction: f64, syms: &[Symbol]) -> Option<f64> {
     largest_stable(|cfl| stable_with(|sym, cfl| tlmpm_amplification(flip_fraction, sym, cfl), false, syms, cfl))
 }
 
+/// The moving-mesh form's one-step matrix on (v, dt a) (`scheme.tlmpm_form = "moving-mesh"`):
+/// the nodal velocity is carried, never re-mapped from the points, so the leapfrog acts on the
+/// nodal dofs with the stiffness of the hats at X_p: [[1, 1], [-s, 1 - s]], bound s <= 4 (hats:
+/// s = 4 CFL^2 q, CFL <= 1 at any number of points per cell, as [`crate::tlmpm`] derives).
+pub fn moving_mesh_amplification(sym: &Symbol, cfl: f64) -> [[C64; 2]; 2] {
+    let one = C64::new(1.0, 0.0);
+    let s = sym.w2 * (cfl * cfl);
+    [[one, one], [-s, one - s]]
+}
+
+/// The moving-mesh form's bound at `layout` (tlmpm's hats at the reference positions).
+pub fn moving_mesh_bound(layout: Layout) -> Result<Option<f64>, String> {
+    let syms = symbols(Layout { scheme: SchemeKind::Tlmpm, ..layout }, &all_waves())?;
+    Ok(largest_stable(|cfl| stable_with(moving_mesh_amplification, false, &syms, cfl)))
+}
+
 /// Wave numbers 0 ..= pi (every wave of an infinite bar; the symbols are even in theta).
 pub fn all_waves() -> Vec<f64> {
     (0..=1024).map(|k| std::f64::consts::PI * k as f64 / 1024.0).collect()
@@ -331,6 +347,8 @@ mod tests {
                 let q = (s.theta / 2.0).sin().powi(2);
                 assert!((s.r.re - (1.0 - 4.0 * a * q)).abs() < 1e-12 && (s.w2.re - 4.0 * q).abs() < 1e-12, "N = {n}: {s:?}");
             }
+            let mm = moving_mesh_bound(layout(SchemeKind::Tlmpm, n)).unwrap().unwrap();
+            assert!((mm - 1.0).abs() < 1e-6, "N = {n}: moving mesh {mm}");
             let usl = bound_of(TimeIntegrator::Usl, 1.0, &syms).unwrap();
             assert!((usl - 1.0 / (1.0 + 4.0 * a).sqrt()).abs() < 1e-6, "N = {n}: usl {usl}");
             let dhakal = bound_of(TimeIntegrator::Dhakal, 1.0, &syms).unwrap();

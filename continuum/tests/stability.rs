@@ -161,6 +161,37 @@ fn tlmpm_is_stable_below_its_derived_bound_and_grows_above() {
     assert!(failures.is_empty(), "not bounded below / growing above the derived bound:\n{}", failures.concat());
 }
 
+/// tlmpm's moving mesh (the nodal velocity carried): bounded at 0.99 of its derived bound (1 at
+/// any number of points per cell: the leapfrog on the hats' stiffness) and growing at 1.01.
+#[test]
+fn the_moving_mesh_is_stable_below_its_derived_bound_and_grows_above() {
+    let mut failures = Vec::new();
+    for n in [1, 2, 3] {
+        let layout = Layout { scheme: SchemeKind::Tlmpm, particles_per_cell: n, sub_points: 1 };
+        let bound = stability::moving_mesh_bound(layout).unwrap().unwrap();
+        let run = |cfl: f64| {
+            let mut sim = bar(layout, TimeIntegrator::Leapfrog, 1.0, cfl, |k, _| 1e-8 * noise(k));
+            sim.moving_mesh = true;
+            let start = size(&sim);
+            let mut largest: f64 = start;
+            for _ in 0..3000 {
+                if sim.step().is_err() {
+                    return f64::INFINITY;
+                }
+                largest = largest.max(size(&sim));
+            }
+            largest / start
+        };
+        let (below, above) = (run(0.99 * bound), run(1.01 * bound));
+        let line = format!("moving mesh N={n}: bound {bound:.4}, growth {below:.3e} at 0.99, {above:.3e} at 1.01\n");
+        print!("{line}");
+        if !((bound - 1.0).abs() < 1e-6 && below < 10.0 && above > 1e3) {
+            failures.push(line);
+        }
+    }
+    assert!(failures.is_empty(), "not bounded below / growing above the derived bound:\n{}", failures.concat());
+}
+
 /// One smooth wave (theta = 2 pi / CELLS) on an MPM bar: its per-step rotation (the frequency)
 /// and modulus (growth) as measured match the eigenvalue of the analysis, for usl (neutral),
 /// usf, and dhakal (growing at every dt: the first-order cycle).

@@ -54,6 +54,10 @@ pub struct Checkpoint {
     /// checkpoints, which then resume without a^{n-1} and with the counts restarted).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub implicit: Option<SavedImplicit>,
+    /// tlmpm's moving mesh: the carried nodal velocity, node by node, `dimension` components
+    /// each (empty for every other scheme, and before the moving mesh's first step).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub mesh_velocity: Vec<f64>,
 }
 
 /// What an implicit run carries past a checkpoint: a^n of the last step per nodal dof (the
@@ -271,6 +275,7 @@ impl Checkpoint {
                 prev_dt: sim.implicit.prev_dt,
                 stats: sim.implicit.stats.clone(),
             }),
+            mesh_velocity: sim.mesh_velocity.iter().flatten().copied().collect(),
         })
     }
 
@@ -354,6 +359,19 @@ impl Checkpoint {
             ),
             (Some(_), false) => bail!("the checkpoint holds implicit-integrator state but the scene's integrator is explicit"),
             (None, false) => {}
+        }
+        let mv = &self.mesh_velocity;
+        if sim.moving_mesh {
+            let n = sim.grid.node_count();
+            ensure!(
+                mv.len() == n * D || (mv.is_empty() && self.step == 0),
+                "checkpoint field mesh_velocity has {} values, the moving mesh of this scene needs {} ({n} nodes x {D}): the checkpoint is not of this scene's moving-mesh run",
+                mv.len(),
+                n * D
+            );
+            sim.mesh_velocity = mv.chunks_exact(D).map(|c| std::array::from_fn(|a| c[a])).collect();
+        } else {
+            ensure!(mv.is_empty(), "the checkpoint holds a moving mesh's nodal velocity but the scene's tlmpm_form is not \"moving-mesh\"");
         }
         sim.points = points;
         sim.time = self.time;
@@ -565,6 +583,7 @@ mod tests {
             md: None,
             driver: DriverState::default(),
             implicit: None,
+            mesh_velocity: Vec::new(),
         }
     }
 

@@ -494,6 +494,23 @@ pub struct Scheme {
     /// square root); summary.json `quasi_static` reports whether the run stayed quasi-static.
     #[serde(default = "default_scaling", skip_serializing_if = "is_one")]
     pub density_scaling: f64,
+    /// Under `tlmpm`: `total-lagrangian` (the default: the nodal velocity re-mapped from the
+    /// points every step, 6.29-6.37) or `moving-mesh` (the nodal velocity carried, 6.25-6.28;
+    /// FLIP only, bound c dt / h <= 1). Written only when not the default.
+    #[serde(default, with = "names::named", skip_serializing_if = "is_total_lagrangian")]
+    pub tlmpm_form: TlmpmForm,
+}
+
+/// `scheme.tlmpm_form`: which reference-configuration form `tlmpm` runs (continuum::tlmpm).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum TlmpmForm {
+    #[default]
+    TotalLagrangian,
+    MovingMesh,
+}
+
+fn is_total_lagrangian(f: &TlmpmForm) -> bool {
+    *f == TlmpmForm::TotalLagrangian
 }
 
 /// `scheme.adaptive`: the local-error controlled step of the implicit integrator
@@ -982,6 +999,15 @@ end_time = 1e-12
         assert!(parse_in("heat-1d.toml", &bar).is_ok());
         let e = err("heat-1d.toml", &with(&["bodies.bar.initial_strain=[0.1, 0.0, 0.0]"]));
         assert!(e.contains("`bodies.bar.initial_strain`") && e.contains("not supported under tlmpm"), "{e}");
+        // The moving mesh: its own bound (1), FLIP only, tlmpm only.
+        let mm = "scheme.tlmpm_form=\"moving-mesh\"";
+        assert!(parse_in("mms-1d-tlmpm.toml", &[mm, "scheme.cfl=0.99", "reference.amplitude=1e-4"]).is_ok());
+        let e = err("mms-1d-tlmpm.toml", &[mm, "scheme.cfl=1.1"]);
+        assert!(e.contains("`scheme.cfl` = 1.1: allowed: 0 < cfl <= 1.0000, the linear stability bound of tlmpm's moving mesh"), "{e}");
+        let e = err("mms-1d-tlmpm.toml", &[mm, "scheme.flip_fraction=0.5"]);
+        assert!(e.contains("`scheme.flip_fraction` = 0.5: the moving mesh carries the nodal velocity"), "{e}");
+        let e = err("mms-1d-tlmpm.toml", &[mm, "scheme.method=\"cpdi\"", "scheme.integrator=leapfrog"]);
+        assert!(e.contains("`scheme.tlmpm_form` = \"moving-mesh\": the moving-mesh form is a form of tlmpm"), "{e}");
     }
 
     #[test]

@@ -132,6 +132,7 @@ pub fn simulation<const D: usize>(scene: &ResolvedScene, md: Option<&Arc<Mutex<M
     sim.flip_fraction = scene.flip_fraction;
     sim.gradient_correction = scene.gradient_correction;
     sim.nullspace_filter = scene.nullspace_filter;
+    sim.moving_mesh = scene.moving_mesh;
     if let Some(m) = scene.manufactured {
         sim.body_force = Some(Arc::new(move |x0: &[f64; D], t: f64| m.body_force(x0, t)));
     }

@@ -357,6 +357,19 @@ fn tlmpm_run_resumes_to_the_same_digest() {
     );
 }
 
+/// Issue 19: tlmpm's moving mesh resumes to the uninterrupted digest: its checkpoint carries the
+/// nodal velocity (`mesh_velocity`), which is not re-mapped from the points. 1D and 2D.
+#[test]
+fn a_moving_mesh_run_resumes_to_the_same_digest() {
+    let mm = "scheme.tlmpm_form=\"moving-mesh\"";
+    resume_matches("../scenes/mms-1d-tlmpm.toml", &[mm, "output.snapshots=2", "output.plots=false"], "20");
+    resume_matches(
+        "../scenes/mms-2d.toml",
+        &["scheme.method=\"tlmpm\"", mm, "domain.cells=[8,8]", "output.snapshots=2", "output.plots=false", "output.vtk=false"],
+        "10",
+    );
+}
+
 /// Issue 19: diffusion under tlmpm (the reference form on the reference stencil, nodal values
 /// projected from the points every step) carries nothing but the points, so a resumed run
 /// ends with the uninterrupted digest; so does the pillar (its surface points, their areas and

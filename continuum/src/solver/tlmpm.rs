@@ -28,6 +28,15 @@
 //!
 //! Everything the step carries lives on the points (the nodal velocity is re-mapped from them
 //! every step), so a checkpoint of the points resumes bit for bit.
+//!
+//! **Moving mesh** (`Simulation::moving_mesh`, `scheme.tlmpm_form = "moving-mesh"`; 6.25-6.28,
+//! 6.35; the library's `Form::MovingMesh`): the nodal velocity is carried instead of re-mapped.
+//! Step 1 maps v_i from the points on the first step only (afterwards v_i is the carried
+//! `mesh_velocity`), step 5 takes v'_i = v*_i (no re-map), and with FLIP (the validator asks
+//! for flip_fraction 1) step 4 is v_p += sum S0 (v*_i - v_i): the library's v_p += dt sum S a,
+//! x_p += dt sum S v_i, F = I + sum u_i (x) G0 (accumulated as F += dt sum v_i (x) G0). The
+//! leapfrog then acts on the nodal dofs with the hats' stiffness: bound c dt / h <= 1 at any
+//! number of points per cell (`stability::moving_mesh_bound`). Checkpoints carry v_i.
 
 use super::{SolverError, StepReport, row_span};
 use crate::par;
@@ -48,12 +57,24 @@ impl<const D: usize> Simulation<D> {
             self.reference_stencil().map_err(|o| super::stencil_error(step, &o, "the reference stencil is built at X_p"))?;
         }
         let c = self.wave_speed();
+        // The nodal masses (the same every step) and v_i mapped from the points; the moving
+        // mesh carries its own v_i after its first step.
         self.map_to_grid();
+        if self.moving_mesh && self.mesh_velocity.len() == self.node_v.len() {
+            self.node_v.clone_from(&self.mesh_velocity);
+        }
         self.piola_forces();
         self.lagrangian_update(step, c)?;
         self.move_points();
-        // (6.34): the nodal velocity re-mapped from the updated points drives F.
-        self.map_to_grid();
+        if self.moving_mesh {
+            // (6.25-6.28): the updated nodal velocity is carried and drives F (u_i += dt v_i,
+            // F = I + sum u_i (x) G0_ip, as F += dt sum v_i (x) G0_ip).
+            self.node_v.clone_from(&self.node_v_lagrangian);
+            self.mesh_velocity.clone_from(&self.node_v);
+        } else {
+            // (6.34): the nodal velocity re-mapped from the updated points drives F.
+            self.map_to_grid();
+        }
         self.reference_velocity_gradients();
         self.advance_scalar(step)?;
         self.deform_and_stress(step, c)?;

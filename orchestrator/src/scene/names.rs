@@ -108,6 +108,12 @@ impl SceneName for continuum::solver::GradientCorrection {
     ];
 }
 
+impl SceneName for super::TlmpmForm {
+    const FIELD: &'static str = "tlmpm_form";
+    const NAMES: &'static [(&'static str, Self)] =
+        &[("total-lagrangian", super::TlmpmForm::TotalLagrangian), ("moving-mesh", super::TlmpmForm::MovingMesh)];
+}
+
 impl SceneName for continuum::solver::NullspaceFilter {
     const FIELD: &'static str = "nullspace_filter";
     const NAMES: &'static [(&'static str, Self)] = &[

@@ -33,6 +33,8 @@ pub struct ResolvedScene {
     pub gradient_correction: continuum::solver::GradientCorrection,
     /// `scheme.nullspace_filter` (explicit stencil schemes; global-svd 1D only).
     pub nullspace_filter: continuum::solver::NullspaceFilter,
+    /// `scheme.tlmpm_form = "moving-mesh"` (tlmpm only).
+    pub moving_mesh: bool,
     pub jacobian: continuum::solver::implicit::JacobianKind,
     /// Adaptive implicit steps (end time set), and the motion bound of a step in cells.
     pub adaptive: Option<continuum::solver::implicit::Adaptive>,

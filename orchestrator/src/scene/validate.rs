@@ -125,7 +125,7 @@ impl Scene {
     /// bound, `CFL_LIMIT` for every other scheme.
     fn explicit_cfl_limit(&self) -> f64 {
         if self.scheme.method == SchemeKind::Tlmpm {
-            tlmpm_bound(self.scheme.particles_per_cell, self.scheme.flip_fraction)
+            tlmpm_bound(self.scheme.particles_per_cell, self.scheme.flip_fraction, self.scheme.tlmpm_form)
         } else {
             CFL_LIMIT
         }
@@ -232,6 +232,7 @@ impl Scene {
             flip_fraction: s.flip_fraction,
             gradient_correction: s.gradient_correction,
             nullspace_filter: s.nullspace_filter,
+            moving_mesh: s.tlmpm_form == super::TlmpmForm::MovingMesh,
             jacobian: s.jacobian,
             adaptive: s.adaptive.as_ref().map(|a| continuum::solver::implicit::Adaptive {
                 rtol: a.rtol,
@@ -737,6 +738,25 @@ impl Scene {
                 ));
             }
         }
+        if s.tlmpm_form == super::TlmpmForm::MovingMesh {
+            if kind != SchemeKind::Tlmpm {
+                return Err(loc.err(
+                    "scheme.tlmpm_form",
+                    "\"moving-mesh\"",
+                    format!(
+                        "the moving-mesh form is a form of tlmpm (set scheme.method = \"tlmpm\"); `{}` has no reference mesh",
+                        kind.name()
+                    ),
+                ));
+            }
+            if s.flip_fraction != 1.0 {
+                return Err(loc.err(
+                    "scheme.flip_fraction",
+                    s.flip_fraction,
+                    "the moving mesh carries the nodal velocity and updates the points by FLIP only (battery thesis 6.25-6.28): leave flip_fraction at 1",
+                ));
+            }
+        }
         if kind == SchemeKind::CpdiImproved
             && let Some((face, _)) = self.boundary.faces().into_iter().find(|(_, f)| matches!(f, FaceSpec::Named(FaceName::Periodic)))
         {
@@ -857,10 +877,13 @@ impl Scene {
         }
         // The implicit integrator has no CFL bound (its bound is on motion per step, below);
         // tlmpm's is its own derived one (sqrt 3 at 2 points per cell, FLIP).
-        let tlmpm = (kind == SchemeKind::Tlmpm).then(|| tlmpm_bound(s.particles_per_cell, s.flip_fraction));
+        let tlmpm = (kind == SchemeKind::Tlmpm).then(|| tlmpm_bound(s.particles_per_cell, s.flip_fraction, s.tlmpm_form));
         let cfl_limit = if implicit { f64::INFINITY } else { tlmpm.unwrap_or(CFL_LIMIT) };
         let bound = cfl_limit * h / speed;
         let cfl_message = |implicit: bool| match tlmpm {
+            Some(b) if s.tlmpm_form == super::TlmpmForm::MovingMesh => format!(
+                "allowed: 0 < cfl <= {b:.4}, the linear stability bound of tlmpm's moving mesh (derived in continuum::stability: the leapfrog on the carried nodal velocity with the hats' stiffness)"
+            ),
             Some(b) => format!(
                 "allowed: 0 < cfl <= {b:.4}, the linear stability bound of tlmpm at {} points per cell and flip_fraction {} (derived in continuum::stability: the F update sees the re-mapped velocity)",
                 s.particles_per_cell, s.flip_fraction
@@ -1476,10 +1499,13 @@ fn validate_adaptive(loc: &Locator<'_>, a: &crate::scene::AdaptiveSpec) -> Resul
 
 /// TLMPM's derived linear bound (c dt / h) at `ppc` points per cell and the blend `flip`, rounded
 /// down to 4 digits (the hats at rest are a valid layout, so the analysis always gives one).
-fn tlmpm_bound(ppc: usize, flip: f64) -> f64 {
+fn tlmpm_bound(ppc: usize, flip: f64, form: super::TlmpmForm) -> f64 {
     let layout = continuum::stability::Layout { scheme: SchemeKind::Tlmpm, particles_per_cell: ppc, sub_points: 1 };
-    let b = continuum::stability::cfl_bound(layout, continuum::solver::TimeIntegrator::Leapfrog, flip).ok().flatten().unwrap_or(CFL_LIMIT);
-    (b * 1e4).floor() / 1e4
+    let b = match form {
+        super::TlmpmForm::TotalLagrangian => continuum::stability::cfl_bound(layout, continuum::solver::TimeIntegrator::Leapfrog, flip),
+        super::TlmpmForm::MovingMesh => continuum::stability::moving_mesh_bound(layout),
+    };
+    (b.ok().flatten().unwrap_or(CFL_LIMIT) * 1e4).floor() / 1e4
 }
 
 fn cfl_message(implicit: bool) -> String {
