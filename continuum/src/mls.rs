@@ -8,7 +8,7 @@
 //! ```
 //!
 //! (G 3.7-3.8, with the erratum of (3.8): the last factor is b(0), not b(x - x_p); this shifted
-//! form is Gong's Algorithm 1). The basis is `Shepard` (b = [1], Gong's "first-order MLS":
+//! form is Gong's Algorithm 1). The basis is `Shepard` (b = \[1\], Gong's "first-order MLS":
 //! Phi_p = w_p / sum w, a partition of unity) or `Linear` (b = [1, y_1, .., y_D], "second-order
 //! MLS", which reproduces every linear field exactly, G 3.21). The basis is scaled by the
 //! spacing, b = [1, y/h], so M is O(1) whatever the units; the shape functions do not change.
@@ -33,7 +33,7 @@ use nalgebra::{SMatrix, SVector};
 /// The polynomial basis of the reconstruction.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Basis {
-    /// b = [1]: Shepard functions, Phi_p = w_p / sum_q w_q (reproduces constants).
+    /// b = \[1\]: Shepard functions, Phi_p = w_p / sum_q w_q (reproduces constants).
     Shepard,
     /// b = [1, y]: reproduces linear fields.
     Linear,

@@ -1,12 +1,16 @@
-//! The explicit step's per-point work split over MPI ranks (issue 14 stage 2; continuum/README.md
-//! "MPI"). Every rank still holds every point (replicated state), but computes only the points
-//! of the slab tiles it owns ([`par::Tiles::owner`], the tiles whose scatter buffers it fills):
-//! their stencil rows, velocity gradients, deformation, closures, viscosity, motion and the
-//! guard's check. At the end of the step the updated point state is all-gathered, each rank's
-//! points packed tile by tile in tile order and each tile's in ascending index, and unpacked by
-//! every rank in the same order: every rank then holds the bits one process computes (each
-//! point's update reads only its own state and the nodal fields, which every rank reduces in
-//! the same tile order), whatever the number of ranks.
+//! The explicit step's per-point work split over MPI ranks (issue 14 stages 2-3;
+//! continuum/README.md "MPI"). Every rank holds an array of every point, but computes only the
+//! points of the slab tiles it owns ([`par::Tiles::owner`], the tiles whose scatter buffers it
+//! fills; shared out by measured cost, [`LoadBalance`]): their stencil rows, velocity gradients,
+//! deformation, closures, viscosity, motion and the guard's check. At the end of the step only
+//! the positions, velocities, internal energies and volumes of each rank's points are
+//! all-gathered ([`Simulation::share_moving`]), each rank's points packed tile by tile in tile
+//! order and each tile's in ascending index; the rest of another rank's point is stale here
+//! until the point moves onto this rank's tiles (sent whole: [`Simulation::migrate`]) or
+//! [`Simulation::share_all`] shares every point's whole state (outputs, checkpoints, the end).
+//! The points a rank computes hold the bits one process computes (each point's update reads
+//! only its own state and the nodal fields, which every rank reduces in the same tile order),
+//! whatever the number of ranks and the split.
 //!
 //! A failure on any rank (a point off the grid, an inverted point, a closure error, a
 //! non-finite point) is agreed at the phase where it happens: every rank calls [`agree`] after
@@ -285,7 +289,7 @@ impl<const D: usize> Simulation<D> {
     }
 
     /// Makes every point's whole state current on every rank (after split steps, the points a
-    /// rank did not compute hold only what [`Simulation::share_moving`] gives): a collective when
+    /// rank did not compute hold only what `share_moving` gives): a collective when
     /// anything is stale, so every rank calls it at the same point of the run (before reading
     /// stresses or deformation of all points: outputs, checkpoints, scores, the digest).
     /// Nothing to do on one process or when nothing is stale.
