@@ -517,7 +517,17 @@ fn attempt(
             .join(", ");
         tracing::info!("job {id}: on workers {shares}");
     }
-    let outcome = loaded.run(&opts);
+    // The job on a rayon pool of its own: its stepping thread is a worker of that pool, so a
+    // parallel loop too short to split runs inline on it instead of a futex hand-off to the pool
+    // per loop (10x on small scenes; see `mscale run`'s run_on_pool), and a job waiting inside a
+    // loop can only take up its own tasks, never another job's run. Same results on any pool.
+    let outcome = match rayon::ThreadPoolBuilder::new().thread_name(|k| format!("job-{k}")).build() {
+        Ok(pool) => pool.install(|| loaded.run(&opts)),
+        Err(e) => {
+            tracing::warn!("job {id}: cannot start its thread pool ({e}); running on the shared one");
+            loaded.run(&opts)
+        }
+    };
     lock(&core.aborts).retain(|addr, _| !assigned.iter().any(|w| &w.ad.address == addr));
     outcome
 }
