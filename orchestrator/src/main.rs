@@ -683,7 +683,7 @@ fn dispatch(cli: Cli) -> i32 {
 /// `mscale run`'s one run, on a worker thread of rayon's global pool (`rayon::scope` called
 /// from outside the pool runs its closure there): a parallel loop too short to split then runs
 /// inline on that thread instead of being handed to the pool and waited for (a futex wake and
-/// sleep per loop). On the 80-point silicon film (50,000 leapfrog steps) 32.8 s -> 2.84 s on
+/// sleep per loop). On the 40-point silicon film (50,000 leapfrog steps) 32.8 s -> 2.84 s on
 /// one thread and 13.1 s -> 3.9 s on two, the same digest. Not for the job service, whose
 /// concurrent jobs would then steal each other's whole runs while waiting inside a loop.
 fn run_on_pool(loaded: &Loaded, opts: &run::RunOptions) -> anyhow::Result<run::Outcome> {
