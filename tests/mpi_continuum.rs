@@ -1,10 +1,11 @@
 //! The continuum over MPI ranks (continuum's and orchestrator's cargo feature `mpi`, issue 14
-//! stages 1 and 2): `mpirun -np N mscale run SCENE` gives the `state_digest` of the
+//! stages 1-3): `mpirun -np N mscale run SCENE` gives the `state_digest` of the
 //! single-process run for N = 1, 2, 3 (and 4 on the 3D scene; oversubscribed), on a 1D, a 2D
 //! and a 3D scene under every gradient scheme the validator offers in that dimension; a
 //! checkpoint written on 2 ranks resumes on 3 to the uninterrupted digest; the coupled bar
 //! (md bodies, in-process MD or two `md-worker serve`) has the one-process digest over 2 and 3
-//! ranks with each box computed once.
+//! ranks with each box computed once; the tiles shared out over the ranks by cost (never moved,
+//! once, every step, with points migrating between ranks) give the one-process digest.
 //!
 //! Needs an `mscale` built with `--features mpi` (`bash deploy/setup.sh mpi`, then
 //! `cargo build -p orchestrator --features mpi --bin mscale`); set `MSCALE_MPI_MSCALE` to that
