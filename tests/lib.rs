@@ -10,6 +10,15 @@ pub fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
+/// `MSCALE_MPI_MSCALE`: an mscale built with `--features mpi` (CI's mpi step builds it), for the
+/// tests that run the continuum over MPI ranks (mpirun or srun).
+pub fn mpi_mscale() -> PathBuf {
+    match std::env::var_os("MSCALE_MPI_MSCALE") {
+        Some(p) if !p.is_empty() && std::path::Path::new(&p).is_file() => PathBuf::from(p),
+        _ => panic!("MSCALE_MPI_MSCALE is unset or not a file: set it to an mscale built with --features mpi (see .ci/run)"),
+    }
+}
+
 /// A small valid 1D scene (ideal-gas shock tube, 50 cells) to mutate in tests.
 pub fn small_scene() -> String {
     std::fs::read_to_string(repo().join("tests/data/small.toml")).expect("tests/data/small.toml")

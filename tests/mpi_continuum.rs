@@ -15,16 +15,9 @@
 //! (tests/build.rs) these tests are ignored; with it (CI's mpi step) they run and fail when MPI
 //! or the binary is missing. `MSCALE_MPIRUN` overrides the launcher (default `mpirun`).
 
-use mscale_tests::repo;
-use std::path::{Path, PathBuf};
+use mscale_tests::{mpi_mscale, repo};
+use std::path::Path;
 use std::process::Command;
-
-fn mpi_mscale() -> PathBuf {
-    match std::env::var_os("MSCALE_MPI_MSCALE") {
-        Some(p) if !p.is_empty() && Path::new(&p).is_file() => PathBuf::from(p),
-        _ => panic!("MSCALE_MPI_MSCALE is unset or not a file: set it to an mscale built with --features mpi (see .ci/run)"),
-    }
-}
 
 /// Runs `scene` with `set` into a fresh directory under `tmp`, over `ranks` MPI ranks (None: no
 /// mpirun), and returns the state_digest of its summary.json.

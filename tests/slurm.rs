@@ -19,7 +19,7 @@
 // A panic is how these tests report a failure, also in their helper functions.
 #![allow(clippy::unwrap_used)]
 
-use mscale_tests::{binary, repo};
+use mscale_tests::{binary, mpi_mscale, repo};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Mutex;
@@ -307,14 +307,6 @@ fn the_cluster_sbatch_runs_a_job_survives_a_killed_worker_step_and_resumes_after
     ok(Command::new("scancel").arg(&e));
     wait_ended(&e, Duration::from_secs(60));
     assert!(workers.contains("SERVING") && workers.contains("listening on 0.0.0.0:"), "md-workers.sbatch:\n{workers}");
-}
-
-/// `MSCALE_MPI_MSCALE`: an mscale built with `--features mpi` (CI's mpi step builds it).
-fn mpi_mscale() -> PathBuf {
-    match std::env::var_os("MSCALE_MPI_MSCALE").filter(|p| !p.is_empty()) {
-        Some(p) if Path::new(&p).is_file() => PathBuf::from(p),
-        _ => panic!("MSCALE_MPI_MSCALE is unset or not a file: set it to an mscale built with --features mpi (see .ci/run)"),
-    }
 }
 
 /// mms-2d on 16 x 24 cells (six slab tiles), long enough to scancel mid-run.
