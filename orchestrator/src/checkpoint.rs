@@ -294,6 +294,18 @@ impl Checkpoint {
         let points = self.points.to_particles::<D>()?;
         ensure!(points.len() == sim.points.len(), "the checkpoint has {} material points, the scene {}", points.len(), sim.points.len());
         ensure!(points.body == sim.points.body, "the checkpoint's points belong to other bodies than the scene's");
+        // A point's half-lengths are set by the scene and never change in a run: a checkpoint
+        // whose half-lengths differ is not of this scene (a huge one made the uGIMP stencil
+        // loop over 10^18 nodes: found by the checkpoint fuzzer).
+        if let Some(p) =
+            (0..points.len()).find(|&p| (0..D).any(|a| points.half_length[p][a].to_bits() != sim.points.half_length[p][a].to_bits()))
+        {
+            bail!(
+                "checkpoint field half_length of point {p} is {:?}, the scene gives {:?}: the checkpoint is damaged or of another scene",
+                points.half_length[p],
+                sim.points.half_length[p]
+            );
+        }
         let vec_d = |name: &str, v: &[f64]| -> Result<[f64; D]> {
             ensure!(v.len() == D, "checkpoint field {name} has {} components, expected {D}", v.len());
             Ok(std::array::from_fn(|a| v[a]))
