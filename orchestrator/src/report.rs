@@ -286,6 +286,12 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], comp
     if manufactured {
         csv.push_str("displacement_l2,velocity_l2,stress_l2,");
     }
+    // Runs against a heat series add its RMS errors at the end (points, nodes, nodes off the
+    // Dirichlet faces) and the FLIP fraction beta that the thesis's tables compare.
+    let heat = is_heat(rows);
+    if heat {
+        csv.push_str("flip_fraction,dirichlet,end_time,rms_points,rms_nodes,rms_interior_nodes,");
+    }
     csv.push_str("run_dir\n");
     for (k, r) in rows.iter().enumerate() {
         for v in &r.values {
@@ -324,21 +330,36 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], comp
                 let _ = write!(csv, "{},", field(s, &["errors", q]));
             }
         }
+        if heat {
+            for q in ["flip_fraction", "dirichlet", "time_s", "rms_points", "rms_nodes", "rms_interior_nodes"] {
+                let _ = write!(csv, "{},", field(s, &["errors", q]));
+            }
+        }
         let _ = writeln!(csv, "runs/{k:03}");
     }
     output::write_atomic(&out.join("report.csv"), csv.as_bytes())?;
     plot(rows, &out.join("report.png"), times, component)
 }
 
+/// Whether the rows were scored against a heat series (`[reference] solution = "heat-series"`).
+fn is_heat(rows: &[Row]) -> bool {
+    rows.iter().any(|r| r.summary["errors"]["reference"] == "heat-series")
+}
+
 /// Error against wall time on log-log axes, one series per method: pressure L1 over the jump,
-/// or with a reference the eq. 7.12 error at the last reference time.
+/// the displacement L2 against a manufactured solution, the points' RMS against a heat series
+/// (one series per method and FLIP fraction), or with a direct-MD reference the eq. 7.12 error
+/// at the last reference time.
 fn plot(rows: &[Row], path: &Path, times: &[f64], component: &str) -> Result<()> {
     let manufactured = rows.iter().any(|r| r.summary["errors"]["reference"] == "manufactured");
+    let heat = is_heat(rows);
     let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     for r in rows {
         let s = &r.summary;
         let e = if manufactured {
             s["errors"]["displacement_l2"].as_f64()
+        } else if heat {
+            s["errors"]["rms_points"].as_f64()
         } else if times.is_empty() {
             s["errors"]["pressure_l1"].as_f64()
         } else {
@@ -348,7 +369,9 @@ fn plot(rows: &[Row], path: &Path, times: &[f64], component: &str) -> Result<()>
         if s["status"] != "completed" || !(t > 0.0 && e > 0.0) {
             continue;
         }
-        let method = field(s, &["method"]);
+        // A heat series: one line per scheme and FLIP fraction (the tables' beta columns).
+        let method =
+            if heat { format!("{} beta {}", field(s, &["method"]), field(s, &["errors", "flip_fraction"])) } else { field(s, &["method"]) };
         match series.iter_mut().find(|(m, _)| *m == method) {
             Some((_, pts)) => pts.push((t, e)),
             None => series.push((method, vec![(t, e)])),
@@ -364,6 +387,15 @@ fn plot(rows: &[Row], path: &Path, times: &[f64], component: &str) -> Result<()>
             "displacement error against wall time (manufactured solution)",
             "wall time (s)",
             "displacement L2 error",
+            &refs,
+        );
+    }
+    if heat {
+        return output::plot_loglog(
+            path,
+            "points' RMS error against the heat series at the end, against wall time",
+            "wall time (s)",
+            "RMS error of the points' values",
             &refs,
         );
     }

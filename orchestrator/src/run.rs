@@ -286,6 +286,8 @@ fn heat_series_errors<const D: usize>(loaded: &LoadedScene, sim: &Simulation<D>)
         "reference": "heat-series",
         "measure": "sqrt(mean (c - c_exact)^2) at the end, c_exact the Fourier series (battery thesis 6.95 in 1D, 6.98 in 2D; 6.97 with its square)",
         "time_s": sim.time,
+        "flip_fraction": d.flip,
+        "dirichlet": format!("{:?}", d.dirichlet).to_lowercase(),
         "rms_points": num(particles),
         "rms_nodes": all_nodes.map(num),
         "rms_interior_nodes": interior_nodes.map(num),

@@ -202,6 +202,49 @@ fn report_error_vs_time_runs_every_combination() {
 }
 
 #[test]
+fn report_error_vs_time_scores_a_heat_series_per_scheme_and_flip_fraction() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("rep");
+    let scene = repo().join("scenes/heat-1d.toml");
+    let o = mscale(&[
+        "report",
+        "error-vs-time",
+        scene.to_str().expect("utf8"),
+        "--set",
+        "scheme.end_time=0.005",
+        "--sweep",
+        "scheme.method=mpm,ugimp",
+        "--sweep",
+        "diffusion.flip_fraction=1,0.99",
+        "--out",
+        out.to_str().expect("utf8"),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "stderr: {}", text(&o.stderr));
+    let csv = std::fs::read_to_string(out.join("report.csv")).expect("report.csv");
+    let rows: Vec<Vec<&str>> = csv.lines().map(|l| l.split(',').collect()).collect();
+    let col = |name: &str| rows[0].iter().position(|c| *c == name).unwrap_or_else(|| panic!("no column {name} in {:?}", rows[0]));
+    assert_eq!(rows.len(), 5);
+    let num = |r: &[&str], name: &str| -> f64 { r[col(name)].parse().unwrap_or_else(|_| panic!("{name} of {r:?}")) };
+    for r in &rows[1..] {
+        assert_eq!(r[col("status")], "completed");
+        assert_eq!(num(r, "flip_fraction"), num(r, "diffusion.flip_fraction"));
+        assert_eq!(r[col("dirichlet")], "rate");
+        assert!((num(r, "end_time") - 0.005).abs() < 1e-12, "{r:?}");
+        for q in ["rms_points", "rms_nodes", "rms_interior_nodes"] {
+            let e = num(r, q);
+            assert!(e > 0.0 && e < 0.5, "{q} = {e} in {r:?}");
+        }
+    }
+    // Table 6.1's first row (GIMP, t = 0.005): beta = 1 gives 0.0375 at the points, beta = 0.99
+    // more (0.0534): the report carries the thesis's columns.
+    let ugimp_1 = rows.iter().find(|r| r[0] == "ugimp" && r[1] == "1").expect("ugimp beta 1");
+    let ugimp_99 = rows.iter().find(|r| r[0] == "ugimp" && r[1] == "0.99").expect("ugimp beta 0.99");
+    assert!((num(ugimp_1, "rms_points") - 0.0375).abs() < 5e-4, "{ugimp_1:?}");
+    assert!((num(ugimp_99, "rms_points") - 0.0534).abs() < 5e-4, "{ugimp_99:?}");
+    assert_eq!(&std::fs::read(out.join("report.png")).expect("png")[..4], b"\x89PNG");
+}
+
+#[test]
 fn report_scores_against_a_direct_md_reference() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("rep");
