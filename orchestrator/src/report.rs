@@ -377,8 +377,12 @@ fn plot(rows: &[Row], path: &Path, times: &[f64], component: &str) -> Result<()>
             None => series.push((method, vec![(t, e)])),
         }
     }
-    for (_, pts) in &mut series {
-        pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // Each line in order of cost; a heat series' runs (fractions of a second, all schemes the
+    // same work at rest) in sweep order instead, so that timing noise does not zigzag the lines.
+    if !heat {
+        for (_, pts) in &mut series {
+            pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+        }
     }
     let refs: Vec<output::Series<'_>> = series.iter().map(|(m, p)| output::Series { label: m, points: p.clone(), line: true }).collect();
     if manufactured {
