@@ -97,6 +97,7 @@ const METHODS_2D: &[&str] = &[
     "cpgimp",
     "cpdi2",
     "cpdi-improved",
+    "cpdi1-improved",
     "ddmp",
     "ddmp-subpoints;scheme.sub_points=4",
     "impm",
@@ -110,6 +111,7 @@ const METHODS_3D: &[&str] = &[
     "cpgimp",
     "cpdi2",
     "cpdi-improved",
+    "cpdi1-improved",
     "ddmp",
     "ddmp-subpoints;scheme.sub_points=4",
     "impm",
@@ -519,9 +521,9 @@ fn every_gradient_scheme_of_each_dimension_is_covered() {
         v.sort();
         v
     };
-    // Every scheme is offered in 1D (the unknown name's refusal lists them all); 2D and 3D
-    // refuse the 1D-only `cpdi` with their own list.
-    let all = sorted(allowed("scenes/shock-tube-weak.toml", &[], "no-such-scheme", "allowed: "));
+    // Each dimension's list from its refusal of a scheme it does not define: 1D refuses the
+    // 2D/3D-only `cpdi1-improved`, 2D and 3D the 1D-only `cpdi`.
+    let all = sorted(allowed("scenes/shock-tube-weak.toml", &[], "cpdi1-improved", "a 1D scene allows: "));
     let two = sorted(allowed("scenes/mms-2d.toml", &[], "cpdi", "a 2D scene allows: "));
     let three = sorted(allowed("scenes/mms-2d.toml", CUBE, "cpdi", "a 3D scene allows: "));
     assert_eq!(names("ddmp-subpoints", METHODS_1D), all, "1D");

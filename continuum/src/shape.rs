@@ -37,6 +37,9 @@ pub enum SchemeKind {
     /// (linear basis, cubic B-spline) at the nodes. 1D: the 1D CPDI; 2D/3D: cpdi2 (tracked
     /// corners) with the same map [proposed extension; Gong gives 1D only].
     CpdiImproved,
+    /// The same improved CPDI on cpdi1's domains (the parallelogram or parallelepiped x_p +/-
+    /// F r0_a, not tracked corners), 2D and 3D [proposed extension, as `cpdi-improved` there].
+    Cpdi1Improved,
     /// Total-Lagrangian MPM (battery thesis 6.1, notes C.1): hat functions, their gradients and
     /// the nodal masses at the points' reference positions X_p, computed once; first
     /// Piola-Kirchhoff forces; the PIC/FLIP blend of (6.33); F updated with the re-mapped nodal
@@ -57,6 +60,7 @@ impl SchemeKind {
         ("ddmp-subpoints", SchemeKind::DdmpSubpoints),
         ("impm", SchemeKind::Impm),
         ("cpdi-improved", SchemeKind::CpdiImproved),
+        ("cpdi1-improved", SchemeKind::Cpdi1Improved),
         ("tlmpm", SchemeKind::Tlmpm),
     ];
 
@@ -69,10 +73,12 @@ impl SchemeKind {
     }
 
     /// Whether the scheme is defined in `dim` dimensions (`cpdi` is the 1D form; 2D and 3D
-    /// name `cpdi1` or `cpdi2`).
+    /// name `cpdi1` or `cpdi2`; `cpdi1-improved` is the 2D/3D choice of base that 1D does not
+    /// have).
     pub fn supports_dimension(self, dim: usize) -> bool {
         match self {
             SchemeKind::Cpdi => dim == 1,
+            SchemeKind::Cpdi1Improved => (2..=3).contains(&dim),
             _ => (1..=3).contains(&dim),
         }
     }
@@ -80,6 +86,17 @@ impl SchemeKind {
     /// Whether the scheme moves the points' domain corners with the grid every step.
     pub fn tracks_corners(self) -> bool {
         matches!(self, SchemeKind::Cpdi | SchemeKind::Cpdi2 | SchemeKind::CpdiImproved)
+    }
+
+    /// Gong's improved CPDI (6.6) on either base: CPDI mass and forces, MLS nodal velocities.
+    pub fn is_cpdi_improved(self) -> bool {
+        matches!(self, SchemeKind::CpdiImproved | SchemeKind::Cpdi1Improved)
+    }
+
+    /// Whether the scheme maps the points' velocities to the nodes by MLS (impm and the
+    /// improved CPDIs) instead of the shape functions' mass-weighted average.
+    pub fn maps_velocity_by_mls(self) -> bool {
+        self == SchemeKind::Impm || self.is_cpdi_improved()
     }
 
     /// Whether the scheme uses the modified gradient of DDMP.

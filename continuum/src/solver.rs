@@ -478,7 +478,9 @@ impl<const D: usize> Simulation<D> {
                         // TLMPM builds its stencil once, at X_p (`solver/tlmpm.rs`); hats here.
                         SchemeKind::Impm | SchemeKind::Tlmpm => shape::gimp_row(SchemeKind::Mpm, grid, pts, p, part)?,
                         SchemeKind::Cpdi | SchemeKind::Cpdi1 | SchemeKind::Cpdi2 => shape::cpdi_row(scheme, grid, pts, p, block, part)?,
-                        SchemeKind::CpdiImproved => shape::cpdi_row(impm::improved_cpdi_base::<D>(), grid, pts, p, block, part)?,
+                        SchemeKind::CpdiImproved | SchemeKind::Cpdi1Improved => {
+                            shape::cpdi_row(impm::improved_cpdi_base::<D>(scheme), grid, pts, p, block, part)?
+                        }
                         SchemeKind::Ddmp | SchemeKind::DdmpSubpoints => {
                             ddmp::ddmp_row(grid, pts, p, &subs[p * ns..(p + 1) * ns], field, block, part)?
                         }

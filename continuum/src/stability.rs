@@ -92,10 +92,10 @@ pub fn symbols(layout: Layout, thetas: &[f64]) -> Result<Vec<Symbol>, String> {
     let pts = bar_points(n);
     let law = LinearPiola { youngs_modulus: 1.0, poisson_ratio: 0.0, density0: 1.0 };
     // cpdi-improved keeps the CPDI stencil and maps velocities by MLS (below).
-    let mls_map = layout.scheme == SchemeKind::CpdiImproved;
+    let mls_map = layout.scheme.is_cpdi_improved();
     // tlmpm's stencil is the hats at the reference positions: at rest, mpm's.
     let stencil_scheme = match layout.scheme {
-        SchemeKind::CpdiImproved => SchemeKind::Cpdi,
+        SchemeKind::CpdiImproved | SchemeKind::Cpdi1Improved => SchemeKind::Cpdi,
         SchemeKind::Tlmpm => SchemeKind::Mpm,
         k => k,
     };

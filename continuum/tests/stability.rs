@@ -17,7 +17,9 @@ const CELLS: usize = 16;
 /// A bar of `CELLS` unit cells (rho = E = 1, so c = 1 and cfl = dt), `ppc` points per cell,
 /// velocities `v(x)`.
 fn bar(layout: Layout, integrator: TimeIntegrator, flip: f64, cfl: f64, v: impl Fn(usize, f64) -> f64) -> Simulation<1> {
-    let periodic = layout.scheme != SchemeKind::Impm;
+    // The MLS velocity maps (impm, cpdi-improved) do not wrap around a periodic axis: a bar
+    // with fixed ends, the perturbation in its interior cells.
+    let periodic = !layout.scheme.maps_velocity_by_mls();
     let face = if periodic { Face::Periodic } else { Face::Fixed };
     let grid = Grid::<1> { origin: [0.0], h: [1.0], cells: [CELLS], faces: [(face.clone(), face)] };
     let n = layout.particles_per_cell;
@@ -81,6 +83,9 @@ fn layouts() -> Vec<Layout> {
         }
     }
     v.push(Layout { scheme: SchemeKind::DdmpSubpoints, particles_per_cell: 2, sub_points: 4 });
+    // The improved CPDI: the CPDI stencil with the MLS velocity map (2 points per cell, as the
+    // MLS support needs near the ends).
+    v.push(Layout { scheme: SchemeKind::CpdiImproved, particles_per_cell: 2, sub_points: 1 });
     v
 }
 
@@ -95,7 +100,8 @@ fn integrators(scheme: SchemeKind) -> Vec<TimeIntegrator> {
 /// Every scheme with usl, leapfrog, usf and stormer-verlet (impm: leapfrog), FLIP and a 0.5 blend
 /// (stormer-verlet: FLIP): bounded at
 /// 0.99 of the bound, growing at 1.01 (impm: growing at 1.01 only; its interior bound is not
-/// sufficient at the bar's fixed ends).
+/// sufficient at the bar's fixed ends; cpdi-improved with usf: bounded at 0.99 of the
+/// validator's cap of 1, below its interior bound, for the same reason).
 #[test]
 fn every_explicit_combination_is_stable_below_its_derived_bound_and_grows_above() {
     let mut table = String::new();
@@ -106,13 +112,19 @@ fn every_explicit_combination_is_stable_below_its_derived_bound_and_grows_above(
             let blends: &[f64] = if integrator == TimeIntegrator::StormerVerlet { &[1.0] } else { &[1.0, 0.5] };
             for &flip in blends {
                 let waves =
-                    if layout.scheme == SchemeKind::Impm { stability::all_waves() } else { stability::waves_of_periodic_bar(CELLS) };
+                    if layout.scheme.maps_velocity_by_mls() { stability::all_waves() } else { stability::waves_of_periodic_bar(CELLS) };
                 let syms = stability::symbols(layout, &waves).unwrap();
                 let bound = stability::bound_of(integrator, flip, &syms).unwrap();
-                let below = growth(layout, integrator, flip, 0.99 * bound, 3000);
+                // cpdi-improved with usf: the interior bound (1.96 FLIP, 1.82 at 0.5) is not
+                // sufficient at the fixed bar's ends (measured growth 4.9e5 / 6.6e5 at 0.99 of
+                // it); what the validator enforces there is its cap cfl <= 1, so the bar is run
+                // below that cap.
+                let cap = if layout.scheme == SchemeKind::CpdiImproved && integrator == TimeIntegrator::Usf { 1.0 } else { f64::INFINITY };
+                let below_at = 0.99 * bound.min(cap);
+                let below = growth(layout, integrator, flip, below_at, 3000);
                 let above = growth(layout, integrator, flip, 1.01 * bound, 3000);
                 let line = format!(
-                    "{} N={} x{} {:?} flip {flip}: bound {bound:.4}, growth {below:.3e} at 0.99, {above:.3e} at 1.01\n",
+                    "{} N={} x{} {:?} flip {flip}: bound {bound:.4}, growth {below:.3e} at cfl {below_at:.4}, {above:.3e} at 1.01 of the bound\n",
                     layout.scheme.name(),
                     layout.particles_per_cell,
                     layout.sub_points,

@@ -144,7 +144,7 @@ impl<const D: usize> Simulation<D> {
     /// replaces the velocity by the MLS map (Gong 6.6), keeping the CPDI mass.
     pub(super) fn map_velocities(&mut self, step: u64) -> Result<(), SolverError> {
         self.map_to_grid();
-        if self.scheme == SchemeKind::CpdiImproved {
+        if self.scheme.is_cpdi_improved() {
             let table = self.mls_velocity_table(step)?;
             self.apply_velocity_table(&table);
         }
@@ -152,9 +152,14 @@ impl<const D: usize> Simulation<D> {
     }
 }
 
-/// The CPDI whose mass and forces `cpdi-improved` keeps: the 1D CPDI, or cpdi2 in 2D/3D.
-pub(super) fn improved_cpdi_base<const D: usize>() -> SchemeKind {
-    if D == 1 { SchemeKind::Cpdi } else { SchemeKind::Cpdi2 }
+/// The CPDI whose mass and forces an improved CPDI keeps: `cpdi-improved` the 1D CPDI, or
+/// cpdi2 in 2D/3D; `cpdi1-improved` cpdi1.
+pub(super) fn improved_cpdi_base<const D: usize>(scheme: SchemeKind) -> SchemeKind {
+    match scheme {
+        SchemeKind::Cpdi1Improved => SchemeKind::Cpdi1,
+        _ if D == 1 => SchemeKind::Cpdi,
+        _ => SchemeKind::Cpdi2,
+    }
 }
 
 /// The multi-index of cell `c` (axis 0 fastest, as the nodes).

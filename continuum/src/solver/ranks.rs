@@ -134,7 +134,7 @@ impl<const D: usize> Simulation<D> {
         let ex = par::exchange().filter(|e| e.size() > 1)?;
         let explicit =
             matches!(self.integrator, TimeIntegrator::Dhakal | TimeIntegrator::Leapfrog | TimeIntegrator::Usl | TimeIntegrator::Usf);
-        let scheme = !matches!(self.scheme, SchemeKind::Impm | SchemeKind::CpdiImproved);
+        let scheme = !self.scheme.maps_velocity_by_mls();
         let extras = self.gradient_correction == GradientCorrection::None
             && self.nullspace_filter == NullspaceFilter::None
             && self.diffusion.is_none();

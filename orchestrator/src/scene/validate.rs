@@ -96,6 +96,7 @@ impl Scene {
         let Some(cfl) = s.cfl else { return Ok(()) };
         let scheme = match s.method {
             SchemeKind::Cpdi1 | SchemeKind::Cpdi2 => SchemeKind::Cpdi,
+            SchemeKind::Cpdi1Improved => SchemeKind::CpdiImproved,
             k => k,
         };
         let layout = continuum::stability::Layout { scheme, particles_per_cell: s.particles_per_cell, sub_points: s.sub_points };
@@ -698,8 +699,14 @@ impl Scene {
                 format!("{:?}", kind.name()),
                 if kind == SchemeKind::Cpdi {
                     format!("`{}` is the 1D CPDI; a {dim}D scene allows: {}", kind.name(), ok.join(", "))
+                } else if kind == SchemeKind::Cpdi1Improved {
+                    format!(
+                        "`{}` chooses cpdi1 as the base of the improved CPDI in 2D and 3D; in 1D `cpdi-improved` is the improved 1D CPDI; a {dim}D scene allows: {}",
+                        kind.name(),
+                        ok.join(", ")
+                    )
                 } else {
-                    format!("`{}` is 1D only in this build; a {dim}D scene allows: {}", kind.name(), ok.join(", "))
+                    format!("`{}` is not defined in {dim}D in this build; a {dim}D scene allows: {}", kind.name(), ok.join(", "))
                 },
             ));
         }
@@ -757,13 +764,13 @@ impl Scene {
                 ));
             }
         }
-        if kind == SchemeKind::CpdiImproved
+        if kind.is_cpdi_improved()
             && let Some((face, _)) = self.boundary.faces().into_iter().find(|(_, f)| matches!(f, FaceSpec::Named(FaceName::Periodic)))
         {
             return Err(loc.err(
                 &format!("boundary.{face}"),
                 "\"periodic\"",
-                "cpdi-improved's MLS velocity map does not wrap around a periodic axis in this build",
+                format!("{}'s MLS velocity map does not wrap around a periodic axis in this build", kind.name()),
             ));
         }
         if !(1..=64).contains(&s.particles_per_cell) {
@@ -825,7 +832,7 @@ impl Scene {
             let points = self.domain.cells.iter().product::<usize>().saturating_mul(s.particles_per_cell.saturating_pow(dim as u32));
             let why = if kind == SchemeKind::Tlmpm {
                 Some("tlmpm updates F from the re-mapped nodal velocity and never forms the filtered velocity gradient; the filters apply to mpm, ugimp, cpgimp, cpdi, cpdi1, cpdi2, ddmp, ddmp-subpoints".to_string())
-            } else if matches!(kind, SchemeKind::Impm | SchemeKind::CpdiImproved) {
+            } else if kind.maps_velocity_by_mls() {
                 Some(format!(
                     "`{}` maps velocities to the nodes by MLS, whose nullspace these filters do not address; the filters apply to mpm, ugimp, cpgimp, cpdi, cpdi1, cpdi2, ddmp, ddmp-subpoints",
                     kind.name()
