@@ -25,14 +25,14 @@ merge() { # merge NAME DIR... : the first report's header, then every report's r
 }
 m="--sweep domain.cells=[32],[128],[512],[2048]"
 if part mms; then
-report scenes/mms-1d.toml --sweep scheme.method=mpm,ugimp,cpgimp,cpdi,cpdi-improved,impm,ddmp $m --out "$out/mms-a"
+report scenes/mms-1d.toml --sweep scheme.method=mpm,ugimp,cpgimp,cpdi,cpdi-improved,impm,ddmp,tlmpm $m --out "$out/mms-a"
 report scenes/mms-1d.toml --sweep scheme.method=ddmp-subpoints $m --set scheme.sub_points=8 --out "$out/mms-b"
 merge mms-1d-g0.1 "$out/mms-a" "$out/mms-b"
 cp "$out/mms-a/report.png" "$here/mms-1d-g0.1.png"
 fi
 m2="--sweep domain.cells=[8,8],[16,16],[32,32],[64,64]"
 if part mms2d; then
-report scenes/mms-2d.toml --sweep scheme.method=mpm,ugimp,cpgimp,cpdi1,cpdi2,cpdi-improved,impm,ddmp $m2 --out "$out/mms2d-a"
+report scenes/mms-2d.toml --sweep scheme.method=mpm,ugimp,cpgimp,cpdi1,cpdi2,cpdi-improved,cpdi1-improved,impm,ddmp,tlmpm $m2 --out "$out/mms2d-a"
 report scenes/mms-2d.toml --sweep scheme.method=ddmp-subpoints $m2 --sweep scheme.sub_points=4,8,16 --out "$out/mms2d-b"
 merge mms-2d-g0.1 "$out/mms2d-a"
 merge mms-2d-g0.1-subpoints "$out/mms2d-b"   # one more column (the sub-points swept)
@@ -42,7 +42,7 @@ for tube in $(part tubes && echo weak strong); do
   s=scenes/shock-tube-$tube.toml
   report $s --sweep scheme.method=mpm,ugimp,cpgimp,cpdi,cpdi-improved,ddmp $cells --set scheme.sub_points=1 --out "$out/$tube-a"
   report $s --sweep scheme.method=ddmp-subpoints $cells --out "$out/$tube-b"
-  report $s --sweep scheme.method=impm $cells --set scheme.sub_points=1 --set scheme.integrator=leapfrog --out "$out/$tube-c"
+  report $s --sweep scheme.method=impm,tlmpm $cells --set scheme.sub_points=1 --set scheme.integrator=leapfrog --out "$out/$tube-c"
   merge shock-tube-$tube "$out/$tube-a" "$out/$tube-b" "$out/$tube-c"
   cp "$out/$tube-a/report.png" "$here/shock-tube-$tube.png"
 done
