@@ -4,7 +4,7 @@
 # and diffusion problems over schemes and the FLIP fraction beta (issue 19). Run from the
 # repository root after `cargo build --release -p orchestrator --bin mscale`:
 #   bash continuum/docs/error-vs-time/run.sh [OUT [PART ...]]   (OUT default runs/error-vs-time;
-#   PART: mms, mms2d, tubes, heat; default all)
+#   PART: mms, mms2d, mms2d-small, tubes, heat; default all)
 # A scene may need several reports, because `report error-vs-time` sweeps one setting per key and
 # the schemes need different ones: sub-points only for ddmp-subpoints, the leapfrog for impm.
 # The merged tables (one header, rows in sweep order) are written next to this script.
@@ -13,7 +13,7 @@ cd "$(dirname "$0")/../../.."
 bin=${MSCALE:-target/release/mscale}
 out=${1:-runs/error-vs-time}
 shift || true
-parts=${*:-mms mms2d tubes heat}
+parts=${*:-mms mms2d mms2d-small tubes heat}
 part() { [[ " $parts " == *" $1 "* ]]; }
 here=continuum/docs/error-vs-time
 cells="--sweep domain.cells=[125],[250],[500],[1000]"
@@ -37,6 +37,13 @@ report scenes/mms-2d.toml --sweep scheme.method=ddmp-subpoints $m2 --sweep schem
 merge mms-2d-g0.1 "$out/mms2d-a"
 merge mms-2d-g0.1-subpoints "$out/mms2d-b"   # one more column (the sub-points swept)
 cp "$out/mms2d-a/report.png" "$here/mms-2d-g0.1.png"
+fi
+# The small-strain amplitude in 2D: every scheme second order (README "The same in 2D at G = 1e-4").
+if part mms2d-small; then
+report scenes/mms-2d.toml --sweep scheme.method=mpm,ugimp,cpgimp,cpdi1,cpdi2,cpdi-improved,cpdi1-improved,impm,ddmp,tlmpm $m2 --set reference.amplitude=1e-4 --out "$out/mms2d-small-a"
+report scenes/mms-2d.toml --sweep scheme.method=ddmp-subpoints $m2 --set reference.amplitude=1e-4 --set scheme.sub_points=4 --out "$out/mms2d-small-b"
+merge mms-2d-g1e-4 "$out/mms2d-small-a" "$out/mms2d-small-b"
+cp "$out/mms2d-small-a/report.png" "$here/mms-2d-g1e-4.png"
 fi
 for tube in $(part tubes && echo weak strong); do
   s=scenes/shock-tube-$tube.toml
