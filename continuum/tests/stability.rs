@@ -99,9 +99,9 @@ fn integrators(scheme: SchemeKind) -> Vec<TimeIntegrator> {
 
 /// Every scheme with usl, leapfrog, usf and stormer-verlet (impm: leapfrog), FLIP and a 0.5 blend
 /// (stormer-verlet: FLIP): bounded at
-/// 0.99 of the bound, growing at 1.01 (impm: growing at 1.01 only; its interior bound is not
-/// sufficient at the bar's fixed ends; cpdi-improved with usf: bounded at 0.99 of the
-/// validator's cap of 1, below its interior bound, for the same reason).
+/// 0.99 of the bound, growing at 1.01 (impm, and cpdi-improved with usf: bounded at 0.99 of the
+/// validator's cap of 1, below their interior bound, which is not sufficient at the bar's fixed
+/// ends).
 #[test]
 fn every_explicit_combination_is_stable_below_its_derived_bound_and_grows_above() {
     let mut table = String::new();

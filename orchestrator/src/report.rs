@@ -282,13 +282,13 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], comp
         csv.push_str("scored_points,");
     }
     // Runs against a manufactured solution add its three L2 errors.
-    let manufactured = rows.iter().any(|r| r.summary["errors"]["reference"] == "manufactured");
+    let manufactured = scored_against(rows, "manufactured");
     if manufactured {
         csv.push_str("displacement_l2,velocity_l2,stress_l2,");
     }
     // Runs against a heat series add its RMS errors at the end (points, nodes, nodes off the
     // Dirichlet faces) and the FLIP fraction beta that the thesis's tables compare.
-    let heat = is_heat(rows);
+    let heat = scored_against(rows, "heat-series");
     if heat {
         csv.push_str("flip_fraction,dirichlet,end_time,rms_points,rms_nodes,rms_interior_nodes,");
     }
@@ -341,9 +341,9 @@ fn write_outputs(sweeps: &[Sweep], rows: &[Row], out: &Path, times: &[f64], comp
     plot(rows, &out.join("report.png"), times, component)
 }
 
-/// Whether the rows were scored against a heat series (`[reference] solution = "heat-series"`).
-fn is_heat(rows: &[Row]) -> bool {
-    rows.iter().any(|r| r.summary["errors"]["reference"] == "heat-series")
+/// Whether the rows were scored against the reference `solution` (summary.json `errors.reference`).
+fn scored_against(rows: &[Row], solution: &str) -> bool {
+    rows.iter().any(|r| r.summary["errors"]["reference"] == solution)
 }
 
 /// Error against wall time on log-log axes, one series per method: pressure L1 over the jump,
@@ -351,8 +351,8 @@ fn is_heat(rows: &[Row]) -> bool {
 /// (one series per method and FLIP fraction), or with a direct-MD reference the eq. 7.12 error
 /// at the last reference time.
 fn plot(rows: &[Row], path: &Path, times: &[f64], component: &str) -> Result<()> {
-    let manufactured = rows.iter().any(|r| r.summary["errors"]["reference"] == "manufactured");
-    let heat = is_heat(rows);
+    let manufactured = scored_against(rows, "manufactured");
+    let heat = scored_against(rows, "heat-series");
     let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     for r in rows {
         let s = &r.summary;
