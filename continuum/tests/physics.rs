@@ -405,7 +405,7 @@ fn conservation<const D: usize>(mut s: Simulation<D>, steps: usize) -> f64 {
 #[test]
 fn every_scheme_conserves_mass_and_momentum_in_1d_and_2d() {
     for (scheme, sub) in registry(1) {
-        if matches!(scheme, SchemeKind::Impm | SchemeKind::CpdiImproved) {
+        if scheme.maps_velocity_by_mls() {
             // IMPM conserves the points' mass but not momentum (velocity map, quadrature mass):
             // a free bar, its drift measured (see mls_bar). cpdi-improved does conserve it (the
             // FLIP increments come from forces that sum to zero, whatever the mapped velocity).
@@ -491,7 +491,7 @@ fn every_scheme_gives_the_same_state_on_one_and_two_threads_in_1d_and_2d() {
         rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool").install(f)
     };
     for (scheme, sub) in registry(1) {
-        if matches!(scheme, SchemeKind::Impm | SchemeKind::CpdiImproved) {
+        if scheme.maps_velocity_by_mls() {
             let run = || {
                 let mut s = mls_bar(scheme);
                 for _ in 0..30 {
