@@ -304,7 +304,7 @@ pub fn compute_forces(pot: &Potential, b: &mut BoxView, rho: &mut Vec<f64>, fp: 
         }
         let (pe, w) = match pot {
             Potential::Eam(t) if t.masses.len() == 1 && crate::intra::enabled() => {
-                crate::intra::eam_forces(simd_path(), t, b.list, &s.xu, &s.shift, l, b.f, rho, fp)
+                crate::intra::eam_forces(simd_path(), t, b.list, &s.xu, &s.shift, b.meta.lo, l, b.meta.skin, b.f, rho, fp)
             }
             Potential::Eam(t) if t.masses.len() == 1 => match simd_path() {
                 SimdPath::Scalar => eam_forces::<true>(t, b, s, rho, fp),

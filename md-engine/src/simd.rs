@@ -195,9 +195,12 @@ struct Inner {
 
 impl Inner {
     /// Whether the filtered list still holds every pair within `rc` of the list built with
-    /// key `key`, for unwrapped positions `xu` in the box (`lo`, `l`).
-    fn valid(&self, key: (u64, u64, u64), xu: &[[f64; 3]], lo: [f64; 3], l: [f64; 3], rc: f64) -> bool {
-        if key.0 == 0 || self.key != key || self.xref.len() != xu.len() || self.start.len() != xu.len() + 1 {
+    /// key `key` for its `rows` rows, whose pairs name the atoms `atoms` (None: every atom of
+    /// `xu`), for unwrapped positions `xu` in the box (`lo`, `l`).
+    #[allow(clippy::too_many_arguments)]
+    fn valid(&self, key: (u64, u64, u64), xu: &[[f64; 3]], atoms: Option<&[u32]>, rows: usize, lo: [f64; 3], l: [f64; 3], rc: f64) -> bool {
+        let m = atoms.map_or(xu.len(), <[u32]>::len);
+        if key.0 == 0 || self.key != key || self.xref.len() != m || self.start.len() != rows + 1 {
             return false;
         }
         let ratio: [f64; 3] = std::array::from_fn(|d| l[d] / self.l[d]);
@@ -209,7 +212,8 @@ impl Inner {
             return false;
         }
         let lim = 0.25 * margin * margin;
-        xu.iter().zip(&self.xref).all(|(p, q)| {
+        self.xref.iter().enumerate().all(|(w, q)| {
+            let p = xu[atoms.map_or(w, |a| a[w] as usize)];
             let mut d2 = 0.0;
             for d in 0..3 {
                 let e = p[d] - (lo[d] + (q[d] - self.lo[d]) * ratio[d]);
@@ -218,6 +222,183 @@ impl Inner {
             d2 <= lim
         })
     }
+
+    /// How this evaluation reads its rows (see [`valid`](Self::valid) for the arguments):
+    /// the filtered list while valid, else the whole list, re-filtered on the way (prepared
+    /// here) when `filtering` (decodable images and a skin wider than the filter's).
+    #[allow(clippy::too_many_arguments)]
+    fn begin(
+        &mut self,
+        filtering: bool,
+        key: (u64, u64, u64),
+        xu: &[[f64; 3]],
+        atoms: Option<&[u32]>,
+        rows: usize,
+        lo: [f64; 3],
+        l: [f64; 3],
+        rc: f64,
+        cap: usize,
+    ) -> Filtering {
+        self.evaluations += 1;
+        if !filtering {
+            return Filtering::Off;
+        }
+        if self.valid(key, xu, atoms, rows, lo, l, rc) {
+            return Filtering::Reuse;
+        }
+        self.filters += 1;
+        self.key = key;
+        self.start.clear();
+        self.start.push(0);
+        self.j.clear();
+        self.code.clear();
+        self.xref.clear();
+        match atoms {
+            Some(a) => self.xref.extend(a.iter().map(|&w| xu[w as usize])),
+            None => self.xref.extend_from_slice(xu),
+        }
+        (self.lo, self.l) = (lo, l);
+        // The filtering geometry pass stores 8 entries at a time from the filtered length.
+        self.j.reserve(cap);
+        self.code.reserve(cap);
+        Filtering::Refilter
+    }
+
+    /// After the last row: the padding that `geometry4::<_, true>` reads unmasked (atom 0).
+    fn end(&mut self, mode: Filtering) {
+        if mode == Filtering::Refilter {
+            self.j.extend([0; 8]);
+            self.code.extend([0; 8]);
+        }
+    }
+}
+
+/// How an evaluation reads the rows of its neighbour list ([`Inner::begin`]).
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Filtering {
+    /// The whole list.
+    Off,
+    /// The filtered list.
+    Reuse,
+    /// The whole list, filtered into [`Inner`] on the way.
+    Refilter,
+}
+
+/// What the geometry of a row reads (the box and the block kernels).
+struct RowInput<'a> {
+    path: SimdPath,
+    list: &'a NeighborList,
+    xu: &'a [[f64; 3]],
+    shift: &'a [[f64; 3]],
+    /// Positions padded to 4 f64 per atom (used with `images`).
+    x4: *const f64,
+    images: Option<&'a Images>,
+    cut2: f64,
+    /// (cut-off + [`INNER_SKIN`])^2, the filter's radius squared.
+    rin2: f64,
+}
+
+/// Row `i` (row `r` of the evaluation's rows, `Inner`'s numbering) read as `mode` says: its
+/// pairs within the cut-off appended to `s` from `np` in list order (and, when re-filtering,
+/// its entries within the filter's radius appended to `inner`); returns the new `np`.
+///
+/// # Safety
+/// `g.path` is supported by the CPU; `s`'s pair buffers hold `np` + the row's length + 8
+/// entries (`s.k` too when re-filtering off AVX-512); `inner.j`/`code` have room for the
+/// row's length + 8 more when re-filtering; without `images`, every atom and code of the list
+/// indexes `xu`/`shift` (the vector paths check them as they load otherwise).
+unsafe fn geometry_row(g: &RowInput, mode: Filtering, inner: &mut Inner, s: &mut Scratch, i: usize, r: usize, np: usize) -> usize {
+    let list = g.list;
+    let n = g.xu.len();
+    let row = list.start[i] as usize..list.start[i + 1] as usize;
+    let (js, codes) = if mode == Filtering::Reuse {
+        let f = inner.start[r] as usize..inner.start[r + 1] as usize;
+        (&inner.j[f.clone()], &inner.code[f])
+    } else {
+        (&list.j[row.clone()], &list.code[row.clone()])
+    };
+    let rin2 = g.rin2;
+    let (xp, sp) = (g.xu.as_ptr() as *const f64, g.shift.as_ptr() as *const f64);
+    let xi = g.xu[i];
+    // SAFETY: the caller's contract; the padded reads of `geometry4::<_, true>` stay inside
+    // the filtered list's padding ([`Inner::end`]).
+    let np1 = unsafe {
+        match (g.path, mode, g.images) {
+            #[cfg(target_arch = "x86_64")]
+            (SimdPath::Avx512, Filtering::Reuse, Some(img)) => {
+                avx512::geometry4::<false, true>(xi, js, codes, g.x4, img, n, g.cut2, s, i, np, 0)
+            }
+            #[cfg(target_arch = "x86_64")]
+            (SimdPath::Avx512, Filtering::Off, Some(img)) => {
+                avx512::geometry4::<false, false>(xi, js, codes, g.x4, img, n, g.cut2, s, i, np, 0)
+            }
+            #[cfg(target_arch = "x86_64")]
+            (SimdPath::Avx512, Filtering::Refilter, Some(img)) => {
+                let no = inner.j.len();
+                let (np1, no1) = avx512::geometry4_filter(
+                    xi,
+                    &list.j[row.clone()],
+                    &list.code[row.clone()],
+                    g.x4,
+                    img,
+                    n,
+                    g.cut2,
+                    rin2,
+                    s,
+                    i,
+                    np,
+                    inner.j.as_mut_ptr(),
+                    inner.code.as_mut_ptr(),
+                    no,
+                );
+                inner.j.set_len(no1);
+                inner.code.set_len(no1);
+                np1
+            }
+            #[cfg(target_arch = "x86_64")]
+            (SimdPath::Avx512, _, None) => avx512::geometry(xi, js, codes, xp, sp, g.cut2, s, i, np),
+            #[cfg(target_arch = "x86_64")]
+            (SimdPath::Avx2, Filtering::Refilter, Some(img)) => {
+                // Every entry within the filter's radius, with its list entry, then those
+                // within the cut-off compacted in place.
+                let np1 =
+                    avx2::geometry4::<true>(xi, &list.j[row.clone()], &list.code[row.clone()], g.x4, img, n, rin2, s, i, np, row.start);
+                let mut w = np;
+                for q in np..np1 {
+                    let k = s.k[q] as usize;
+                    inner.j.push(list.j[k]);
+                    inner.code.push(list.code[k]);
+                    let keep = s.r[q] < g.cut2;
+                    (s.dx[w], s.dy[w], s.dz[w], s.r[w], s.j[w]) = (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.j[q]);
+                    w += keep as usize;
+                }
+                w
+            }
+            #[cfg(target_arch = "x86_64")]
+            (SimdPath::Avx2, _, Some(img)) => avx2::geometry4::<false>(xi, js, codes, g.x4, img, n, g.cut2, s, i, np, 0),
+            #[cfg(target_arch = "x86_64")]
+            (SimdPath::Avx2, _, None) => avx2::geometry(xi, js, codes, xp, sp, g.cut2, s, i, np),
+            _ => {
+                // The scalar kernel's geometry.
+                let mut np = np;
+                for (&j, &c) in js.iter().zip(codes) {
+                    let (xj, sf) = (g.xu[j as usize], g.shift[c as usize]);
+                    let d = [xi[0] - xj[0] - sf[0], xi[1] - xj[1] - sf[1], xi[2] - xj[2] - sf[2]];
+                    let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                    if r2 < g.cut2 {
+                        (s.dx[np], s.dy[np], s.dz[np], s.r[np]) = (d[0], d[1], d[2], r2);
+                        (s.i[np], s.j[np]) = (i as i32, j as i32);
+                        np += 1;
+                    }
+                }
+                np
+            }
+        }
+    };
+    if mode == Filtering::Refilter {
+        inner.start.push(inner.j.len() as u32);
+    }
+    np1
 }
 
 /// (filters, evaluations) of [`eam_forces_one`]'s filtered list on this thread so far.
@@ -331,8 +512,6 @@ pub(crate) fn eam_forces_one(
     };
     // Row loads read 8 f64 from any row m <= nr - 1 (rows 0..=nr exist).
     assert!(t.rhor[t.type2rhor[0][0]].len() > t.nr && t.z2r[t.type2z2r[0][0]].len() > t.nr);
-    let xp = xu.as_ptr() as *const f64;
-    let sp = shift.as_ptr() as *const f64;
     // The geometry passes decode image codes arithmetically and check atoms and codes as they
     // load; for a list whose images they cannot decode, the gathers need it checked here.
     let images = Images::of(list, l);
@@ -352,29 +531,12 @@ pub(crate) fn eam_forces_one(
     // (only with decodable images and a skin wider than the filter's).
     let mut inner = std::mem::take(&mut s.inner);
     let key = (list.generation, t.cutforcesq.to_bits(), skin.to_bits());
-    let filtering = images.is_some() && INNER_SKIN < skin;
-    let reuse = filtering && inner.valid(key, xu, lo, l, t.cutoff);
-    let refilter = filtering && !reuse;
-    inner.evaluations += 1;
-    if refilter {
-        inner.filters += 1;
-        inner.key = key;
-        inner.start.clear();
-        inner.start.push(0);
-        inner.j.clear();
-        inner.code.clear();
-        inner.xref.clear();
-        inner.xref.extend_from_slice(xu);
-        (inner.lo, inner.l) = (lo, l);
-        if s.k.len() < cap {
-            s.k.resize(cap, 0);
-        }
-        // The filtering geometry pass stores 8 entries at a time from the filtered length.
-        inner.j.reserve(cap);
-        inner.code.reserve(cap);
+    let mode = inner.begin(images.is_some() && INNER_SKIN < skin, key, xu, None, n, lo, l, t.cutoff, cap);
+    if mode == Filtering::Refilter && s.k.len() < cap {
+        s.k.resize(cap, 0);
     }
     let rin = t.cutoff + INNER_SKIN;
-    let rin2 = rin * rin;
+    let g = RowInput { path, list, xu, shift, x4, images: images.as_ref(), cut2: tab.cut2, rin2: rin * rin };
     // Density pass.
     let mut np = 0usize;
     let mut i0 = 0;
@@ -382,83 +544,11 @@ pub(crate) fn eam_forces_one(
         let q0 = np;
         let mut i1 = i0;
         while i1 < n && np - q0 < BLOCK {
-            let row = list.start[i1] as usize..list.start[i1 + 1] as usize;
-            let (js, codes) = if reuse {
-                let r = inner.start[i1] as usize..inner.start[i1 + 1] as usize;
-                (&inner.j[r.clone()], &inner.code[r])
-            } else {
-                (&list.j[row.clone()], &list.code[row.clone()])
-            };
-            // Filtering: the pairs within the filter's radius (with their list entries), then
-            // those within the cut-off compacted in place.
-            let (cut2, kb) = if refilter { (rin2, row.start) } else { (tab.cut2, 0) };
-            let np0 = np;
-            // SAFETY: the path is supported (asserted); js/codes index xu/shift (asserted, or
-            // checked as they load); every buffer holds list.len() + PAD entries and
-            // np + js.len() <= list.len() (a filtered row is a part of its list row).
-            np = unsafe {
-                match (path, refilter) {
-                    #[cfg(target_arch = "x86_64")]
-                    (SimdPath::Avx512, false) => match &images {
-                        // The filtered list is padded (below); the whole list is not.
-                        Some(img) if reuse => avx512::geometry4::<false, true>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
-                        Some(img) => avx512::geometry4::<false, false>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
-                        None => avx512::geometry(xu[i1], js, codes, xp, sp, cut2, s, i1, np),
-                    },
-                    #[cfg(target_arch = "x86_64")]
-                    (SimdPath::Avx512, true) => match &images {
-                        Some(img) => {
-                            let no = inner.j.len();
-                            let (np1, no1) = avx512::geometry4_filter(
-                                xu[i1],
-                                &list.j[row.clone()],
-                                &list.code[row.clone()],
-                                x4,
-                                img,
-                                n,
-                                tab.cut2,
-                                rin2,
-                                s,
-                                i1,
-                                np,
-                                inner.j.as_mut_ptr(),
-                                inner.code.as_mut_ptr(),
-                                no,
-                            );
-                            inner.j.set_len(no1);
-                            inner.code.set_len(no1);
-                            np1
-                        }
-                        None => unreachable!("filtering needs images"),
-                    },
-                    #[cfg(target_arch = "x86_64")]
-                    (SimdPath::Avx2, false) => match &images {
-                        Some(img) => avx2::geometry4::<false>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
-                        None => avx2::geometry(xu[i1], js, codes, xp, sp, cut2, s, i1, np),
-                    },
-                    #[cfg(target_arch = "x86_64")]
-                    (SimdPath::Avx2, true) => match &images {
-                        Some(img) => avx2::geometry4::<true>(xu[i1], js, codes, x4, img, n, cut2, s, i1, np, kb),
-                        None => unreachable!("filtering needs images"),
-                    },
-                    _ => unreachable!("checked above"),
-                }
-            };
-            if refilter && path != SimdPath::Avx512 {
-                let mut w = np0;
-                for q in np0..np {
-                    let k = s.k[q] as usize;
-                    inner.j.push(list.j[k]);
-                    inner.code.push(list.code[k]);
-                    let keep = s.r[q] < tab.cut2;
-                    (s.dx[w], s.dy[w], s.dz[w], s.r[w], s.j[w]) = (s.dx[q], s.dy[q], s.dz[q], s.r[q], s.j[q]);
-                    w += keep as usize;
-                }
-                np = w;
-            }
-            if refilter {
-                inner.start.push(inner.j.len() as u32);
-            }
+            // SAFETY: the path is supported (asserted); atoms and codes are checked (above,
+            // or as they load); every buffer holds list.len() + PAD entries and
+            // np + the row's length <= list.len() (a filtered row is a part of its list row);
+            // `inner` has room reserved by `begin`.
+            np = unsafe { geometry_row(&g, mode, &mut inner, s, i1, i1, np) };
             s.row_end.push(np as u32);
             i1 += 1;
         }
@@ -498,11 +588,7 @@ pub(crate) fn eam_forces_one(
         }
         i0 = i1;
     }
-    if refilter {
-        // Padding for the unmasked offset reads of `geometry4::<_, true>`: atom 0.
-        inner.j.extend([0; 8]);
-        inner.code.extend([0; 8]);
-    }
+    inner.end(mode);
     s.inner = inner;
     // Embedding pass (as the scalar kernel).
     let mut pe = 0.0;
@@ -584,20 +670,27 @@ pub(crate) struct Shared<'a> {
     /// Positions padded to 4 f64 per atom (empty when `images` is None).
     x4: Vec<f64>,
     images: Option<Images>,
+    lo: [f64; 3],
+    l: [f64; 3],
+    skin: f64,
 }
 
 // SAFETY: `Tab`'s pointers address the potential's tables, borrowed for 'a and only read.
 unsafe impl Sync for Shared<'_> {}
 
 impl<'a> Shared<'a> {
-    /// The shared state of one evaluation on `path` (any path, `Scalar` included).
+    /// The shared state of one evaluation on `path` (any path, `Scalar` included), for the box
+    /// (`lo`, `l`) and a list built with `skin`.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn new(
         path: SimdPath,
         t: &'a EamTables,
         list: &'a NeighborList,
         xu: &'a [[f64; 3]],
         shift: &'a [[f64; 3]],
+        lo: [f64; 3],
         l: [f64; 3],
+        skin: f64,
     ) -> Shared<'a> {
         assert!(path.is_supported(), "simd path {path} not runnable here");
         assert!(t.masses.len() == 1 && t.nr >= 2 && xu.len() + 1 == list.start.len());
@@ -617,7 +710,7 @@ impl<'a> Shared<'a> {
             assert!(list.j.iter().all(|&j| (j as usize) < n) && list.code.iter().all(|&c| (c as usize) < shift.len()));
         }
         let x4 = if images.is_some() { xu.iter().flat_map(|p| [p[0], p[1], p[2], 0.0]).collect() } else { Vec::new() };
-        Shared { path, tab, t, list, xu, shift, x4, images }
+        Shared { path, tab, t, list, xu, shift, x4, images, lo, l, skin }
     }
 }
 
@@ -631,15 +724,19 @@ fn spline_index(r: f64, rdr: f64, nr: usize) -> (usize, f64) {
 }
 
 /// Threaded kernel, first pass of one block of rows: the pairs within the cut-off of rows
-/// `rows` into `s` (kept for [`block_force`]), each pair's density value into `vcol` at its
-/// list entry (`vcol` covers the rows' entries; entries outside the cut-off get 0.0), and
-/// each row's own sum, in list order, into `rho_row`. The same operations in the same order
-/// as the serial kernels, on every path.
-pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut Scratch, vcol: &mut [f64], rho_row: &mut [f64]) {
+/// `rows` into `s` (kept for [`block_force`]; each pair's window slot in `s.k`), and the
+/// block's density sums into its window `win` (zeroed here). The window's slots are the atoms
+/// `atoms` (the rows first, in order, then every neighbour the rows' list entries name);
+/// `map` is per-thread scratch of one entry per atom. Within the block the additions are the
+/// serial kernels' (`rho[j] += v` in list order, each row's own sum added after its row), on
+/// every path. The rows read the block's own filtered list (`s`'s [`Inner`], as the box kernel
+/// does; bitwise the same pairs in the same order).
+pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut Scratch, atoms: &[u32], map: &mut [u32], win: &mut [f64]) {
     let list = sh.list;
-    let kb0 = list.start[rows.start] as usize;
-    let ne = list.start[rows.end] as usize - kb0;
-    assert!(vcol.len() == ne && rho_row.len() == rows.len());
+    let n = sh.xu.len();
+    let ne = list.start[rows.end] as usize - list.start[rows.start] as usize;
+    assert!(win.len() == atoms.len() && atoms.len() >= rows.len() && map.len() == n);
+    assert!(atoms[..rows.len()].iter().zip(rows.clone()).all(|(&a, i)| a as usize == i));
     let cap = ne + PAD;
     for v in [&mut s.dx, &mut s.dy, &mut s.dz, &mut s.r, &mut s.frac] {
         if v.len() < cap {
@@ -652,42 +749,37 @@ pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut S
         }
     }
     s.row_end.clear();
-    let n = sh.xu.len();
+    let mut inner = std::mem::take(&mut s.inner);
+    let key = (list.generation, sh.tab.cut2.to_bits(), sh.skin.to_bits());
+    let filtering = sh.images.is_some() && INNER_SKIN < sh.skin;
+    let mode = inner.begin(filtering, key, sh.xu, Some(atoms), rows.len(), sh.lo, sh.l, sh.t.cutoff, cap);
+    let rin = sh.t.cutoff + INNER_SKIN;
+    let g = RowInput {
+        path: sh.path,
+        list,
+        xu: sh.xu,
+        shift: sh.shift,
+        x4: sh.x4.as_ptr(),
+        images: sh.images.as_ref(),
+        cut2: sh.tab.cut2,
+        rin2: rin * rin,
+    };
     let mut np = 0usize;
-    for i in rows.clone() {
-        let row = list.start[i] as usize..list.start[i + 1] as usize;
-        let kb = row.start;
-        let (js, codes) = (&list.j[row.clone()], &list.code[row]);
-        match (&sh.images, sh.path) {
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: the path is supported (asserted in `Shared::new`); atoms and codes are
-            // checked as they load; the buffers hold ne + PAD entries and np + js.len() <= ne.
-            (Some(img), SimdPath::Avx512) => {
-                np = unsafe {
-                    avx512::geometry4::<true, false>(sh.xu[i], js, codes, sh.x4.as_ptr(), img, n, sh.tab.cut2, s, i, np, kb - kb0)
-                }
-            }
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: as above.
-            (Some(img), SimdPath::Avx2) => {
-                np = unsafe { avx2::geometry4::<true>(sh.xu[i], js, codes, sh.x4.as_ptr(), img, n, sh.tab.cut2, s, i, np, kb - kb0) }
-            }
-            _ => {
-                // The scalar kernel's geometry (atoms and codes checked in `Shared::new`).
-                let xi = sh.xu[i];
-                for (e, (&j, &c)) in js.iter().zip(codes).enumerate() {
-                    let (xj, sf) = (sh.xu[j as usize], sh.shift[c as usize]);
-                    let d = [xi[0] - xj[0] - sf[0], xi[1] - xj[1] - sf[1], xi[2] - xj[2] - sf[2]];
-                    let r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-                    if r2 < sh.tab.cut2 {
-                        (s.dx[np], s.dy[np], s.dz[np], s.r[np]) = (d[0], d[1], d[2], r2);
-                        (s.i[np], s.j[np], s.k[np]) = (i as i32, j as i32, (kb - kb0 + e) as i32);
-                        np += 1;
-                    }
-                }
-            }
-        }
+    for (r, i) in rows.clone().enumerate() {
+        // SAFETY: the path is supported (asserted in `Shared::new`); atoms and codes are
+        // checked there or as they load; the buffers hold ne + PAD entries and np + the row's
+        // length <= ne; `inner` has room reserved by `begin`.
+        np = unsafe { geometry_row(&g, mode, &mut inner, s, i, r, np) };
         s.row_end.push(np as u32);
+    }
+    inner.end(mode);
+    s.inner = inner;
+    // Each pair's window slot (every neighbour of the rows is in `atoms`).
+    for (w, &a) in atoms.iter().enumerate() {
+        map[a as usize] = w as u32;
+    }
+    for q in 0..np {
+        s.k[q] = map[s.j[q] as usize] as i32;
     }
     // Harmless lanes after the last pair (the vector passes read up to a full width).
     for q in np..np + 8 {
@@ -714,38 +806,36 @@ pub(crate) fn block_density(sh: &Shared, rows: std::ops::Range<usize>, s: &mut S
             }
         }
     }
-    vcol.fill(0.0);
+    win.fill(0.0);
     let mut q = 0;
     for (ri, &end) in s.row_end.iter().enumerate() {
         let mut rho_i = 0.0;
         while q < end as usize {
             let v = s.blk[q];
             rho_i += v;
-            vcol[s.k[q] as usize] = v;
+            win[s.k[q] as usize] += v;
             q += 1;
         }
-        rho_row[ri] = rho_i;
+        win[ri] += rho_i;
     }
 }
 
 /// Threaded kernel, second pass of one block (after [`block_density`] on the same `s` and
-/// `rows`, and the embedding pass of every atom: `fp`): each pair's force `d * fpair` into
-/// `fcol` at its list entry (0.0 outside the cut-off), each row's own force sum in list order
-/// into `fi_row`; returns the block's pair energy and virial, summed in pair order.
+/// `rows`, and the embedding pass of every atom: `fp`): the block's force sums into its window
+/// `winf` (zeroed here; the slots [`block_density`] left in `s.k`: `f[j] -= d * fpair` in list order, each
+/// row's own sum added after its row); returns the block's pair energy and virial, summed in
+/// pair order.
 pub(crate) fn block_force(
     sh: &Shared,
     rows: std::ops::Range<usize>,
     s: &mut Scratch,
     fp: &[f64],
-    fcol: &mut [[f64; 3]],
-    fi_row: &mut [[f64; 3]],
+    winf: &mut [[f64; 3]],
 ) -> (f64, [f64; 6]) {
-    let list = sh.list;
-    let kb0 = list.start[rows.start] as usize;
-    assert!(fcol.len() == list.start[rows.end] as usize - kb0 && fi_row.len() == rows.len() && s.row_end.len() == rows.len());
+    assert!(winf.len() >= rows.len() && s.row_end.len() == rows.len());
     assert!(fp.len() == sh.xu.len());
     let np = s.row_end.last().map_or(0, |e| *e as usize);
-    fcol.fill([0.0; 3]);
+    winf.fill([0.0; 3]);
     let (mut pe, mut w) = (0.0, [0.0f64; 6]);
     let mut row = 0usize;
     let mut fi = [0.0f64; 3];
@@ -793,7 +883,7 @@ pub(crate) fn block_force(
         for k in 0..len {
             let q = q0 + k;
             while q >= s.row_end[row] as usize {
-                fi_row[row] = fi;
+                add3(&mut winf[row], fi);
                 fi = [0.0; 3];
                 row += 1;
             }
@@ -803,7 +893,10 @@ pub(crate) fn block_force(
             fi[0] += fd[0];
             fi[1] += fd[1];
             fi[2] += fd[2];
-            fcol[s.k[q] as usize] = fd;
+            let fj = &mut winf[s.k[q] as usize];
+            fj[0] -= fd[0];
+            fj[1] -= fd[1];
+            fj[2] -= fd[2];
             for c in 0..6 {
                 w[c] += at(4 + c);
             }
@@ -814,11 +907,18 @@ pub(crate) fn block_force(
         }
     }
     while row < rows.len() {
-        fi_row[row] = fi;
+        add3(&mut winf[row], fi);
         fi = [0.0; 3];
         row += 1;
     }
     (pe, w)
+}
+
+#[inline(always)]
+fn add3(a: &mut [f64; 3], b: [f64; 3]) {
+    a[0] += b[0];
+    a[1] += b[1];
+    a[2] += b[2];
 }
 
 #[cfg(target_arch = "x86_64")]
