@@ -15,6 +15,10 @@ use crate::lattice::{self, LatticeKind};
 use crate::neighbor::NeighborList;
 use crate::potential::Potential;
 use crate::units::{EV_PER_A3_TO_GPA, FTM2V, MVV2E};
+use rayon::prelude::*;
+
+/// Atoms per task of the bar's integration loops.
+const CHUNK: usize = 4096;
 
 /// A region [x0, x1) of the reference bar (A) with an initial engineering strain along x.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -297,32 +301,41 @@ impl Bar {
         // Out of the bar while its view borrows the rest.
         let frozen = std::mem::take(&mut self.frozen);
         let simd = self.simd;
+        // Velocity Verlet, atom by atom over the current pool (elementwise: the same bits for
+        // any thread count). Frozen atoms are never integrated.
+        let kick = |types: &[u32], v: &mut [[f64; 3]], f: &[[f64; 3]]| {
+            v.par_chunks_mut(CHUNK).enumerate().for_each(|(k, vc)| {
+                for (i, vi) in (k * CHUNK..).zip(vc) {
+                    if !frozen[i] {
+                        let h = dtfm[types[i] as usize];
+                        for d in 0..3 {
+                            vi[d] += h * f[i][d];
+                        }
+                    }
+                }
+            })
+        };
+        let drift = |x: &mut [[f64; 3]], v: &[[f64; 3]]| {
+            x.par_chunks_mut(CHUNK).enumerate().for_each(|(k, xc)| {
+                for (i, xi) in (k * CHUNK..).zip(xc) {
+                    if !frozen[i] {
+                        for d in 0..3 {
+                            xi[d] += dt * v[i][d];
+                        }
+                    }
+                }
+            })
+        };
         for _ in 0..steps {
-            for i in 0..self.x.len() {
-                if frozen[i] {
-                    continue;
-                }
-                let h = dtfm[self.types[i] as usize];
-                for d in 0..3 {
-                    self.v[i][d] += h * self.f[i][d];
-                    self.x[i][d] += dt * self.v[i][d];
-                }
-            }
+            kick(&self.types, &mut self.v, &self.f);
+            drift(&mut self.x, &self.v);
             let mut b = self.view();
             // Frozen atoms never move, and lie inside the box, so wrapping leaves them be.
             if kernel::needs_rebuild(&pot, &b) {
                 kernel::rebuild(&pot, &mut b);
             }
             kernel::with_simd(simd, || kernel::compute_forces(&pot, &mut b, &mut rho, &mut fp));
-            for i in 0..b.x.len() {
-                if frozen[i] {
-                    continue;
-                }
-                let h = dtfm[b.types[i] as usize];
-                for d in 0..3 {
-                    b.v[i][d] += h * b.f[i][d];
-                }
-            }
+            kick(b.types, b.v, b.f);
             b.meta.step += 1;
             self.time_ps += dt;
         }

@@ -336,7 +336,7 @@ mod tests {
     #[test]
     fn any_thread_count_and_path_gives_the_same_bits_near_the_serial_trajectory() {
         let p = pot("Cu_mishin1.eam.alloy");
-        // 4,000 atoms: 63 blocks, the last one short.
+        // 4,000 atoms: 16 blocks, the last one short.
         let cells = [10, 10, 10];
         let serial = run_bits(&p, cells, SimdPath::Scalar, None, 30);
         let one = run_bits(&p, cells, SimdPath::Scalar, Some(1), 30);

@@ -22,7 +22,7 @@ pub struct NeighborList {
     /// Image vectors n (in box lengths) by code.
     pub images: Vec<[i32; 3]>,
     /// Which build this is (unique in the process; 0: never built): the threaded kernel keys
-    /// its column index on it (`intra.rs`). Not saved.
+    /// its blocks' windows on it (`intra.rs`). Not saved.
     #[serde(skip)]
     pub generation: u64,
 }

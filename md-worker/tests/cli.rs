@@ -322,7 +322,8 @@ fn eval_of_two_atoms_at_one_place_is_refused() {
 #[test]
 fn direct_gives_the_same_bytes_for_any_thread_count() {
     let dir = tempfile::tempdir().unwrap();
-    // 16 x 3 x 3 cells (576 atoms, 9 blocks of the threaded kernel), hot, pre-compressed.
+    // 32 x 3 x 3 cells (1,152 atoms, 5 blocks of the threaded kernel, the last one short), hot,
+    // pre-compressed.
     let run = |threads: &str| {
         let csv = dir.path().join(format!("bar-{threads}.csv"));
         let out = md_worker(&[
@@ -332,9 +333,9 @@ fn direct_gives_the_same_bytes_for_any_thread_count() {
             "--a0",
             "3.615",
             "--cells",
-            "16,3,3",
+            "32,3,3",
             "--region",
-            "0:28.92:-0.03",
+            "0:57.84:-0.03",
             "--temperature",
             "300",
             "--steps",
