@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-pub use mscale_testkit::{Listening, Proc, state_digest, summary, text};
+pub use mscale_testkit::{Listening, Proc, state_digest, summary, text, token_dir, wait_until};
 
 /// Root of the repository.
 pub fn repo() -> PathBuf {

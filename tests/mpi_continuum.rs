@@ -5,7 +5,9 @@
 //! checkpoint written on 2 ranks resumes on 3 to the uninterrupted digest; the coupled bar
 //! (md bodies, in-process MD or two `md-worker serve`) has the one-process digest over 2 and 3
 //! ranks with each box computed once; the tiles shared out over the ranks by cost (never moved,
-//! once, every step, with points migrating between ranks) give the one-process digest.
+//! once, every step, with points migrating between ranks) give the one-process digest; the
+//! job service runs a job submitted with `--ranks 2` over 2 ranks to the one-process digest, and
+//! a cancelled one ends cancelled with a checkpoint that resumes on 3 ranks.
 //!
 //! Needs an `mscale` built with `--features mpi` (`bash deploy/setup.sh mpi`, then
 //! `cargo build -p orchestrator --features mpi --bin mscale`); set `MSCALE_MPI_MSCALE` to that
@@ -623,4 +625,95 @@ fn a_coupled_bar_over_2_and_3_ranks_and_2_workers_has_the_digest_of_one_process(
         assert_eq!(steps, steps1, "mpirun -np {n}: the workers' atom-steps against one process's");
         eprintln!("md-small, two workers, {n} ranks: digest {d}, {steps} atom-steps on the workers (one process: {steps1})");
     }
+}
+
+/// `mscale serve --mpi-mscale EXE` on loopback (the launcher oversubscribed, as CI's 2 cores
+/// need), with the token `token`: the process and its address.
+fn mpi_service(exe: &Path, state: &Path, token: &Path) -> mscale_tests::Listening {
+    let mpirun = std::env::var("MSCALE_MPIRUN").unwrap_or_else(|_| "mpirun".into());
+    let mut cmd = Command::new(exe);
+    cmd.args(["serve", "--state"])
+        .arg(state)
+        .args(["--listen", "127.0.0.1:0", "--token-file"])
+        .arg(token)
+        .arg("--mpi-mscale")
+        .arg(exe)
+        .args(["--mpirun", &format!("{mpirun} --allow-run-as-root --oversubscribe")])
+        .current_dir(repo())
+        .env("RUST_LOG", "info")
+        .env("RAYON_NUM_THREADS", "1")
+        .env("OMPI_MCA_btl_vader_single_copy_mechanism", "none");
+    mscale_tests::Listening::start(&mut cmd, "mscale serve: listening on ", Some(&state.with_extension("log")))
+}
+
+#[test]
+#[cfg_attr(
+    not(require_mpi),
+    ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_MSCALE=<mscale built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
+)]
+fn a_job_submitted_over_2_ranks_ends_with_the_one_process_digest_and_a_cancelled_one_resumes() {
+    // The job service starts `mpirun -np 2 mscale run` for a job submitted with --ranks 2: it
+    // ends with the digest of one process, its progress streamed as events. A longer job over
+    // 2 ranks cancelled after its first checkpoint ends cancelled, and its run directory
+    // resumes on 3 ranks to the digest of its uninterrupted run.
+    let exe = mpi_mscale();
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (_tokens, token) = mscale_tests::token_dir("mpi-service-token-0123456789");
+    let server = mpi_service(&exe, &tmp.path().join("state"), &token);
+    let client = |args: &[&str]| {
+        Command::new(&exe)
+            .args(args)
+            .args(["--server", &server.addr])
+            .current_dir(repo())
+            .env("RUST_LOG", "warn")
+            .output()
+            .expect("mscale client")
+    };
+    let base = ["domain.cells=[8,12]", "output.snapshots=0", "output.particles=false", "output.vtk=false", "output.plots=false"];
+    let submit = |end_time: &str, every: &str| {
+        let mut args = vec!["submit", "scenes/mms-2d.toml", "--ranks", "2", "--checkpoint-every", every, "--token-file"];
+        args.push(token.to_str().expect("utf-8"));
+        let end = format!("scheme.end_time={end_time}");
+        let mut sets: Vec<String> = base.iter().map(|s| s.to_string()).collect();
+        sets.push(end);
+        let sets: Vec<String> = sets.iter().flat_map(|s| ["--set".to_string(), s.clone()]).collect();
+        let mut all: Vec<&str> = args.clone();
+        all.extend(sets.iter().map(String::as_str));
+        let o = client(&all);
+        assert!(o.status.success(), "{}", mscale_tests::text(&o));
+        String::from_utf8_lossy(&o.stdout).trim().to_string()
+    };
+    let straight = |end_time: &str| {
+        let mut set: Vec<String> = base.iter().map(|s| s.to_string()).collect();
+        set.push(format!("scheme.end_time={end_time}"));
+        digest(&exe, tmp.path(), "scenes/mms-2d.toml", &set, None)
+    };
+
+    let job = submit("0.002", "2");
+    let w = client(&["watch", &job, "--events"]);
+    let out = String::from_utf8_lossy(&w.stdout).to_string();
+    assert_eq!(w.status.code(), Some(0), "{}\n{}", mscale_tests::text(&w), server.proc.log());
+    assert!(out.contains(" progress ") && out.contains(" checkpoint "), "no progress or checkpoint events: {out}");
+    let st = String::from_utf8_lossy(&client(&["status", &job]).stdout).to_string();
+    assert!(st.contains("completed") && st.contains("2 MPI ranks"), "{st}");
+    assert!(st.contains(&format!("digest {}", straight("0.002"))), "{st}");
+
+    // Long enough to be caught mid-run: 2,000 steps, a checkpoint every 5.
+    let long = "0.6";
+    let job = submit(long, "5");
+    let ckpts = tmp.path().join("state/jobs").join(&job).join("run/checkpoints");
+    mscale_tests::wait_until("the long job's first checkpoint", std::time::Duration::from_secs(120), || {
+        std::fs::read_dir(&ckpts).is_ok_and(|d| d.filter_map(Result::ok).any(|e| e.file_name().to_string_lossy().ends_with(".ckpt")))
+    });
+    let c = client(&["cancel", &job, "--token-file", token.to_str().expect("utf-8")]);
+    assert!(c.status.success(), "{}", mscale_tests::text(&c));
+    let w = client(&["watch", &job]);
+    assert_eq!(w.status.code(), Some(1), "{}", mscale_tests::text(&w));
+    let st = String::from_utf8_lossy(&client(&["status", &job]).stdout).to_string();
+    assert!(st.contains("cancelled"), "{st}\n{}", server.proc.log());
+    let run = tmp.path().join("state/jobs").join(&job).join("run");
+    let resumed = tmp.path().join("resumed");
+    copy_dir(&run, &resumed);
+    let args = vec!["run".to_string(), "--resume".into(), resumed.display().to_string()];
+    assert_eq!(run_digest(&exe, &args, &resumed, Some(3)), straight(long), "the cancelled job resumed on 3 ranks");
 }

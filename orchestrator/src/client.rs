@@ -71,11 +71,18 @@ impl Client {
     /// Submits a scene with the files it names (every string value naming an existing file
     /// relative to the scene); returns the job id.
     pub fn submit(&mut self, scene_path: &Path, sets: &[String], priority: i32, checkpoint_every: u64) -> Result<String> {
-        self.submit_for(scene_path, sets, priority, checkpoint_every, 0)
+        self.submit_for(scene_path, sets, priority, checkpoint_every, Placement::default())
     }
 
-    /// [`Client::submit`] of a job that runs on `workers` workers (0: every free one).
-    pub fn submit_for(&mut self, scene_path: &Path, sets: &[String], priority: i32, checkpoint_every: u64, workers: u32) -> Result<String> {
+    /// [`Client::submit`] of a job placed as `how` says.
+    pub fn submit_for(
+        &mut self,
+        scene_path: &Path,
+        sets: &[String],
+        priority: i32,
+        checkpoint_every: u64,
+        how: Placement,
+    ) -> Result<String> {
         let text = std::fs::read_to_string(scene_path).with_context(|| format!("cannot read {}", scene_path.display()))?;
         let base = scene_path.parent().unwrap_or(Path::new("."));
         let mut files = Vec::new();
@@ -103,7 +110,8 @@ impl Client {
             priority,
             checkpoint_every_steps: checkpoint_every,
             scene_file: scene_path.display().to_string(),
-            workers,
+            workers: how.workers,
+            ranks: how.ranks,
         };
         let req = self.authorized(req)?;
         let r = self.rt.block_on(self.inner.submit_job(req)).map_err(Refused)?;
@@ -439,12 +447,27 @@ fn ca_file() -> Option<PathBuf> {
     CA_FILE.get().cloned()
 }
 
-/// `mscale submit`.
-pub fn submit(server: &str, token_file: Option<&Path>, scene: &Path, sets: &[String], priority: i32, checkpoint_every: u64) -> Result<i32> {
-    submit_for(server, token_file, scene, sets, priority, checkpoint_every, 0)
+/// Where a job runs: on how many workers, over how many MPI ranks.
+#[derive(Debug, Clone, Copy)]
+pub struct Placement {
+    /// Workers (0: every one free when it starts).
+    pub workers: u32,
+    /// MPI ranks of its continuum (1: in the orchestrator's process).
+    pub ranks: u32,
 }
 
-/// `mscale submit --workers N` (0: every free worker).
+impl Default for Placement {
+    fn default() -> Self {
+        Placement { workers: 0, ranks: 1 }
+    }
+}
+
+/// `mscale submit`.
+pub fn submit(server: &str, token_file: Option<&Path>, scene: &Path, sets: &[String], priority: i32, checkpoint_every: u64) -> Result<i32> {
+    submit_for(server, token_file, scene, sets, priority, checkpoint_every, Placement::default())
+}
+
+/// `mscale submit --workers N --ranks R`.
 pub fn submit_for(
     server: &str,
     token_file: Option<&Path>,
@@ -452,10 +475,10 @@ pub fn submit_for(
     sets: &[String],
     priority: i32,
     checkpoint_every: u64,
-    workers: u32,
+    how: Placement,
 ) -> Result<i32> {
     let mut c = Client::connect_with(server, token(token_file)?, ca_file().as_deref())?;
-    println!("{}", c.submit_for(scene, sets, priority, checkpoint_every, workers)?);
+    println!("{}", c.submit_for(scene, sets, priority, checkpoint_every, how)?);
     Ok(crate::exit::OK)
 }
 
@@ -463,7 +486,7 @@ fn line(j: &pb::Job) -> String {
     let digest = if j.state_digest.is_empty() { String::new() } else { format!("  digest {}", j.state_digest) };
     let error = if j.error.is_empty() { String::new() } else { format!("  ({})", j.error) };
     format!(
-        "{}  {:<9} {:<20} step {}  t = {:.4e} s  priority {}{}{}{digest}{error}",
+        "{}  {:<9} {:<20} step {}  t = {:.4e} s  priority {}{}{}{}{digest}{error}",
         j.id,
         state_name(j.state),
         j.scene,
@@ -471,7 +494,8 @@ fn line(j: &pb::Job) -> String {
         j.sim_time_s,
         j.priority,
         if j.resumes > 0 { format!("  resumed {}x", j.resumes) } else { String::new() },
-        if j.owner.is_empty() { String::new() } else { format!("  owner {}", j.owner) }
+        if j.owner.is_empty() { String::new() } else { format!("  owner {}", j.owner) },
+        if j.ranks > 1 { format!("  {} MPI ranks", j.ranks) } else { String::new() }
     )
 }
 

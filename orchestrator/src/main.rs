@@ -46,6 +46,14 @@ enum Command {
         /// The results do not depend on it.
         #[arg(long, value_name = "N", default_value_t = continuum::solver::DEFAULT_REBALANCE_EVERY)]
         rebalance_every: u64,
+        /// Print the progress after every step as one JSON line on stdout (rank 0; the job
+        /// service reads it from the runs it starts over MPI ranks).
+        #[arg(long)]
+        progress_json: bool,
+        /// Stop as on SIGTERM (checkpoint after the current step, exit code 1) once this file
+        /// exists (checked by rank 0 every 100 ms; every rank stops after the same step).
+        #[arg(long, value_name = "FILE")]
+        stop_file: Option<PathBuf>,
     },
     /// Run the job service (mscale.orchestrator.v1) with gRPC health and reflection.
     Serve {
@@ -91,6 +99,15 @@ enum Command {
         /// instead of waiting out their heartbeat timeout.
         #[arg(long)]
         forget_workers: bool,
+        /// Run jobs submitted with `--ranks N` (N > 1) as `MPIRUN -np N PATH run ...`: PATH is
+        /// an `mscale` built with the cargo feature `mpi` (`cargo build --release -p
+        /// orchestrator --features mpi`). Without it such jobs are refused.
+        #[arg(long, value_name = "PATH")]
+        mpi_mscale: Option<PathBuf>,
+        /// The MPI launcher's words before `-np N`, split as a shell would (e.g. `mpirun
+        /// --allow-run-as-root --oversubscribe`, or `srun --mpi=pmi2` inside an allocation).
+        #[arg(long, value_name = "COMMAND", default_value = "mpirun", requires = "mpi_mscale")]
+        mpirun: String,
     },
     /// List the workers registered with a running `mscale serve`; launch and release worker
     /// pools through Slurm.
@@ -121,6 +138,10 @@ enum Command {
         /// run side by side on disjoint sets of workers.
         #[arg(long, value_name = "N|all", default_value = "all", value_parser = parse_workers)]
         workers: u32,
+        /// MPI ranks to run the job's continuum over (the orchestrator needs `serve
+        /// --mpi-mscale`); 1 runs it in the orchestrator's process.
+        #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=4096))]
+        ranks: u32,
         #[command(flatten)]
         conn: Conn,
     },
@@ -370,9 +391,12 @@ enum ReportCommand {
 }
 
 fn main() -> ExitCode {
+    let cli = Cli::parse();
     // Under `mpirun -np N` (feature `mpi`): MPI lives until the end of main (finalised on drop).
+    // Only `mscale run` starts it: any other verb (`serve` above all, which starts MPI runs of
+    // its own) stays out of MPI, so its children are not taken for a singleton's.
     #[cfg(feature = "mpi")]
-    let _mpi = match continuum::mpi::init() {
+    let _mpi = match matches!(cli.command, Command::Run { .. }).then(continuum::mpi::init).transpose() {
         Ok(m) => m,
         Err(e) => {
             eprintln!("mscale: cannot start MPI: {e}");
@@ -387,7 +411,6 @@ fn main() -> ExitCode {
         .with_env_filter(filter.unwrap_or_else(|| if mpi_ranks().0 > 0 { "warn".into() } else { "info,diffsol=warn".into() }))
         .with_writer(std::io::stderr)
         .init();
-    let cli = Cli::parse();
     // A file-size limit (`ulimit -f`) or quota reached while writing a checkpoint or a snapshot
     // fails that write with EFBIG and the run ends with a message naming the file, instead of
     // SIGXFSZ killing the process silently.
@@ -424,9 +447,15 @@ fn dispatch(cli: Cli) -> i32 {
             http,
             access,
             forget_workers,
+            mpi_mscale,
+            mpirun,
         } => {
+            let mpi = match mpi_mscale.map(|m| orchestrator::service::MpiLauncher::new(m, &mpirun)).transpose() {
+                Ok(m) => m,
+                Err(e) => return report(Err(e)),
+            };
             let pool =
-                orchestrator::service::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline, forget_workers };
+                orchestrator::service::PoolOptions { local_workers, worker_timeout_s: worker_timeout, step_deadline, forget_workers, mpi };
             report(orchestrator::service::serve_command(
                 state,
                 listen,
@@ -445,8 +474,9 @@ fn dispatch(cli: Cli) -> i32 {
         Command::Drain { worker, conn } => {
             report(conn.ca().and_then(|_| orchestrator::client::drain(&conn.server, conn.token_file.as_deref(), &worker)))
         }
-        Command::Submit { scene, set, priority, checkpoint_every, workers, conn } => report(conn.ca().and_then(|_| {
-            orchestrator::client::submit_for(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every, workers)
+        Command::Submit { scene, set, priority, checkpoint_every, workers, ranks, conn } => report(conn.ca().and_then(|_| {
+            let how = orchestrator::client::Placement { workers, ranks };
+            orchestrator::client::submit_for(&conn.server, conn.token_file.as_deref(), &scene, &set, priority, checkpoint_every, how)
         })),
         Command::Status { job, conn } => {
             report(conn.ca().and_then(|_| orchestrator::client::status(&conn.server, conn.token_file.as_deref(), job.as_deref())))
@@ -576,7 +606,7 @@ fn dispatch(cli: Cli) -> i32 {
                 }
             }
         }
-        Command::Run { scene, out, set, workers, checkpoint_every, resume, step_deadline, rebalance_every } => {
+        Command::Run { scene, out, set, workers, checkpoint_every, resume, step_deadline, rebalance_every, progress_json, stop_file } => {
             let scene = match (scene, &resume) {
                 (Some(s), _) => s,
                 (None, Some(dir)) => dir.join("scene.resolved.toml"),
@@ -611,6 +641,25 @@ fn dispatch(cli: Cli) -> i32 {
             match orchestrator::checkpoint::stop_on_signals() {
                 Ok(flag) => opts.cancel = Some(flag),
                 Err(e) => eprintln!("mscale: warning: cannot handle SIGINT/SIGTERM, no checkpoint will be written on them: {e}"),
+            }
+            if rank == 0 {
+                if let Some(file) = stop_file {
+                    let flag = opts.cancel.get_or_insert_with(Default::default).clone();
+                    std::thread::spawn(move || {
+                        while !file.exists() {
+                            std::thread::sleep(std::time::Duration::from_millis(100));
+                        }
+                        flag.store(true, std::sync::atomic::Ordering::SeqCst);
+                    });
+                }
+                if progress_json {
+                    opts.progress_bar = false;
+                    opts.progress = Some(std::sync::Arc::new(|p: &run::Progress| {
+                        use std::io::Write;
+                        // A closed stdout ends nothing: the run goes on (its reader is gone).
+                        let _ = writeln!(std::io::stdout().lock(), "{}", serde_json::json!(p));
+                    }));
+                }
             }
             if rank > 0 {
                 // The same replicated state as rank 0: the same outcome, reported by rank 0.

@@ -31,7 +31,7 @@ pub enum Outcome {
 }
 
 /// Progress of a run after a step (for the job service's watch stream).
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
 pub struct Progress {
     pub step: u64,
     pub steps: u64,

@@ -29,7 +29,7 @@
 
 use mscale_proto::orchestrator::v1 as pb;
 use mscale_testkit::Listening;
-use orchestrator::client::Client;
+use orchestrator::client::{Client, Placement};
 use serde_json::json;
 use sha2::{Digest, Sha256};
 use std::collections::BTreeMap;
@@ -297,7 +297,7 @@ fn run(dir: &Path, p: &Params, specs: &[JobSpec], chaos: Option<f64>) -> RunResu
         let (_, token) = USERS[s.user];
         let id = Client::connect(&addr, Some(token.to_string()))
             .unwrap()
-            .submit_for(Path::new(MD_SMALL), &s.sets, s.priority, 5, s.workers)
+            .submit_for(Path::new(MD_SMALL), &s.sets, s.priority, 5, Placement { workers: s.workers, ranks: 1 })
             .unwrap();
         watchers.push(rt.spawn(follow(addr.clone(), token, id.clone(), limit)));
         ids.push(id);

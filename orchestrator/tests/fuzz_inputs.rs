@@ -427,6 +427,7 @@ fn small_scene_submission(priority: i32) -> pb::SubmitJobRequest {
         checkpoint_every_steps: 0,
         scene_file: "small.toml".into(),
         workers: 0,
+        ranks: 1,
     }
 }
 
@@ -443,6 +444,7 @@ fn message_seeds(job: &str, worker_id: &str, epoch: u64) -> Vec<Vec<u8>> {
         checkpoint_every_steps: 1,
         scene_file: "md.toml".into(),
         workers: 1,
+        ranks: 1,
     };
     let msgs: Vec<(u8, u8, Vec<u8>)> = vec![
         (0, 1, small_scene_submission(3).encode_to_vec()),

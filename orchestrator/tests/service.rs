@@ -260,6 +260,16 @@ fn unauthenticated_and_invalid_submits_are_refused() {
     let o = server.client(&["submit", SMALL, "--set", "scheme.cfl=-1", "--token-file", token.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(2), "{}", text(&o));
     assert!(String::from_utf8_lossy(&o.stderr).contains("scheme.cfl"), "{}", text(&o));
+    // MPI ranks from an orchestrator that cannot start them (no --mpi-mscale), and 0 ranks.
+    let o = server.client(&["submit", SMALL, "--ranks", "2", "--token-file", token.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("asks for 2 MPI ranks") && String::from_utf8_lossy(&o.stderr).contains("--mpi-mscale"),
+        "{}",
+        text(&o)
+    );
+    let o = server.client(&["submit", SMALL, "--ranks", "0", "--token-file", token.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
 
     let st = server.client(&["status"]);
     assert!(String::from_utf8_lossy(&st.stdout).contains("no jobs"), "refused submits left jobs: {}", text(&st));

@@ -10,7 +10,7 @@
 
 use mscale_proto::orchestrator::v1 as pb;
 use mscale_testkit::{Listening, Proc, text};
-use orchestrator::client::Client;
+use orchestrator::client::{Client, Placement};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -57,7 +57,7 @@ impl Server {
 
     fn submit(&self, sets: &[&str], priority: i32, workers: u32) -> String {
         let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
-        self.client().submit_for(Path::new(MD_SMALL), &sets, priority, 10, workers).unwrap()
+        self.client().submit_for(Path::new(MD_SMALL), &sets, priority, 10, Placement { workers, ranks: 1 }).unwrap()
     }
 
     fn job(&self, id: &str) -> pb::Job {

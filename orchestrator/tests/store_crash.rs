@@ -33,6 +33,7 @@ fn job(id: &str) -> JobRecord {
         resumes: 0,
         owner: "alice".into(),
         workers: 0,
+        ranks: 1,
     }
 }
 

@@ -74,14 +74,16 @@ class Job:
     started_unix: int
     finished_unix: int
     resumes: int
-    # The user who submitted it, and the workers it asked for (0: every free one).
+    # The user who submitted it, the workers it asked for (0: every free one) and the MPI ranks
+    # its continuum runs over (1: in the orchestrator's process).
     owner: str = ""
     workers: int = 0
+    ranks: int = 1
 
     @classmethod
     def from_pb(cls, j) -> "Job":
         return cls(j.id, j.scene, _state(j.state), j.priority, j.step, j.steps, j.sim_time_s, j.error, j.state_digest,
-                   j.submitted_unix, j.started_unix, j.finished_unix, j.resumes, j.owner, j.workers)
+                   j.submitted_unix, j.started_unix, j.finished_unix, j.resumes, j.owner, j.workers, max(j.ranks, 1))
 
     @property
     def done(self) -> bool:
@@ -213,10 +215,12 @@ class Client:
             raise _refused(e) from None
 
     def submit(self, scene_path, overrides: Optional[Sequence[str] | dict] = None, priority: int = 0,
-               checkpoint_every: int = 0, workers: int = 0) -> str:
+               checkpoint_every: int = 0, workers: int = 0, ranks: int = 1) -> str:
         """Submits a scene with the files it names; `overrides` are `key=value` strings or a dict
         {dotted.key: value} (values written as TOML: 8, 1e-12, "text", [16]); `workers` is the
-        number of workers the job runs on (0: every free one). Returns the job id."""
+        number of workers the job runs on (0: every free one); `ranks` the MPI ranks its
+        continuum runs over (above 1 the orchestrator needs `mscale serve --mpi-mscale`).
+        Returns the job id."""
         scene_path = pathlib.Path(scene_path)
         try:
             text = scene_path.read_text()
@@ -228,7 +232,7 @@ class Client:
             files.append(pb.InputFile(name=name, sha256=hashlib.sha256(content).hexdigest(), content=content))
         req = pb.SubmitJobRequest(scene_text=text, files=files, overrides=_overrides(overrides), priority=priority,
                                   checkpoint_every_steps=checkpoint_every, scene_file=str(scene_path),
-                                  workers=workers)
+                                  workers=workers, ranks=ranks)
         return self._call(self._stub.SubmitJob, req, self._auth("SubmitJob")).job_id
 
     def status(self, job: str) -> Job:

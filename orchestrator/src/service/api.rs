@@ -20,7 +20,7 @@ impl From<JobError> for Status {
         let code = match &e {
             JobError::NotFound(_) | JobError::NoRunDir(_) | JobError::Unreadable { .. } => Code::NotFound,
             JobError::Ended { .. } => Code::FailedPrecondition,
-            JobError::BadScene(_) | JobError::BadFile { .. } | JobError::NotInRun(_) => Code::InvalidArgument,
+            JobError::BadScene(_) | JobError::BadFile { .. } | JobError::NotInRun(_) | JobError::Ranks(_) => Code::InvalidArgument,
             JobError::BeyondEvents { .. } => Code::OutOfRange,
             JobError::TooLarge { .. } => Code::ResourceExhausted,
             JobError::NoToken { .. } | JobError::WrongToken { .. } => Code::Unauthenticated,

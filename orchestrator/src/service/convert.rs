@@ -106,6 +106,7 @@ pub(crate) fn job_to_pb(j: &JobRecord) -> pb::Job {
         resumes: j.resumes,
         owner: j.owner.clone(),
         workers: j.workers,
+        ranks: j.ranks,
     }
 }
 
@@ -175,6 +176,7 @@ impl From<pb::SubmitJobRequest> for Submission {
             checkpoint_every: r.checkpoint_every_steps,
             scene_file: r.scene_file,
             workers: r.workers,
+            ranks: r.ranks,
         }
     }
 }

@@ -40,6 +40,9 @@ pub enum JobError {
     Limit { user: String, what: String },
     #[error("the orchestrator is stopping; the job resumes when it restarts")]
     Stopping,
+    /// A job's MPI ranks that this orchestrator cannot give it.
+    #[error("{0}")]
+    Ranks(String),
     #[error(transparent)]
     Worker(#[from] WorkerError),
     /// The job store, or a write under the state directory, failed.

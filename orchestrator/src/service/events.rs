@@ -209,6 +209,7 @@ mod tests {
             0,
             0,
             Default::default(),
+            None,
         );
         lock(&core.store).insert(&test_job("j1", 0)).unwrap();
         let published = WATCH_BACKLOG as u64 + 50;

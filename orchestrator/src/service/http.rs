@@ -78,7 +78,7 @@ fn text(status: StatusCode, body: String) -> Response {
 fn error(e: JobError) -> Response {
     let status = match &e {
         JobError::NotFound(_) | JobError::NoRunDir(_) | JobError::Unreadable { .. } => StatusCode::NOT_FOUND,
-        JobError::NotInRun(_) | JobError::BadFile { .. } | JobError::BadScene(_) => StatusCode::BAD_REQUEST,
+        JobError::NotInRun(_) | JobError::BadFile { .. } | JobError::BadScene(_) | JobError::Ranks(_) => StatusCode::BAD_REQUEST,
         JobError::NoToken { .. } | JobError::WrongToken { .. } => StatusCode::UNAUTHORIZED,
         JobError::Forbidden { .. } => StatusCode::FORBIDDEN,
         JobError::TooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,

@@ -23,6 +23,8 @@ pub(crate) struct Submission {
     pub(crate) scene_file: String,
     /// Workers wanted (0: every free one).
     pub(crate) workers: u32,
+    /// MPI ranks of its continuum (0 or 1: in the orchestrator's process).
+    pub(crate) ranks: u32,
 }
 
 /// A file a submitted scene names.
@@ -122,11 +124,24 @@ impl Core {
                 )));
             }
         }
+        let ranks = sub.ranks.max(1);
+        if ranks > 1 && self.mpi.is_none() {
+            return Err(JobError::Ranks(format!(
+                "the job asks for {ranks} MPI ranks, but this orchestrator runs jobs in its own process only: start it with `mscale serve --mpi-mscale PATH` (an mscale built with --features mpi), or submit with --ranks 1"
+            )));
+        }
         let id = self.new_id();
         let dir = self.job_dir(&id);
         let loaded = prepare_inputs(&dir, sub).inspect_err(|_| {
             let _ = std::fs::remove_dir_all(&dir);
         })?;
+        if ranks > 1 && matches!(loaded, Loaded::Cell(_)) {
+            let _ = std::fs::remove_dir_all(&dir);
+            return Err(JobError::Ranks(format!(
+                "the job asks for {ranks} MPI ranks, but a cell scene ({}) runs in one process only: submit it with --ranks 1",
+                loaded.name()
+            )));
+        }
         let (snapshots, key) = loaded.snapshots();
         if let Some(max) = limits.max_snapshots.filter(|m| snapshots > *m) {
             let _ = std::fs::remove_dir_all(&dir);
@@ -152,6 +167,7 @@ impl Core {
             resumes: 0,
             owner: caller.user.clone(),
             workers: sub.workers,
+            ranks,
         };
         {
             // Checked again with the insert: two submits at once do not both pass the limit.
@@ -168,7 +184,10 @@ impl Core {
             }
             store.insert(&job)?;
         }
-        let wants = if job.workers == 0 { "every free worker".to_string() } else { format!("{} workers", job.workers) };
+        let mut wants = if job.workers == 0 { "every free worker".to_string() } else { format!("{} workers", job.workers) };
+        if job.ranks > 1 {
+            wants.push_str(&format!(", {} MPI ranks", job.ranks));
+        }
         tracing::info!("job {id} queued for {}: scene {} ({} steps), priority {}, {wants}", job.owner, job.scene, job.steps, job.priority);
         self.wake_runner();
         Ok(id)

@@ -521,11 +521,21 @@ fn attempt(
     // parallel loop too short to split runs inline on it instead of a futex hand-off to the pool
     // per loop (10x on small scenes; see `mscale run`'s run_on_pool), and a job waiting inside a
     // loop can only take up its own tasks, never another job's run. Same results on any pool.
-    let outcome = match rayon::ThreadPoolBuilder::new().thread_name(|k| format!("job-{k}")).build() {
-        Ok(pool) => pool.install(|| loaded.run(&opts)),
-        Err(e) => {
-            tracing::warn!("job {id}: cannot start its thread pool ({e}); running on the shared one");
-            loaded.run(&opts)
+    let outcome = if job.ranks > 1 {
+        match &core.mpi {
+            Some(m) => super::ranks::run(m, job.ranks, &core.job_dir(&id).join("input/scene.toml"), &job.overrides, &opts),
+            None => Err(anyhow::anyhow!(
+                "the job asks for {} MPI ranks, but this orchestrator was started without --mpi-mscale: restart it with one",
+                job.ranks
+            )),
+        }
+    } else {
+        match rayon::ThreadPoolBuilder::new().thread_name(|k| format!("job-{k}")).build() {
+            Ok(pool) => pool.install(|| loaded.run(&opts)),
+            Err(e) => {
+                tracing::warn!("job {id}: cannot start its thread pool ({e}); running on the shared one");
+                loaded.run(&opts)
+            }
         }
     };
     lock(&core.aborts).retain(|addr, _| !assigned.iter().any(|w| &w.ad.address == addr));

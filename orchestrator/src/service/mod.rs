@@ -61,6 +61,7 @@ mod http;
 mod inputs;
 mod jobs;
 mod metrics;
+mod ranks;
 mod schedule;
 mod shared;
 pub mod store;
@@ -113,6 +114,8 @@ pub struct ServeOptions {
     pub http: Option<String>,
     /// Workers the store knows from an earlier run are lost at start (`--forget-workers`).
     pub forget_workers: bool,
+    /// How jobs over MPI ranks are started (None: such jobs are refused).
+    pub mpi: Option<MpiLauncher>,
 }
 
 /// Who may call `mscale serve`, and the per-user limits.
@@ -130,9 +133,10 @@ pub struct AccessOptions {
 }
 
 pub use auth::{Limits, Role, parse_users};
+pub use ranks::MpiLauncher;
 
 /// The worker pool options of `mscale serve`.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct PoolOptions {
     /// `md-worker serve` processes to start here.
     pub local_workers: usize,
@@ -142,6 +146,8 @@ pub struct PoolOptions {
     pub step_deadline: md_worker::recovery::StepDeadline,
     /// `--forget-workers`: the workers of an earlier run are gone (a new Slurm allocation).
     pub forget_workers: bool,
+    /// `--mpi-mscale`, `--mpirun`: how jobs submitted with `--ranks N` are started.
+    pub mpi: Option<MpiLauncher>,
 }
 
 /// `mscale serve`: reads the token (generating one into the state directory when no file is
@@ -206,6 +212,7 @@ pub fn serve_command(
         step_deadline: pool.step_deadline,
         http,
         forget_workers: pool.forget_workers,
+        mpi: pool.mpi,
     })?;
     Ok(crate::exit::OK)
 }
@@ -253,7 +260,19 @@ pub fn serve(opts: ServeOptions) -> Result<()> {
         }
         None => auth::Users::single(&opts.token, opts.access.limits),
     };
-    let core = Core::new(store, registry, opts.state_dir.clone(), users, opts.checkpoint_every, opts.local_workers, opts.step_deadline);
+    if let Some(m) = &opts.mpi {
+        tracing::info!("jobs over MPI ranks run as: {}", m.describe());
+    }
+    let core = Core::new(
+        store,
+        registry,
+        opts.state_dir.clone(),
+        users,
+        opts.checkpoint_every,
+        opts.local_workers,
+        opts.step_deadline,
+        opts.mpi.clone(),
+    );
     let listener = std::net::TcpListener::bind(addr).with_context(|| format!("cannot listen on {addr}"))?;
     listener.set_nonblocking(true)?;
     let http_listener = match http_addr {

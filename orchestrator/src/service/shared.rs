@@ -58,6 +58,8 @@ pub(crate) struct Core {
     /// Abort handles of the running job's workers, by address: a worker declared lost gets its
     /// calls aborted (its boxes are then replayed on the others).
     pub(crate) aborts: Mutex<HashMap<String, md_worker::recovery::AbortHandle>>,
+    /// How jobs over MPI ranks are started (`serve --mpi-mscale`; None: they are refused).
+    pub(crate) mpi: Option<super::MpiLauncher>,
     /// What `/metrics` exposes.
     pub(crate) metrics: super::metrics::Metrics,
 }
@@ -84,6 +86,7 @@ pub(crate) struct RunningJob {
 impl Core {
     /// A core over `store` and `registry`, with no job running; `expect_workers` is the number
     /// of local workers jobs wait for.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn new(
         store: Store,
         registry: Registry,
@@ -92,6 +95,7 @@ impl Core {
         checkpoint_every: u64,
         expect_workers: usize,
         step_deadline: md_worker::recovery::StepDeadline,
+        mpi: Option<super::MpiLauncher>,
     ) -> Arc<Core> {
         Arc::new(Core {
             store: Mutex::new(store),
@@ -111,6 +115,7 @@ impl Core {
             step_deadline,
             aborts: Mutex::new(HashMap::new()),
             metrics: super::metrics::Metrics::new(),
+            mpi,
         })
     }
 

@@ -72,6 +72,8 @@ pub struct JobRecord {
     pub owner: String,
     /// Workers it asked for (0: every free worker).
     pub workers: u32,
+    /// MPI ranks its continuum runs over (1: in the orchestrator's process).
+    pub ranks: u32,
 }
 
 /// What a job event reports (stored as its lowercase name).
@@ -128,7 +130,7 @@ pub fn now_unix() -> i64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs() as i64).unwrap_or(0)
 }
 
-const COLUMNS: &str = "id, scene, state, priority, overrides, checkpoint_every, step, steps, sim_time, error, state_digest, submitted, started, finished, resumes, owner, workers";
+const COLUMNS: &str = "id, scene, state, priority, overrides, checkpoint_every, step, steps, sim_time, error, state_digest, submitted, started, finished, resumes, owner, workers, ranks";
 
 fn record(r: &rusqlite::Row<'_>) -> rusqlite::Result<(JobRecord, String)> {
     let overrides: String = r.get(4)?;
@@ -152,6 +154,7 @@ fn record(r: &rusqlite::Row<'_>) -> rusqlite::Result<(JobRecord, String)> {
             resumes: r.get::<_, i64>(14)? as u32,
             owner: r.get(15)?,
             workers: r.get::<_, i64>(16)? as u32,
+            ranks: r.get::<_, i64>(17)? as u32,
         },
         state,
     ))
@@ -202,8 +205,8 @@ impl Store {
     pub fn insert(&mut self, job: &JobRecord) -> Result<()> {
         let tx = self.db.transaction()?;
         tx.execute(
-            "INSERT INTO jobs (id, scene, state, priority, overrides, checkpoint_every, steps, submitted, owner, workers) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)",
-            params![job.id, job.scene, job.state.as_str(), job.priority, serde_json::to_string(&job.overrides)?, job.checkpoint_every as i64, job.steps as i64, job.submitted, job.owner, job.workers as i64],
+            "INSERT INTO jobs (id, scene, state, priority, overrides, checkpoint_every, steps, submitted, owner, workers, ranks) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
+            params![job.id, job.scene, job.state.as_str(), job.priority, serde_json::to_string(&job.overrides)?, job.checkpoint_every as i64, job.steps as i64, job.submitted, job.owner, job.workers as i64, job.ranks as i64],
         )?;
         tx.execute("INSERT INTO history VALUES (?1, ?2, ?3, 'submitted')", params![job.id, job.submitted, job.state.as_str()])?;
         append_event(&tx, &job.id, EventKind::State, "submitted", &[], 0)?;
@@ -440,6 +443,7 @@ pub(crate) fn test_job(id: &str, priority: i32) -> JobRecord {
         resumes: 0,
         owner: "admin".into(),
         workers: 0,
+        ranks: 1,
     }
 }
 

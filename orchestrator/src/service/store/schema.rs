@@ -3,7 +3,7 @@
 //! higher version) is refused rather than guessed at.
 
 /// The schema version [`Store::open`] brings a store to (`PRAGMA user_version`).
-pub const SCHEMA_VERSION: usize = 3;
+pub const SCHEMA_VERSION: usize = 4;
 
 /// Version 1: the tables. Stores written before the schema was versioned are at version 0
 /// with some or all of these tables (`events` came last); `IF NOT EXISTS` keeps what they hold.
@@ -83,7 +83,12 @@ const SCHEMA_3: &str = "
     ALTER TABLE jobs ADD COLUMN workers INTEGER NOT NULL DEFAULT 0;
     CREATE INDEX IF NOT EXISTS jobs_by_owner ON jobs (owner, state);";
 
+/// Version 4: a job's continuum may run over MPI ranks. Jobs stored before run in the
+/// orchestrator's process (1 rank), as they did.
+const SCHEMA_4: &str = "
+    ALTER TABLE jobs ADD COLUMN ranks INTEGER NOT NULL DEFAULT 1;";
+
 pub(crate) fn migrations() -> rusqlite_migration::Migrations<'static> {
     use rusqlite_migration::M;
-    rusqlite_migration::Migrations::new(vec![M::up(SCHEMA_1), M::up(SCHEMA_2), M::up(SCHEMA_3)])
+    rusqlite_migration::Migrations::new(vec![M::up(SCHEMA_1), M::up(SCHEMA_2), M::up(SCHEMA_3), M::up(SCHEMA_4)])
 }
