@@ -77,10 +77,12 @@ fn the_job_page_follows_a_running_job_to_its_end_in_chromium() {
     line.clear();
     out.read_line(&mut line).unwrap();
     let http = line.trim().strip_prefix("mscale serve: dashboard and metrics on ").unwrap_or_else(|| panic!("{line}")).to_string();
-    // A coupled job of a few seconds (md-small, 16 points, 300 steps, MD in the orchestrator).
+    // A coupled job of several seconds (md-small, 32 points, 1200 steps, MD in the orchestrator:
+    // about 7 s on two cores), long enough that Chromium starts and loads the page while it runs
+    // (300 steps, under a second since the intra-box threads, once ended before the page loaded).
     let o = Command::new(&mscale)
         .args(["submit", "tests/data/md-small.toml", "--server", &grpc, "--token-file", token_file.to_str().unwrap()])
-        .args(["--set", "domain.cells=[16]", "--set", "scheme.end_time=3e-12"])
+        .args(["--set", "domain.cells=[32]", "--set", "scheme.end_time=1.2e-11"])
         .current_dir(mscale_testkit::repo())
         .output()
         .unwrap();
