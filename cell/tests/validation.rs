@@ -487,10 +487,24 @@ fn diagnose_from_a_restart_point() {
     set.start = Some(r);
     let mut g = vec![0.0; model.interfaces.len()];
     let mut last_t = 0.0;
+    let mut prev: Vec<f64> = Vec::new();
+    let (rtol, atol_c, atol_v) = (s.scheme.rtol, s.atol_concentration(), s.scheme.atol_potential_v);
     let mut progress = |snap: &solver::Snapshot<'_>| {
         model.switch_functions(snap.y, snap.open, &mut g);
+        // Where the step moved the state most, by the error weights: (cell, unknown, change / weight).
+        let moved = if prev.len() == snap.y.len() {
+            (0..snap.y.len())
+                .map(|j| {
+                    let w = if j % 3 == 2 { atol_v } else { atol_c } + rtol * snap.y[j].abs();
+                    (j / 3, ["p", "n", "phi"][j % 3], (snap.y[j] - prev[j]).abs() / w)
+                })
+                .max_by(|a, b| a.2.total_cmp(&b.2))
+        } else {
+            None
+        };
+        prev = snap.y.to_vec();
         eprintln!(
-            "  step {} t {:.9e} h {:.3e} g {:?} open {:?} newton fails {} etf {} switches {} min p {:e}",
+            "  step {} t {:.9e} h {:.3e} moved {moved:?} g {:?} open {:?} newton fails {} etf {} switches {} min p {:e}",
             snap.step,
             snap.t,
             snap.t - last_t,
