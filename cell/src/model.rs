@@ -71,6 +71,9 @@ pub struct Model {
     pub alpha: f64,
     pub threshold: f64,
     pub hysteresis: f64,
+    /// What the switch compares with the thresholds is |dphi| times this: 1 (the thesis's
+    /// one-face jump) or threshold_width_nm / dx (the drop over that width).
+    pub jump_scale: f64,
     /// Some(width): the continuous ramp switch instead of events.
     pub ramp: Option<f64>,
     /// Dirichlet potential at x = 0 (V).
@@ -178,6 +181,7 @@ impl Model {
             alpha: scene.interface.alpha,
             threshold: scene.interface.threshold_v,
             hysteresis: scene.interface.hysteresis_v,
+            jump_scale: scene.interface.threshold_width_nm.map_or(1.0, |w| w / dx),
             ramp: (scene.interface.switch == Switch::Ramp).then_some(scene.interface.ramp_width_v),
             phi_left: scene.boundary.phi_left_v,
             electron_flux,
@@ -209,7 +213,12 @@ impl Model {
 
     /// Initial switch states: open where |dphi| >= threshold.
     pub fn initial_open(&self, y: &[f64]) -> Vec<bool> {
-        self.interfaces.iter().map(|&f| (y[3 * (f - 1) + 2] - y[3 * f + 2]).abs() >= self.threshold).collect()
+        self.interfaces.iter().map(|&f| self.switch_drop(y, f) >= self.threshold).collect()
+    }
+
+    /// The potential drop the switch of interface face `f` compares with its thresholds.
+    pub fn switch_drop(&self, y: &[f64], f: usize) -> f64 {
+        (y[3 * (f - 1) + 2] - y[3 * f + 2]).abs() * self.jump_scale
     }
 
     /// The limited slope of species `var` (0: p, 1: n) in cell i; 0 at the domain ends, next to
@@ -310,7 +319,7 @@ impl Model {
             // threshold law (8.23) with the mean diffusivity, when the switch is open.
             let k = self.interfaces.binary_search(&f).unwrap_or(0);
             let factor = match self.ramp {
-                Some(w) => ((dphi.abs() - (self.threshold - w)) / w).clamp(0.0, 1.0),
+                Some(w) => ((dphi.abs() * self.jump_scale - (self.threshold - w)) / w).clamp(0.0, 1.0),
                 None => {
                     if open.get(k).copied().unwrap_or(false) {
                         1.0
@@ -554,8 +563,7 @@ impl Model {
     /// switch flips (threshold when closed, threshold - hysteresis when open).
     pub fn switch_functions(&self, y: &[f64], open: &[bool], out: &mut [f64]) {
         for (k, &f) in self.interfaces.iter().enumerate() {
-            let d = (y[3 * (f - 1) + 2] - y[3 * f + 2]).abs();
-            out[k] = d - if open[k] { self.threshold - self.hysteresis } else { self.threshold };
+            out[k] = self.switch_drop(y, f) - if open[k] { self.threshold - self.hysteresis } else { self.threshold };
         }
     }
 

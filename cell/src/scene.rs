@@ -207,6 +207,15 @@ pub struct Interface {
     pub switch: Switch,
     #[serde(default = "default_ramp")]
     pub ramp_width_v: f64,
+    /// Absent (the thesis): the switch compares the one-face jump |phi_j - phi_j+1| with the
+    /// thresholds, so it opens at the field threshold_v / dx: the field, the charge stored at
+    /// the interface when it opens and the time it opens all grow in proportion to the cell
+    /// count (the full cell: 2.95e-3 s x cells / 1000), and the discharge that follows needs
+    /// ever shorter steps. Set: the jump scaled to this width, |phi_j - phi_j+1| w / dx (the
+    /// interface field times w, the drop over an interphase of width w), the same switch on
+    /// every grid, equal to the thesis's where dx = w.
+    #[serde(default)]
+    pub threshold_width_nm: Option<f64>,
 }
 
 fn default_switch() -> Switch {
@@ -234,6 +243,7 @@ impl Default for Interface {
             hysteresis_v: default_hysteresis(),
             switch: default_switch(),
             ramp_width_v: default_ramp(),
+            threshold_width_nm: None,
         }
     }
 }
@@ -544,6 +554,9 @@ impl CellScene {
             ));
         }
         positive(locate, "interface.ramp_width_v", i.ramp_width_v)?;
+        if let Some(w) = i.threshold_width_nm {
+            positive(locate, "interface.threshold_width_nm", w)?;
+        }
         let b = &self.boundary;
         finite(locate, "boundary.electron_current_ma_per_cm2", b.electron_current_ma_per_cm2)?;
         finite(locate, "boundary.phi_left_v", b.phi_left_v)?;

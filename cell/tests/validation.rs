@@ -284,6 +284,53 @@ fn the_concentration_tolerance_can_follow_the_cell_inventory() {
     assert_eq!(e.key, "scheme.atol_inventory_per_nm2");
 }
 
+/// The threshold's width (issue 20): the thesis's switch on the one-face jump opens the
+/// interfaces when the field reaches threshold / dx, i.e. (the current charging them like a
+/// capacitor until then) at t = (eps eps0 / e) threshold / (J dx), in proportion to the cell
+/// count; with `interface.threshold_width_nm = w` at (eps eps0 / e) threshold / (J w) on every
+/// grid, and with w = dx the run is bit for bit the thesis's law.
+#[test]
+fn the_threshold_width_opens_the_interfaces_at_one_time_on_every_grid() {
+    let first_switch = |sets: &[(&str, &str)], text: Option<String>| {
+        let s = match text {
+            Some(t) => scene::parse(&t, &BTreeMap::new(), "test").expect("scene"),
+            None => load("pnp-full-cell.toml", sets),
+        };
+        let (y, model, st) = run(&s);
+        let t = st.switch_log.iter().map(|e| e.0).fold(f64::INFINITY, f64::min);
+        (t, model, mscale_cell::state_digest(st.steps, st.t, &y), st.switch_log.len())
+    };
+    let end = ("scheme.end_time_s", "4e-3");
+    let none = ("output.times_s", "[]");
+    // 0.1 nm wide: the predicted time on every grid.
+    let mut times = vec![];
+    for cells in ["100", "400", "2000"] {
+        let (t, model, _, switches) = first_switch(&[("grid.cells", cells), end, none, ("interface.threshold_width_nm", "0.1")], None);
+        let eps = 10.0 * mscale_cell::units::EPS0 / mscale_cell::units::E_CHARGE;
+        let predicted = eps * model.threshold / (model.electron_flux * 0.1);
+        eprintln!("{cells} cells, width 0.1 nm: first switch at {t:e} s (predicted {predicted:e}), {switches} switches");
+        assert_eq!(switches, 2, "{cells} cells: both interfaces open before 4 ms");
+        assert!((t / predicted - 1.0).abs() < 1e-9, "{cells} cells: {t:e} s against {predicted:e} s");
+        times.push(t);
+    }
+    // The thesis's law: in proportion to the cell count (100 cells: 0.1 x the above; 400: 0.4).
+    for (cells, ratio) in [("100", 0.1), ("400", 0.4)] {
+        let text = scene_text("pnp-full-cell.toml").replace("threshold_width_nm = 0.1", "");
+        let text = text.replace("cells = 1000", &format!("cells = {cells}")).replace("end_time_s = 2.0", "end_time_s = 4e-3");
+        let (t, ..) = first_switch(&[], Some(text.replace("times_s = [0.0, 1.0, 2.0]", "times_s = []")));
+        assert!((t / (ratio * times[0]) - 1.0).abs() < 1e-9, "{cells} cells, the thesis's law: {t:e} s");
+    }
+    // w = dx is the thesis's law, bit for bit (400 cells: dx = 0.25 nm).
+    let text = scene_text("pnp-full-cell.toml")
+        .replace("threshold_width_nm = 0.1", "")
+        .replace("cells = 1000", "cells = 400")
+        .replace("end_time_s = 2.0", "end_time_s = 4e-3")
+        .replace("times_s = [0.0, 1.0, 2.0]", "times_s = []");
+    let (_, _, literal, _) = first_switch(&[], Some(text));
+    let (_, _, width, _) = first_switch(&[("grid.cells", "400"), end, none, ("interface.threshold_width_nm", "0.25")], None);
+    assert_eq!(width, literal);
+}
+
 /// The thesis's Fig. 8.5 study over 1e2..1e4 cells: the L2 error (8.85) of phi against the
 /// finest grid falls monotonically.
 #[test]
@@ -582,8 +629,8 @@ fn sides_over_the_run(s: &CellScene, w: usize) -> ([Side; 4], Lowest, Stats) {
     (sides, lowest, stats)
 }
 
-/// The thesis's limiter study (Ch. 8.6.3) in the full cell, 2000 cells to 8 ms (both
-/// interfaces open at 5.9 ms): without the limiter (central face states,
+/// The thesis's limiter study (Ch. 8.6.3) in the full cell, 2000 cells to 8 ms, with the
+/// thesis's switch on the one-face jump (both interfaces open at 5.9 ms): without the limiter (central face states,
 /// `scheme.face_state = "central"`) p undershoots to negative values in the electrolyte's cell
 /// at the cathode interface (the unresolved depletion layer there, dx = 0.05 nm ~ lambda);
 /// with van Leer p stays >= 0 (to 1e-12 /nm^3) at every accepted step, and at most one extremum
@@ -591,7 +638,14 @@ fn sides_over_the_run(s: &CellScene, w: usize) -> ([Side; 4], Lowest, Stats) {
 #[test]
 fn without_the_limiter_p_undershoots_at_the_cathode_interface_and_with_it_not() {
     let run_sides = |face: &str| {
-        let sets = [("grid.cells", "2000"), ("scheme.end_time_s", "8e-3"), ("output.times_s", "[]"), ("scheme.face_state", face)];
+        // The thesis's switch on the one-face jump (threshold width = dx = 0.05 nm).
+        let sets = [
+            ("grid.cells", "2000"),
+            ("scheme.end_time_s", "8e-3"),
+            ("output.times_s", "[]"),
+            ("scheme.face_state", face),
+            ("interface.threshold_width_nm", "0.05"),
+        ];
         let (sides, lowest, st) = sides_over_the_run(&load("pnp-full-cell.toml", &sets), 20);
         eprintln!(
             "{face}: {} steps, switches {:?}; lowest p {:e} in cell {} at t = {:e} s",
@@ -631,9 +685,9 @@ fn a_closed_interface_above_its_threshold_at_a_restart_is_opened_there() {
     let sets = [("grid.cells", "100"), ("output.times_s", "[1e-4, 2e-4]"), ("scheme.end_time_s", "2e-4")];
     let base = load("pnp-full-cell.toml", &sets);
     let r = run_until(&base, 1e-4);
-    assert!(r.open.iter().all(|o| !o), "no switch before 0.1 ms at 100 cells (the first at 0.295 ms): {:?}", r.stats.switch_log);
+    assert!(r.open.iter().all(|o| !o), "no switch before 0.1 ms at 100 cells (the first at 2.95 ms): {:?}", r.stats.switch_log);
     let model = Model::new(&base);
-    let dphi: Vec<f64> = model.interfaces.iter().map(|&f| (r.y[3 * (f - 1) + 2] - r.y[3 * f + 2]).abs()).collect();
+    let dphi: Vec<f64> = model.interfaces.iter().map(|&f| model.switch_drop(&r.y, f)).collect();
     let threshold = 0.5 * dphi.iter().copied().fold(f64::INFINITY, f64::min);
     assert!(threshold > 1e-3, "the interfaces are charged at 0.1 ms: {dphi:?}");
     let thr = format!("{threshold:e}");
@@ -729,7 +783,7 @@ fn newton_failures_by_cause() {
 }
 
 /// The refinement study to 2 s (the thesis's Fig. 8.5; issue 20): the full cell at
-/// MSCALE_CELL_REFINE_CELLS (default 100,300,1000,3000,10000) to MSCALE_CELL_TIMING_END
+/// MSCALE_CELL_REFINE_CELLS (default 100,300,1000,3000,10000,100000) to MSCALE_CELL_TIMING_END
 /// (default 2 s), each final profile read from MSCALE_CELL_TIMING_SAVE/final_<cells>.csv when
 /// there (the timing runs write them; so a 1e5-cell run's can join) and otherwise computed (and
 /// saved there). Errors against the finest grid, (8.85): phi at the coarse cell centres (the
@@ -737,10 +791,10 @@ fn newton_failures_by_cause() {
 /// (eps0/e times the field there; the finest interpolated between its faces), and p, n at the
 /// centres (reported). Asserted: the phi and cumulative-charge errors fall monotonically.
 #[test]
-#[ignore = "heavy: about a minute here at 1e4 cells; run with --ignored --nocapture"]
+#[ignore = "heavy: about 70 s here with 1e5 cells; run with --ignored --nocapture"]
 fn refinement_study_to_two_seconds() {
     let cells: Vec<usize> = std::env::var("MSCALE_CELL_REFINE_CELLS")
-        .unwrap_or_else(|_| "100,300,1000,3000,10000".into())
+        .unwrap_or_else(|_| "100,300,1000,3000,10000,100000".into())
         .split(',')
         .map(|v| v.trim().parse().expect("cells"))
         .collect();
