@@ -419,10 +419,31 @@ fn summary_json(
     }))
 }
 
+/// The cumulative charge of a profile (rows x_nm, p, n, phi, p - n of a uniform grid) at its
+/// faces: (0, 0), then (x_i + dx/2, sum_{j <= i} (p - n)_j dx).
+fn cumulative_charge(prof: &[[f64; 5]]) -> Vec<(f64, f64)> {
+    let dx = match prof {
+        [a, b, ..] => b[0] - a[0],
+        [a] => 2.0 * a[0],
+        [] => return vec![(0.0, 0.0)],
+    };
+    let mut q = 0.0;
+    std::iter::once((0.0, 0.0))
+        .chain(prof.iter().map(|r| {
+            q += r[4] * dx;
+            (r[0] + 0.5 * dx, q)
+        }))
+        .collect()
+}
+
 /// `mscale report error-vs-time` of a cell scene: one run per combination of the sweeps; the
 /// error of each run is the thesis's (8.85), sqrt(sum (f_i - f(x_i))^2 / N), of phi and of
 /// p - n at the final time against the run with the most cells (interpolated linearly to the
-/// run's cell centres). Writes report.csv and report.png (error against cells).
+/// run's cell centres), and of the cumulative charge sum (p - n) dx left of each of the run's
+/// faces (interpolated linearly between the finest run's faces). p - n next to an interface
+/// does not converge (the electrodes' electrons store their charge in one cell, whose p - n
+/// grows as 1/dx; cell/README.md "Refinement"); the cumulative charge, eps0/e times the field,
+/// does. Writes report.csv and report.png (error against cells).
 pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: &Path) -> Result<usize, report::ReportError> {
     let combos = report::combinations(sweeps);
     let mut runs = Vec::new();
@@ -453,30 +474,40 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
         runs.push((combo.join(" "), summary, prof));
     }
     let finest = runs.iter().enumerate().max_by_key(|(_, r)| r.1["cells"].as_u64().unwrap_or(0)).map(|(i, _)| i).unwrap_or(0);
-    let reference = runs[finest].2.clone();
-    let interp = |x: f64, col: usize| -> f64 {
-        let pts: Vec<(f64, f64)> = reference.iter().map(|r| (r[0], r[col])).collect();
-        report::interpolate(&pts, x)
-    };
-    let mut csv = String::from("run,settings,cells,wall_seconds,steps,phi_l2_error_v,charge_l2_error_e_per_nm3\n");
-    let (mut phi_series, mut charge_series) = (Vec::new(), Vec::new());
+    let reference = &runs[finest].2;
+    let column = |col: usize| -> Vec<(f64, f64)> { reference.iter().map(|r| (r[0], r[col])).collect() };
+    let (ref_phi, ref_charge, ref_cumulative) = (column(3), column(4), cumulative_charge(reference));
+    let mut csv = String::from(
+        "run,settings,cells,wall_seconds,steps,phi_l2_error_v,charge_l2_error_e_per_nm3,cumulative_charge_l2_error_e_per_nm2\n",
+    );
+    let (mut phi_series, mut charge_series, mut cumulative_series) = (Vec::new(), Vec::new(), Vec::new());
     for (k, (settings, summary, prof)) in runs.iter().enumerate() {
-        let n = prof.len().max(1) as f64;
-        let err = |col: usize| (prof.iter().map(|r| (r[col] - interp(r[0], col)).powi(2)).sum::<f64>() / n).sqrt();
-        let (e_phi, e_q) = if k == finest { (f64::NAN, f64::NAN) } else { (err(3), err(4)) };
+        let l2 = |pairs: &mut dyn Iterator<Item = (f64, f64)>| {
+            let (sum, count) = pairs.fold((0.0, 0usize), |(s, c), (x, v)| (s + (v - x).powi(2), c + 1));
+            (sum / count.max(1) as f64).sqrt()
+        };
+        let err = |col: usize, reference: &[(f64, f64)]| l2(&mut prof.iter().map(|r| (report::interpolate(reference, r[0]), r[col])));
+        let (e_phi, e_q, e_cum) = if k == finest {
+            (f64::NAN, f64::NAN, f64::NAN)
+        } else {
+            // The run's faces right of x = 0 (the cumulative charge there is 0 in every run).
+            let e_cum = l2(&mut cumulative_charge(prof).into_iter().skip(1).map(|(x, q)| (report::interpolate(&ref_cumulative, x), q)));
+            (err(3, &ref_phi), err(4, &ref_charge), e_cum)
+        };
         let cells = summary["cells"].as_u64().unwrap_or(0);
+        let cell = |e: f64| if e.is_finite() { format!("{e:e}") } else { "reference".into() };
         csv.push_str(&format!(
-            "{k},{settings},{cells},{},{},{},{}\n",
+            "{k},{settings},{cells},{},{},{},{},{}\n",
             summary["wall_seconds"].as_f64().unwrap_or(f64::NAN),
             summary["steps"],
-            if e_phi.is_finite() { format!("{e_phi:e}") } else { "reference".into() },
-            if e_q.is_finite() { format!("{e_q:e}") } else { "reference".into() },
+            cell(e_phi),
+            cell(e_q),
+            cell(e_cum),
         ));
-        if e_phi.is_finite() && e_phi > 0.0 {
-            phi_series.push((cells as f64, e_phi));
-        }
-        if e_q.is_finite() && e_q > 0.0 {
-            charge_series.push((cells as f64, e_q));
+        for (series, e) in [(&mut phi_series, e_phi), (&mut charge_series, e_q), (&mut cumulative_series, e_cum)] {
+            if e.is_finite() && e > 0.0 {
+                series.push((cells as f64, e));
+            }
         }
     }
     output::write_atomic(&out.join("report.csv"), csv.as_bytes()).map_err(report::ReportError::Io)?;
@@ -488,6 +519,7 @@ pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: 
         &[
             Series { label: "phi (V)", points: phi_series, line: true },
             Series { label: "p - n (e/nm^3)", points: charge_series, line: true },
+            Series { label: "cumulative charge (e/nm^2)", points: cumulative_series, line: true },
         ],
     )
     .map_err(report::ReportError::Io)?;
