@@ -211,7 +211,7 @@ impl Model {
         y
     }
 
-    /// Initial switch states: open where |dphi| >= threshold.
+    /// Initial switch states: open where the switch's drop ([`Model::switch_drop`]) >= threshold.
     pub fn initial_open(&self, y: &[f64]) -> Vec<bool> {
         self.interfaces.iter().map(|&f| self.switch_drop(y, f) >= self.threshold).collect()
     }
@@ -559,8 +559,9 @@ impl Model {
         (r, scale)
     }
 
-    /// The switch functions of the interfaces: |dphi| minus the level at which the face's
-    /// switch flips (threshold when closed, threshold - hysteresis when open).
+    /// The switch functions of the interfaces: the switch's drop ([`Model::switch_drop`]) minus
+    /// the level at which the face's switch flips (threshold when closed, threshold -
+    /// hysteresis when open).
     pub fn switch_functions(&self, y: &[f64], open: &[bool], out: &mut [f64]) {
         for (k, &f) in self.interfaces.iter().enumerate() {
             out[k] = self.switch_drop(y, f) - if open[k] { self.threshold - self.hysteresis } else { self.threshold };

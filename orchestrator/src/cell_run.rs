@@ -442,7 +442,7 @@ fn cumulative_charge(prof: &[[f64; 5]]) -> Vec<(f64, f64)> {
 /// run's cell centres), and of the cumulative charge sum (p - n) dx left of each of the run's
 /// faces (interpolated linearly between the finest run's faces). p - n next to an interface
 /// does not converge (the electrodes' electrons store their charge in one cell, whose p - n
-/// grows as 1/dx; cell/README.md "Refinement"); the cumulative charge, eps0/e times the field,
+/// grows as 1/dx; cell/README.md, the refinement study); the cumulative charge, eps0/e times the field,
 /// does. Writes report.csv and report.png (error against cells).
 pub fn error_vs_time(scene_path: &Path, sets: &[String], sweeps: &[Sweep], out: &Path) -> Result<usize, report::ReportError> {
     let combos = report::combinations(sweeps);
