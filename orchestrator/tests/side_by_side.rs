@@ -24,8 +24,11 @@ const LONGER: [&str; 2] = ["domain.cells=[16]", "scheme.end_time=1.5e-12"];
 const OTHER: [&str; 2] = ["domain.cells=[12]", "scheme.end_time=1.2e-12"];
 /// 6 points, 30 steps.
 const SHORT: [&str; 1] = ["scheme.end_time=3e-13"];
-/// 16 points, 400 steps: runs while the others come and go.
-const LONGEST: [&str; 2] = ["domain.cells=[16]", "scheme.end_time=4e-12"];
+/// 16 points, 300 steps (about a second): still running while jobs are queued behind it.
+const FIRST: [&str; 2] = ["domain.cells=[16]", "scheme.end_time=3e-12"];
+/// 16 points, 3000 steps (several seconds): runs while the others come and go (cancelled once
+/// they have started).
+const LONGEST: [&str; 2] = ["domain.cells=[16]", "scheme.end_time=3e-11"];
 
 fn bin() -> &'static str {
     env!("CARGO_BIN_EXE_mscale")
@@ -180,7 +183,9 @@ fn a_high_priority_job_gets_the_first_worker_a_running_job_releases() {
     let server = Server::start(&state, &token, &tmp.path().join("serve.log"));
     let _workers: Vec<Proc> = (0..2).map(|k| worker(&server, &token, &tmp.path().join(format!("w{k}.log")))).collect();
     server.wait_live(2);
-    let short = server.submit(&SHORT, 0, 1);
+    // (The first job was once SHORT itself; since the MD got faster it could end before the
+    // queued jobs were submitted, and the ordinary one then started at once.)
+    let short = server.submit(&FIRST, 0, 1);
     let long = server.submit(&LONGEST, 0, 1);
     mscale_testkit::wait_until("both running", Duration::from_secs(120), || {
         [&short, &long].iter().all(|j| server.job(j).state == pb::JobState::Running as i32)
@@ -208,10 +213,10 @@ fn a_high_priority_job_gets_the_first_worker_a_running_job_releases() {
     assert_eq!(jobs[&low].state, pb::JobState::Queued as i32, "{jobs:?}");
     // No preemption: the long job kept its worker; cancel it now, the ordinary job follows.
     server.client().cancel(&long).unwrap();
-    let digest = run_digest(&tmp.path().join("short"), &SHORT);
-    for j in [&short, &high, &low] {
+    let (first, digest) = (run_digest(&tmp.path().join("first"), &FIRST), run_digest(&tmp.path().join("short"), &SHORT));
+    for (j, d) in [(&short, &first), (&high, &digest), (&low, &digest)] {
         let done = server.finish(j);
-        assert_eq!((done.state, done.state_digest.as_str()), (pb::JobState::Completed as i32, digest.as_str()), "{done:?}");
+        assert_eq!((done.state, done.state_digest.as_str()), (pb::JobState::Completed as i32, d.as_str()), "{done:?}");
     }
     assert_eq!(server.finish(&long).state, pb::JobState::Cancelled as i32);
     let log = mscale_testkit::plain(&server.proc.log());
