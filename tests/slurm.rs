@@ -29,8 +29,9 @@ use std::time::{Duration, Instant};
 static CLUSTER: Mutex<()> = Mutex::new(());
 
 const MD_SMALL: &str = "tests/data/md-small.toml";
-/// 16 points, 400 steps of md-small: long enough to act on the allocation mid-job.
-const LONGER: [&str; 2] = ["domain.cells=[16]", "scheme.end_time=4e-12"];
+/// 16 points, 1000 steps of md-small: long enough to act on the allocation mid-job (400 were
+/// about a second since the MD got faster).
+const LONGER: [&str; 2] = ["domain.cells=[16]", "scheme.end_time=1e-11"];
 
 fn run(cmd: &mut Command) -> std::process::Output {
     cmd.output().unwrap_or_else(|e| panic!("cannot run {:?}: {e} (install Slurm: bash deploy/setup.sh slurm)", cmd.get_program()))
