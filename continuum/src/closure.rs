@@ -118,7 +118,10 @@ pub fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
 pub trait Closure: Send {
     /// Name as written in scene files.
     fn name(&self) -> &'static str;
-    /// Largest longitudinal wave speed over the points (m/s), for the CFL time step.
+    /// Largest longitudinal wave speed over the points (m/s), for the CFL time step. Over a
+    /// union of points it must be the largest of its values over the parts (a maximum over
+    /// points, or one value for all): over MPI ranks each rank gives it over its own runs of
+    /// points and the step takes the largest (`solver/ranks.rs`).
     fn wave_speed(&self, mass: &[f64], volume: &[f64]) -> f64;
     /// Called for every body of a step before any body's `initialize` or `advance` of that
     /// step (same batch, same `dt`): closures that share a resource (the MD closures of several

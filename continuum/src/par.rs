@@ -28,6 +28,9 @@ const NODE_BLOCK: usize = 1024;
 /// the stencil's reach, in 1D, 2D and 3D alike.
 pub const TILE_CELLS: usize = 4;
 
+/// [`Tiles`]'s mark of a point in no tile.
+const NO_TILE: u32 = u32::MAX;
+
 /// The points of each tile, each tile's in ascending point index (a counting sort of the
 /// points by tile, rebuilt every step).
 #[derive(Debug, Default, Clone)]
@@ -43,15 +46,23 @@ pub struct Tiles {
 impl Tiles {
     /// Sorts points `0..n` into `n_tiles` tiles, point `p` into `tile_of(p)` (< `n_tiles`).
     pub fn assign(&mut self, n_tiles: usize, n: usize, tile_of: impl Fn(usize) -> usize + Sync) {
+        self.assign_some(n_tiles, n, |p| Some(tile_of(p)));
+    }
+
+    /// As [`Tiles::assign`], the points for which `tile_of` gives `None` in no tile (over MPI
+    /// ranks: the points another rank holds).
+    pub fn assign_some(&mut self, n_tiles: usize, n: usize, tile_of: impl Fn(usize) -> Option<usize> + Sync) {
         self.tile.clear();
-        self.tile.par_extend((0..n).into_par_iter().with_min_len(CHUNK).map(|p| {
-            let t = tile_of(p);
-            assert!(t < n_tiles, "point {p} in tile {t} of {n_tiles}");
-            t as u32
+        self.tile.par_extend((0..n).into_par_iter().with_min_len(CHUNK).map(|p| match tile_of(p) {
+            Some(t) => {
+                assert!(t < n_tiles, "point {p} in tile {t} of {n_tiles}");
+                t as u32
+            }
+            None => NO_TILE,
         }));
         self.start.clear();
         self.start.resize(n_tiles + 1, 0);
-        for &t in &self.tile {
+        for &t in self.tile.iter().filter(|&&t| t != NO_TILE) {
             self.start[t as usize + 1] += 1;
         }
         for t in 0..n_tiles {
@@ -59,8 +70,8 @@ impl Tiles {
         }
         let mut next = self.start[..n_tiles].to_vec();
         self.order.clear();
-        self.order.resize(n, 0);
-        for (p, &t) in self.tile.iter().enumerate() {
+        self.order.resize(self.start[n_tiles], 0);
+        for (p, &t) in self.tile.iter().enumerate().filter(|(_, t)| **t != NO_TILE) {
             self.order[next[t as usize]] = p;
             next[t as usize] += 1;
         }
@@ -89,9 +100,9 @@ impl Tiles {
         &self.order[self.start[t]..self.start[t + 1]]
     }
 
-    /// The tile of point `p` (as last assigned).
-    pub fn tile_of(&self, p: usize) -> usize {
-        self.tile[p] as usize
+    /// The tile of point `p` (as last assigned; `None`: in no tile, [`Tiles::assign_some`]).
+    pub fn tile_of(&self, p: usize) -> Option<usize> {
+        self.tile.get(p).filter(|&&t| t != NO_TILE).map(|&t| t as usize)
     }
 
     /// The rank owning tile `t` over `ranks` ranks: the block of [`Tiles::set_cuts`] holding
@@ -523,7 +534,7 @@ mod tests {
         let mut expected = vec![0.0; nodes];
         for t in 0..tiles.count() {
             let mut part = vec![0.0; nodes];
-            for p in (0..n).filter(|&p| tiles.tile_of(p) == t) {
+            for p in (0..n).filter(|&p| tiles.tile_of(p) == Some(t)) {
                 for (k, i) in touched(&grid, &x[p]).into_iter().enumerate() {
                     part[i] += val[p] * (1.0 + 0.1 * k as f64);
                 }

@@ -202,12 +202,17 @@ pub struct Simulation<const D: usize> {
     /// Which rank computes which tiles when the per-point work is split over MPI ranks, and
     /// how often that is chosen again from measured costs (see [`LoadBalance`]).
     pub balance: LoadBalance,
-    /// After a split step: per point the rank that computed it, and whether the points other
-    /// ranks computed hold only their positions, velocities, internal energies and volumes
-    /// here (the rest is brought in by [`Simulation::share_all`], or by the migration of a point
-    /// onto this rank's tiles; `solver/ranks.rs`).
-    computed_by: Vec<u32>,
+    /// After a split step: per point whether this rank computed it (`held`: its whole state is
+    /// current here), and whether the other ranks' points are stale here (they are brought in
+    /// by [`Simulation::share_all`], or by the migration of a point onto this rank's tiles;
+    /// `solver/ranks.rs`). What the next step and the per-step figures read of every point
+    /// came with the step's end instead: `split_wave_speed`, `step_sums` (in tile order) and
+    /// `split_points` (the points each rank computed).
+    held: Vec<bool>,
     foreign_stale: bool,
+    split_wave_speed: f64,
+    step_sums: Option<(Totals<D>, f64)>,
+    split_points: Vec<usize>,
     /// Points sent whole to the rank that computes them next, summed over the steps (over MPI
     /// ranks; 0 on one process).
     pub migrated_points: u64,
@@ -302,8 +307,11 @@ impl<const D: usize> Simulation<D> {
             tiles: par::Tiles::default(),
             owned: Vec::new(),
             balance: LoadBalance::default(),
-            computed_by: Vec::new(),
+            held: Vec::new(),
             foreign_stale: false,
+            split_wave_speed: 0.0,
+            step_sums: None,
+            split_points: Vec::new(),
             migrated_points: 0,
             flat: Vec::new(),
             old_stress: Vec::new(),
@@ -332,8 +340,12 @@ impl<const D: usize> Simulation<D> {
         self
     }
 
-    /// Largest wave speed over all bodies (m/s).
+    /// Largest wave speed over all bodies (m/s). After a split step over MPI ranks, the one its
+    /// end gathered (the largest over the ranks' points: [`Closure::wave_speed`]).
     pub fn wave_speed(&self) -> f64 {
+        if self.foreign_stale {
+            return self.split_wave_speed;
+        }
         self.body_ranges
             .iter()
             .zip(&self.closures)
@@ -341,9 +353,41 @@ impl<const D: usize> Simulation<D> {
             .fold(0.0, f64::max)
     }
 
-    /// Mass, momentum and energy now.
+    /// Mass, momentum and energy now (every point current: over MPI ranks after
+    /// [`Simulation::share_all`]).
     pub fn totals(&self) -> Totals<D> {
         Totals::of(&self.points)
+    }
+
+    /// Mass, momentum and energy after the last step, and its momentum scale (the sum of m |v|
+    /// over the points), for the figures a run follows step by step (the largest kinetic
+    /// energy and momentum, the energy drift of the progress reports). Where the step's
+    /// per-point work can be split over MPI ranks ([`Simulation::splittable`]) summed tile by
+    /// tile over the step's tiles, each in ascending point index, then in tile order (over
+    /// ranks each rank sums its own tiles and the step's end gathers them), so every rank
+    /// count gives the same bits; otherwise in point order, as [`Simulation::totals`].
+    pub fn step_totals(&self) -> (Totals<D>, f64) {
+        if let Some(s) = self.step_sums {
+            return s;
+        }
+        if self.splittable() && self.tiles.count() > 0 {
+            return (0..self.tiles.count()).map(|t| self.tile_sums(t)).fold((Totals::default(), 0.0), |(mut a, m), (t, tm)| {
+                a.add(&t);
+                (a, m + tm)
+            });
+        }
+        let scale = (0..self.points.len()).map(|p| crate::diagnostics::momentum_magnitude(&self.points, p)).sum();
+        (Totals::of(&self.points), scale)
+    }
+
+    /// [`Simulation::step_totals`] of the points of tile `t`, in ascending index.
+    fn tile_sums(&self, t: usize) -> (Totals<D>, f64) {
+        let (mut sums, mut scale) = (Totals::default(), 0.0);
+        for &p in self.tiles.points(t) {
+            sums.add_point(&self.points, p);
+            scale += crate::diagnostics::momentum_magnitude(&self.points, p);
+        }
+        (sums, scale)
     }
 
     /// Lumped nodal masses of the last step (kg).
@@ -362,6 +406,7 @@ impl<const D: usize> Simulation<D> {
             self.share_all();
         }
         self.owned.clear();
+        self.step_sums = None;
         if self.scheme == SchemeKind::Tlmpm {
             return self.tlmpm_step();
         }
@@ -419,7 +464,7 @@ impl<const D: usize> Simulation<D> {
                 // Each rank checks its own points, all agree on the lowest bad one, then every
                 // rank takes the others' points and the neighbour-gap check (1D) runs on all.
                 ranks::agree(Some(ex), self.guard_points(step))?;
-                self.share_moving(ex);
+                self.finish_split(ex);
                 if let Some((start, inside)) = clock {
                     let outside = start.elapsed().as_secs_f64() - (ex.stats().seconds - inside);
                     self.balance.record(outside, self.owned.iter().filter(|&&o| o).count());
@@ -435,17 +480,27 @@ impl<const D: usize> Simulation<D> {
     fn build_stencil(&mut self, ranks: Option<&dyn par::TileExchange>) -> Result<(), OutsideGrid> {
         let n = self.points.len();
         let ns = self.sub_points.max(1);
-        let (grid, x) = (&self.grid, &self.points.x);
-        self.tiles.assign(par::slab_tile_count(grid), n, |p| par::slab_tile(grid, &x[p]));
+        let (grid, x, held) = (&self.grid, &self.points.x, &self.held);
+        let n_tiles = par::slab_tile_count(grid);
         match ranks {
+            // After a split step only the points this rank computed are current here: they are
+            // sorted into the tiles, those in other ranks' tiles sent to them, the points
+            // entering this rank's tiles taken in (`migrate`).
+            Some(ex) if self.foreign_stale => {
+                self.tiles.assign_some(n_tiles, n, |p| held[p].then(|| par::slab_tile(grid, &x[p])));
+                self.rebalance(ex);
+                self.migrate(ex);
+                par::owned_points(&self.tiles, ex.rank(), ex.size(), &mut self.owned);
+            }
             Some(ex) => {
+                self.tiles.assign(n_tiles, n, |p| par::slab_tile(grid, &x[p]));
                 self.rebalance(ex);
                 par::owned_points(&self.tiles, ex.rank(), ex.size(), &mut self.owned);
-                if self.foreign_stale {
-                    self.migrate(ex);
-                }
             }
-            None => self.owned.clear(),
+            None => {
+                self.tiles.assign(n_tiles, n, |p| par::slab_tile(grid, &x[p]));
+                self.owned.clear();
+            }
         }
         if self.scheme.is_ddmp() {
             ddmp::place_all(&self.points, ns, &self.owned, &mut self.sub_x);
@@ -962,10 +1017,15 @@ impl<const D: usize> Simulation<D> {
         }
     }
 
+    /// Whether the guard checks the gaps between neighbouring points ([`Simulation::guard_gaps`]).
+    fn gap_guarded(&self) -> bool {
+        D == 1 && !self.grid.periodic(0)
+    }
+
     /// The guard's neighbour-gap check of 1D bodies (over every point).
     fn guard_gaps(&self, step: u64) -> Result<(), SolverError> {
         let pts = &self.points;
-        if D == 1 && !self.grid.periodic(0) {
+        if self.gap_guarded() {
             // Neighbours in one body must stay within GAP_LIMIT_CELLS cells of each other.
             let h = self.grid.h[0];
             for order in &self.order_1d {

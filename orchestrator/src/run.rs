@@ -450,7 +450,7 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     let checkpoint_every = if opts.checkpoint_every > 0 { opts.checkpoint_every } else { scene.output.checkpoint_every_steps };
     let mut snaps = Snapshots { index: "step,time,file\n".into(), pvd: Vec::new() };
     let mut output_s = before.output_s;
-    let (mut max_kinetic, mut max_abs_momentum) = (sim.initial.kinetic.abs(), momentum_scale(&sim));
+    let (mut max_kinetic, mut max_abs_momentum) = (sim.initial.kinetic.abs(), sim.step_totals().1);
     if saved.is_some() {
         snaps = Snapshots { index: before.snapshot_index.clone(), pvd: before.pvd.clone() };
         (max_kinetic, max_abs_momentum) = (before.max_kinetic, before.max_abs_momentum);
@@ -543,9 +543,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
         if let Some(q) = quasi.as_mut() {
             q.observe(&sim);
         }
-        let totals = sim.totals();
+        // Over MPI ranks the split step's end gathered these (other ranks' points are stale).
+        let (totals, scale) = sim.step_totals();
         max_kinetic = max_kinetic.max(totals.kinetic);
-        max_abs_momentum = max_abs_momentum.max(momentum_scale(&sim));
+        max_abs_momentum = max_abs_momentum.max(scale);
         let snapshot_due = if adaptive {
             let due = sim.time >= next_snapshot * snapshot_dt * (1.0 - 1e-12) && running(&sim);
             if due {
@@ -673,7 +674,7 @@ fn report_progress<const D: usize>(
     done: bool,
 ) {
     let Some(f) = &opts.progress else { return };
-    let (init, now) = (sim.initial, sim.totals());
+    let (init, now) = (sim.initial, sim.step_totals().0);
     let energy_scale = init.energy().abs().max(max_kinetic).max(f64::MIN_POSITIVE);
     f(&Progress {
         step: sim.step,
@@ -685,11 +686,6 @@ fn report_progress<const D: usize>(
         energy_drift: (now.energy() - init.energy()).abs() / energy_scale,
         done,
     });
-}
-
-fn momentum_scale<const D: usize>(sim: &Simulation<D>) -> f64 {
-    let p = &sim.points;
-    (0..p.len()).map(|k| p.mass[k] * p.v[k].iter().map(|v| v * v).sum::<f64>().sqrt()).sum()
 }
 
 pub(crate) fn progress_bar(enabled: bool, steps: u64, end_time: f64) -> Option<indicatif::ProgressBar> {
@@ -922,7 +918,7 @@ fn summary<const D: usize>(
         None => "f64".into(),
     };
     let scene = &loaded.scene;
-    let (init, now) = (sim.initial, sim.totals());
+    let (init, now) = (sim.initial, sim.step_totals().0);
     let energy_scale = init.energy().abs().max(max_kinetic).max(f64::MIN_POSITIVE);
     let momentum_drift = (0..D).map(|a| (now.momentum[a] - init.momentum[a] - sim.wall_impulse[a]).abs()).fold(0.0, f64::max)
         / momentum_scale.max(sim.wall_impulse_magnitude).max(f64::MIN_POSITIVE);

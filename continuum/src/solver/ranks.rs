@@ -88,22 +88,37 @@ impl<const D: usize> Simulation<D> {
         let mut mine = vec![lb.compute_s, lb.point_steps];
         mine.extend_from_slice(&lb.body_s);
         mine.extend_from_slice(&lb.body_points);
+        // Per tile the points of each body (one more column: points in no body), each point
+        // counted by the one rank holding it: after a split step the rank that computed it
+        // (its tiles list only those), before one (every point current everywhere) rank 0.
+        let nt = self.tiles.count();
+        let ends: Vec<usize> = self.body_ranges.iter().map(|r| r.end).collect();
+        let mut counts = vec![0.0; nt * (nb + 1)];
+        if self.foreign_stale || ex.rank() == 0 {
+            for t in 0..nt {
+                for &p in self.tiles.points(t) {
+                    counts[t * (nb + 1) + ends.partition_point(|&e| e <= p)] += 1.0;
+                }
+            }
+        }
+        mine.extend_from_slice(&counts);
         let mut sum = vec![0.0; mine.len()];
         for r in ex.all_gather(&mine) {
             for (s, v) in sum.iter_mut().zip(r) {
                 *s += v;
             }
         }
-        let (body_s, body_points) = sum[2..].split_at(nb);
+        let (body_s, rest) = sum[2..].split_at(nb);
+        let (body_points, counts) = rest.split_at(nb);
         let closures_s: f64 = body_s.iter().sum();
         // Per point: the rest of the step's own work, plus its body's closure. Before any
         // measurement (or when the clock saw nothing): one unit a point.
         let base = if sum[1] > 0.0 && sum[0] > 0.0 { ((sum[0] - closures_s) / sum[1]).max(0.0) } else { 1.0 };
         let per_body: Vec<f64> =
             body_s.iter().zip(body_points).map(|(&s, &n)| base + if n > 0.0 && sum[0] > 0.0 { s / n } else { 0.0 }).collect();
-        let ends: Vec<usize> = self.body_ranges.iter().map(|r| r.end).collect();
-        let cost: Vec<f64> = (0..self.tiles.count())
-            .map(|t| self.tiles.points(t).iter().map(|&p| per_body.get(ends.partition_point(|&e| e <= p)).copied().unwrap_or(base)).sum())
+        let cost: Vec<f64> = counts
+            .chunks_exact(nb + 1)
+            .map(|c| c.iter().zip(per_body.iter().chain([&base])).map(|(n, per)| n * per).sum())
             .collect();
         self.tiles.set_cuts(par::balanced_cuts(&cost, size));
         let lb = &mut self.balance;
@@ -118,6 +133,11 @@ impl<const D: usize> Simulation<D> {
         let nt = self.tiles.count();
         let owner: Vec<usize> = (0..nt).map(|t| self.tiles.owner(t, ranks)).collect();
         let cuts = (0..=ranks).map(|r| owner.partition_point(|&o| o < r)).collect();
+        if self.split_points.len() == ranks {
+            // A split step: this rank's tiles hold only its own points; the step's end gathered
+            // every rank's count.
+            return (cuts, self.split_points.clone());
+        }
         let mut points = vec![0; ranks];
         for (t, &r) in owner.iter().enumerate() {
             points[r] += self.tiles.points(t).len();
@@ -126,12 +146,18 @@ impl<const D: usize> Simulation<D> {
     }
 
     /// The exchange to split this step's per-point work over: set over more than one rank and
-    /// when the step is one whose per-point passes read only their own point and the nodal
-    /// fields (the explicit integrators, no gradient correction, nullspace filter, diffusion,
-    /// IMPM or improved CPDI, closures that are pointwise). Otherwise `None`: every rank
-    /// computes every point (replicated, stage 1; only the scatters are split).
+    /// the step [`Simulation::splittable`]. Otherwise `None`: every rank computes every point
+    /// (replicated, stage 1; only the scatters are split).
     pub(super) fn split_ranks(&self) -> Option<&'static dyn TileExchange> {
         let ex = par::exchange().filter(|e| e.size() > 1)?;
+        self.splittable().then_some(ex)
+    }
+
+    /// Whether the step's per-point work can be split over MPI ranks: its per-point passes
+    /// read only their own point and the nodal fields (the explicit integrators, no gradient
+    /// correction, nullspace filter, diffusion, IMPM or improved CPDI, closures that are
+    /// pointwise).
+    pub fn splittable(&self) -> bool {
         let explicit =
             matches!(self.integrator, TimeIntegrator::Dhakal | TimeIntegrator::Leapfrog | TimeIntegrator::Usl | TimeIntegrator::Usf);
         let scheme = !self.scheme.maps_velocity_by_mls();
@@ -139,7 +165,7 @@ impl<const D: usize> Simulation<D> {
             && self.nullspace_filter == NullspaceFilter::None
             && self.diffusion.is_none();
         let closures = self.closures.iter().all(|c| c.repeatable());
-        (explicit && scheme && extras && closures).then_some(ex)
+        explicit && scheme && extras && closures
     }
 
     /// Values per point in [`Simulation::share_points`].
@@ -202,80 +228,13 @@ impl<const D: usize> Simulation<D> {
         }
     }
 
-    /// The points rank `r` computed in the last step: its tiles', tile by tile, each in
-    /// ascending index.
-    fn points_of(&self, r: usize, size: usize) -> Vec<usize> {
-        self.tiles.owned_by(r, size).flat_map(|t| self.tiles.points(t).iter().copied()).collect()
-    }
-
-    /// Gives every rank every point's end-of-step state: each rank sends its own points (tile
-    /// order, then point order) and unpacks the others' in the same order.
+    /// Gives every rank every point's end-of-step state: each rank sends the points it holds
+    /// (ascending index, each with its index) and takes the others'.
     pub(super) fn share_points(&mut self, ex: &dyn TileExchange) {
-        let (rank, size) = (ex.rank(), ex.size());
-        let per = self.shared_per_point();
-        let mine = self.points_of(rank, size);
-        let mut pack = Vec::with_capacity(mine.len() * per);
-        for &p in &mine {
-            self.pack_point(p, &mut pack);
-        }
-        let all = ex.all_gather(&pack);
-        for (r, buf) in all.iter().enumerate().filter(|(r, _)| *r != rank) {
-            let theirs = self.points_of(r, size);
-            assert_eq!(theirs.len() * per, buf.len(), "rank {r} sent {} values for its {} points", buf.len(), theirs.len());
-            for (k, &p) in theirs.iter().enumerate() {
-                self.unpack_point(p, &buf[k * per..(k + 1) * per]);
-            }
-        }
-    }
-
-    /// The end of a split step: every rank gets of every other rank's points only what the
-    /// next step and the per-step totals read of points a rank does not compute (positions,
-    /// for the tiles; velocity and internal energy, for the totals and the momentum scale;
-    /// volume, for the wave speed), packed as in [`Simulation::share_points`]. The rest of those
-    /// points' state stays as it was on this rank (stale) until [`Simulation::share_all`], or
-    /// until a point moves onto this rank's tiles ([`Simulation::migrate`]); every rank records
-    /// which rank computed each point.
-    pub(super) fn share_moving(&mut self, ex: &dyn TileExchange) {
-        let (rank, size) = (ex.rank(), ex.size());
-        let per = 2 * D + 2;
-        let mine = self.points_of(rank, size);
-        let mut pack = Vec::with_capacity(mine.len() * per);
-        let pts = &self.points;
-        for &p in &mine {
-            pack.extend_from_slice(&pts.x[p]);
-            pack.extend_from_slice(&pts.v[p]);
-            pack.push(pts.internal_energy[p]);
-            pack.push(pts.volume[p]);
-        }
-        let all = ex.all_gather(&pack);
-        self.computed_by.clear();
-        self.computed_by.resize(self.points.len(), rank as u32);
-        for (r, buf) in all.iter().enumerate().filter(|(r, _)| *r != rank) {
-            let theirs = self.points_of(r, size);
-            assert_eq!(theirs.len() * per, buf.len(), "rank {r} sent {} values for its {} points", buf.len(), theirs.len());
-            let pts = &mut self.points;
-            for (k, &p) in theirs.iter().enumerate() {
-                let v = &buf[k * per..(k + 1) * per];
-                pts.x[p] = std::array::from_fn(|a| v[a]);
-                pts.v[p] = std::array::from_fn(|a| v[D + a]);
-                pts.internal_energy[p] = v[2 * D];
-                pts.volume[p] = v[2 * D + 1];
-                self.computed_by[p] = r as u32;
-            }
-        }
-        self.foreign_stale = true;
-    }
-
-    /// The start of a split step after [`Simulation::share_moving`] (`self.tiles` and its
-    /// owners already set for this step): each point that changes rank is sent, whole, by the
-    /// rank that computed it last step (ascending index), and every rank takes them all.
-    pub(super) fn migrate(&mut self, ex: &dyn TileExchange) {
-        let (rank, size) = (ex.rank(), ex.size());
+        let rank = ex.rank();
         let per = 1 + self.shared_per_point();
-        let moving: Vec<usize> =
-            (0..self.points.len()).filter(|&p| self.computed_by[p] as usize != self.tiles.owner(self.tiles.tile_of(p), size)).collect();
         let mut pack = Vec::new();
-        for &p in moving.iter().filter(|&&p| self.computed_by[p] as usize == rank) {
+        for p in (0..self.points.len()).filter(|&p| self.held[p]) {
             pack.push(p as f64);
             self.pack_point(p, &mut pack);
         }
@@ -285,7 +244,108 @@ impl<const D: usize> Simulation<D> {
                 self.unpack_point(v[0] as usize, &v[1..]);
             }
         }
-        self.migrated_points += moving.len() as u64;
+    }
+
+    /// The end of a split step: instead of other ranks' points, every rank gets what the next
+    /// step and the per-step figures read of them, in one small all-gather: each rank's largest
+    /// wave speed over its points (each body's over all points is the largest of them:
+    /// [`Closure::wave_speed`]), the sums of its tiles ([`Simulation::step_totals`], added in
+    /// tile order here), its point count; and, in 1D under the neighbour-gap guard, its points'
+    /// positions. The rest of other ranks' points stays stale here until
+    /// [`Simulation::share_all`], or until a point enters this rank's tiles
+    /// ([`Simulation::migrate`]).
+    pub(super) fn finish_split(&mut self, ex: &dyn TileExchange) {
+        let (rank, size) = (ex.rank(), ex.size());
+        let gaps = self.gap_guarded();
+        let owned = &self.owned;
+        let mut wave = 0.0f64;
+        for (range, closure) in self.body_ranges.iter().zip(&self.closures) {
+            if range.is_empty() && rank == 0 {
+                wave = wave.max(closure.wave_speed(&[], &[]));
+            }
+            let mut p = range.start;
+            while p < range.end {
+                if !owned[p] {
+                    p += 1;
+                    continue;
+                }
+                let start = p;
+                while p < range.end && owned[p] {
+                    p += 1;
+                }
+                wave = wave.max(closure.wave_speed(&self.points.mass[start..p], &self.points.volume[start..p]));
+            }
+        }
+        let mine: Vec<usize> = (0..self.points.len()).filter(|&p| owned[p]).collect();
+        let tiles: Vec<usize> = self.tiles.owned_by(rank, size).collect();
+        let mut pack = vec![wave, mine.len() as f64, tiles.len() as f64];
+        for &t in &tiles {
+            let (sums, scale) = self.tile_sums(t);
+            pack.extend([t as f64, sums.mass, sums.kinetic, sums.internal, scale]);
+            pack.extend(sums.momentum);
+        }
+        if gaps {
+            for &p in &mine {
+                pack.push(p as f64);
+                pack.extend(self.points.x[p]);
+            }
+        }
+        let all = ex.all_gather(&pack);
+        let mut tile_sums = vec![(Totals::default(), 0.0); self.tiles.count()];
+        self.split_points.clear();
+        self.split_wave_speed = 0.0;
+        for (r, buf) in all.iter().enumerate() {
+            self.split_wave_speed = self.split_wave_speed.max(buf[0]);
+            self.split_points.push(buf[1] as usize);
+            let n_tiles = buf[2] as usize;
+            let (sums, rest) = buf[3..].split_at(n_tiles * (5 + D));
+            for v in sums.chunks_exact(5 + D) {
+                let t = Totals { mass: v[1], momentum: std::array::from_fn(|a| v[5 + a]), kinetic: v[2], internal: v[3] };
+                tile_sums[v[0] as usize] = (t, v[4]);
+            }
+            if gaps && r != rank {
+                for v in rest.chunks_exact(1 + D) {
+                    self.points.x[v[0] as usize] = std::array::from_fn(|a| v[1 + a]);
+                }
+            }
+        }
+        self.step_sums = Some(tile_sums.iter().fold((Totals::default(), 0.0), |(mut a, m), (t, tm)| {
+            a.add(t);
+            (a, m + tm)
+        }));
+        self.held.clone_from(&self.owned);
+        self.foreign_stale = true;
+    }
+
+    /// The start of a split step after [`Simulation::finish_split`] (`self.tiles` holding the
+    /// points this rank computed last step, the owners of this step set): the points in other
+    /// ranks' tiles are sent whole (tile by tile, ascending index), every rank takes those that
+    /// enter its own tiles, and the tiles are sorted again over the points this rank now holds.
+    pub(super) fn migrate(&mut self, ex: &dyn TileExchange) {
+        let (rank, size) = (ex.rank(), ex.size());
+        let per = 1 + self.shared_per_point();
+        let mut pack = Vec::new();
+        for t in (0..self.tiles.count()).filter(|&t| self.tiles.owner(t, size) != rank) {
+            for &p in self.tiles.points(t) {
+                pack.push(p as f64);
+                self.pack_point(p, &mut pack);
+                self.held[p] = false;
+            }
+        }
+        let all = ex.all_gather(&pack);
+        for (r, buf) in all.iter().enumerate() {
+            for v in buf.chunks_exact(per) {
+                self.migrated_points += 1;
+                let x: [f64; D] = std::array::from_fn(|a| v[1 + a]);
+                if r != rank && self.tiles.owner(par::slab_tile(&self.grid, &x), size) == rank {
+                    let p = v[0] as usize;
+                    self.unpack_point(p, &v[1..]);
+                    self.held[p] = true;
+                }
+            }
+        }
+        let (grid, x, held) = (&self.grid, &self.points.x, &self.held);
+        self.tiles.assign_some(par::slab_tile_count(grid), x.len(), |p| held[p].then(|| par::slab_tile(grid, &x[p])));
     }
 
     /// Makes every point's whole state current on every rank (after split steps, the points a
