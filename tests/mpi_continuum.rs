@@ -214,7 +214,8 @@ fn a_point_leaving_the_grid_stops_every_rank_with_one_message() {
     // 4 rows, owned by rank 2 at N = 3) flies at 2 km/s towards the free x_max face while the
     // rest stays at rest: a point of that strip leaves the grid at step 9 (the one-process run
     // fails the same way). Over 3 ranks every rank stops there (no rank hangs in a collective),
-    // mpirun exits 1 and the message, raised on rank 2, is printed once, by rank 0.
+    // mpirun exits 1 and the message, raised on rank 2, is printed once, by rank 0; the failed
+    // run's summary holds the one-process state digest.
     // (The scene is written here rather than borrowed: mms-2d under ugimp used to fail this way
     // only because GIMP domains past a roller were refused, which they no longer are.)
     let exe = mpi_mscale();
@@ -246,6 +247,15 @@ fn a_point_leaving_the_grid_stops_every_rank_with_one_message() {
     assert_eq!(line(&err1).len(), 1, "{err1}");
     assert!(line(&err1)[0].contains("left the grid along axis 0"), "{err1}");
     assert_eq!(line(&err3), line(&err1), "3 ranks: {err3}");
+    // The state at the failure, as the summary gives it, is the one process's too (each rank's
+    // points stand where the failed phase left them and are shared before the outputs).
+    let summary = |k: usize| -> serde_json::Value {
+        let text = std::fs::read_to_string(tmp.path().join(format!("fail-{k}")).join("summary.json")).expect("summary.json");
+        serde_json::from_str(&text).expect("json")
+    };
+    let (s1, s3) = (summary(0), summary(3));
+    assert_eq!((&s1["status"], &s3["status"]), (&serde_json::json!("failed"), &serde_json::json!("failed")));
+    assert_eq!((&s3["state_digest"], &s3["conservation"]), (&s1["state_digest"], &s1["conservation"]), "3 ranks: {s3}");
 }
 
 /// Two neo-Hookean blocks on 8 x 12 cells: `fast` (the top quarter) moves at 2 km/s towards the

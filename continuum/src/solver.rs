@@ -492,10 +492,15 @@ impl<const D: usize> Simulation<D> {
                 self.migrate(ex);
                 par::owned_points(&self.tiles, ex.rank(), ex.size(), &mut self.owned);
             }
+            // Every point current here (the first split step, or after `share_all`): from now
+            // on only this rank's (a failure later in the step shares them as they stand).
             Some(ex) => {
                 self.tiles.assign(n_tiles, n, |p| par::slab_tile(grid, &x[p]));
                 self.rebalance(ex);
                 par::owned_points(&self.tiles, ex.rank(), ex.size(), &mut self.owned);
+                self.split_wave_speed = self.wave_speed();
+                self.held.clone_from(&self.owned);
+                self.foreign_stale = true;
             }
             None => {
                 self.tiles.assign(n_tiles, n, |p| par::slab_tile(grid, &x[p]));

@@ -228,22 +228,28 @@ impl<const D: usize> Simulation<D> {
         }
     }
 
-    /// Gives every rank every point's end-of-step state: each rank sends the points it holds
-    /// (ascending index, each with its index) and takes the others'.
+    /// Gives every rank every point's state: each rank sends the points it holds (ascending
+    /// index, each with its index and its tile of the step) and takes the others'; the tiles
+    /// then list every point again, as on one process.
     pub(super) fn share_points(&mut self, ex: &dyn TileExchange) {
         let rank = ex.rank();
-        let per = 1 + self.shared_per_point();
+        let per = 2 + self.shared_per_point();
         let mut pack = Vec::new();
         for p in (0..self.points.len()).filter(|&p| self.held[p]) {
-            pack.push(p as f64);
+            pack.extend([p as f64, self.tiles.tile_of(p).map_or(-1.0, |t| t as f64)]);
             self.pack_point(p, &mut pack);
         }
         let all = ex.all_gather(&pack);
+        let mut tile: Vec<Option<usize>> = (0..self.points.len()).map(|p| self.tiles.tile_of(p)).collect();
         for buf in all.iter().enumerate().filter(|(r, _)| *r != rank).map(|(_, b)| b) {
             for v in buf.chunks_exact(per) {
-                self.unpack_point(v[0] as usize, &v[1..]);
+                let p = v[0] as usize;
+                tile[p] = (v[1] >= 0.0).then_some(v[1] as usize);
+                self.unpack_point(p, &v[2..]);
             }
         }
+        let n_tiles = self.tiles.count();
+        self.tiles.assign_some(n_tiles, tile.len(), |p| tile[p]);
     }
 
     /// The end of a split step: instead of other ranks' points, every rank gets what the next
