@@ -1,13 +1,13 @@
-//! The explicit step's per-point work split over MPI ranks (issue 14 stages 2-3;
+//! The explicit step's per-point work split over MPI ranks (issue 14 stages 2-4;
 //! continuum/README.md "MPI"). Every rank holds an array of every point, but computes only the
 //! points of the slab tiles it owns ([`par::Tiles::owner`], the tiles whose scatter buffers it
 //! fills; shared out by measured cost, [`LoadBalance`]): their stencil rows, velocity gradients,
-//! deformation, closures, viscosity, motion and the guard's check. At the end of the step only
-//! the positions, velocities, internal energies and volumes of each rank's points are
-//! all-gathered ([`Simulation::share_moving`]), each rank's points packed tile by tile in tile
-//! order and each tile's in ascending index; the rest of another rank's point is stale here
-//! until the point moves onto this rank's tiles (sent whole: [`Simulation::migrate`]) or
-//! [`Simulation::share_all`] shares every point's whole state (outputs, checkpoints, the end).
+//! deformation, closures, viscosity, motion and the guard's check. Only those points are
+//! current on the rank: no point state is exchanged at the end of a step
+//! ([`Simulation::finish_split`] gathers the wave speed, the tiles' sums and the point counts),
+//! a point whose new position lies in another rank's tiles is sent to it whole at the start of
+//! the next step ([`Simulation::migrate`]), and [`Simulation::share_all`] shares every point's
+//! whole state where all of it is read (outputs, checkpoints, the end).
 //! The points a rank computes hold the bits one process computes (each point's update reads
 //! only its own state and the nodal fields, which every rank reduces in the same tile order),
 //! whatever the number of ranks and the split.
@@ -355,7 +355,7 @@ impl<const D: usize> Simulation<D> {
     }
 
     /// Makes every point's whole state current on every rank (after split steps, the points a
-    /// rank did not compute hold only what `share_moving` gives): a collective when
+    /// rank did not compute are stale there): a collective when
     /// anything is stale, so every rank calls it at the same point of the run (before reading
     /// stresses or deformation of all points: outputs, checkpoints, scores, the digest).
     /// Nothing to do on one process or when nothing is stale.
