@@ -22,6 +22,18 @@ use super::*;
 use crate::closure::{ClosureError, error_chain as chain};
 use crate::par::TileExchange;
 
+/// Points a rank sends per round of [`Simulation::send_points`] by default (about 9 MB of
+/// state in 3D); `MSCALE_MPI_SEND_ROUND` sets another count (the tests use a few points to run
+/// many rounds).
+const SEND_ROUND: usize = 16_384;
+
+fn send_round() -> usize {
+    static ROUND: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *ROUND.get_or_init(|| {
+        std::env::var("MSCALE_MPI_SEND_ROUND").ok().and_then(|v| v.parse().ok()).filter(|&n| n > 0).unwrap_or(SEND_ROUND)
+    })
+}
+
 /// Steps between two rebalances of the tiles over the ranks by default.
 pub const DEFAULT_REBALANCE_EVERY: u64 = 100;
 
@@ -229,27 +241,44 @@ impl<const D: usize> Simulation<D> {
     }
 
     /// Gives every rank every point's state: each rank sends the points it holds (ascending
-    /// index, each with its index and its tile of the step) and takes the others'; the tiles
-    /// then list every point again, as on one process.
+    /// index) and takes the others'; the tiles then list every point again, as on one process.
     pub(super) fn share_points(&mut self, ex: &dyn TileExchange) {
-        let rank = ex.rank();
-        let per = 2 + self.shared_per_point();
-        let mut pack = Vec::new();
-        for p in (0..self.points.len()).filter(|&p| self.held[p]) {
-            pack.extend([p as f64, self.tiles.tile_of(p).map_or(-1.0, |t| t as f64)]);
-            self.pack_point(p, &mut pack);
-        }
-        let all = ex.all_gather(&pack);
+        let mine: Vec<usize> = (0..self.points.len()).filter(|&p| self.held[p]).collect();
         let mut tile: Vec<Option<usize>> = (0..self.points.len()).map(|p| self.tiles.tile_of(p)).collect();
-        for buf in all.iter().enumerate().filter(|(r, _)| *r != rank).map(|(_, b)| b) {
-            for v in buf.chunks_exact(per) {
-                let p = v[0] as usize;
-                tile[p] = (v[1] >= 0.0).then_some(v[1] as usize);
-                self.unpack_point(p, &v[2..]);
-            }
-        }
+        self.send_points(ex, &mine, |sim, _, p, t, state| {
+            tile[p] = t;
+            sim.unpack_point(p, state);
+        });
         let n_tiles = self.tiles.count();
         self.tiles.assign_some(n_tiles, tile.len(), |p| tile[p]);
+    }
+
+    /// Sends the whole state of `points` (this rank's) to every rank, each point with its index
+    /// and its tile of the step, in rounds of at most [`send_round`] points a rank (one
+    /// all-gather a round, every rank taking part until no rank has more), so an exchange's
+    /// buffers stay a few MB whatever the number of points; calls `take(self, rank, point,
+    /// tile, state)` for each point every other rank sent, in that rank's order.
+    fn send_points(&mut self, ex: &dyn TileExchange, points: &[usize], mut take: impl FnMut(&mut Self, usize, usize, Option<usize>, &[f64])) {
+        let per = 2 + self.shared_per_point();
+        let mut next = 0;
+        loop {
+            let end = (next + send_round()).min(points.len());
+            let mut pack = vec![if end < points.len() { 1.0 } else { 0.0 }];
+            for &p in &points[next..end] {
+                pack.extend([p as f64, self.tiles.tile_of(p).map_or(-1.0, |t| t as f64)]);
+                self.pack_point(p, &mut pack);
+            }
+            next = end;
+            let all = ex.all_gather(&pack);
+            for (r, buf) in all.iter().enumerate().filter(|(r, _)| *r != ex.rank()) {
+                for v in buf[1..].chunks_exact(per) {
+                    take(self, r, v[0] as usize, (v[1] >= 0.0).then_some(v[1] as usize), &v[2..]);
+                }
+            }
+            if all.iter().all(|b| b[0] == 0.0) {
+                return;
+            }
+        }
     }
 
     /// The end of a split step: instead of other ranks' points, every rank gets what the next
@@ -329,26 +358,21 @@ impl<const D: usize> Simulation<D> {
     /// enter its own tiles, and the tiles are sorted again over the points this rank now holds.
     pub(super) fn migrate(&mut self, ex: &dyn TileExchange) {
         let (rank, size) = (ex.rank(), ex.size());
-        let per = 1 + self.shared_per_point();
-        let mut pack = Vec::new();
-        for t in (0..self.tiles.count()).filter(|&t| self.tiles.owner(t, size) != rank) {
-            for &p in self.tiles.points(t) {
-                pack.push(p as f64);
-                self.pack_point(p, &mut pack);
-                self.held[p] = false;
+        let leaving: Vec<usize> = (0..self.tiles.count())
+            .filter(|&t| self.tiles.owner(t, size) != rank)
+            .flat_map(|t| self.tiles.points(t).iter().copied())
+            .collect();
+        self.migrated_points += leaving.len() as u64;
+        self.send_points(ex, &leaving, |sim, _, p, _, state| {
+            sim.migrated_points += 1;
+            let x: [f64; D] = std::array::from_fn(|a| state[a]);
+            if sim.tiles.owner(par::slab_tile(&sim.grid, &x), size) == rank {
+                sim.unpack_point(p, state);
+                sim.held[p] = true;
             }
-        }
-        let all = ex.all_gather(&pack);
-        for (r, buf) in all.iter().enumerate() {
-            for v in buf.chunks_exact(per) {
-                self.migrated_points += 1;
-                let x: [f64; D] = std::array::from_fn(|a| v[1 + a]);
-                if r != rank && self.tiles.owner(par::slab_tile(&self.grid, &x), size) == rank {
-                    let p = v[0] as usize;
-                    self.unpack_point(p, &v[1..]);
-                    self.held[p] = true;
-                }
-            }
+        });
+        for &p in &leaving {
+            self.held[p] = false;
         }
         let (grid, x, held) = (&self.grid, &self.points.x, &self.held);
         self.tiles.assign_some(par::slab_tile_count(grid), x.len(), |p| held[p].then(|| par::slab_tile(grid, &x[p])));
