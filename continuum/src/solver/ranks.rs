@@ -294,22 +294,11 @@ impl<const D: usize> Simulation<D> {
         let gaps = self.gap_guarded();
         let owned = &self.owned;
         let mut wave = 0.0f64;
-        for (range, closure) in self.body_ranges.iter().zip(&self.closures) {
-            if range.is_empty() && rank == 0 {
-                wave = wave.max(closure.wave_speed(&[], &[]));
-            }
-            let mut p = range.start;
-            while p < range.end {
-                if !owned[p] {
-                    p += 1;
-                    continue;
-                }
-                let start = p;
-                while p < range.end && owned[p] {
-                    p += 1;
-                }
-                wave = wave.max(closure.wave_speed(&self.points.mass[start..p], &self.points.volume[start..p]));
-            }
+        for (range, closure) in self.body_ranges.iter().zip(&self.closures).filter(|(r, _)| r.is_empty() && rank == 0) {
+            wave = wave.max(closure.wave_speed(&self.points.mass[range.clone()], &self.points.volume[range.clone()]));
+        }
+        for (b, run) in owned_runs(&self.body_ranges, owned) {
+            wave = wave.max(self.closures[b].wave_speed(&self.points.mass[run.clone()], &self.points.volume[run]));
         }
         let mine: Vec<usize> = (0..self.points.len()).filter(|&p| owned[p]).collect();
         let tiles: Vec<usize> = self.tiles.owned_by(rank, size).collect();
@@ -394,6 +383,27 @@ impl<const D: usize> Simulation<D> {
     }
 }
 
+/// The maximal runs of consecutive `owned` points of each body, with the body's index, in body
+/// then point order.
+fn owned_runs(body_ranges: &[std::ops::Range<usize>], owned: &[bool]) -> Vec<(usize, std::ops::Range<usize>)> {
+    let mut runs = Vec::new();
+    for (b, range) in body_ranges.iter().enumerate() {
+        let mut p = range.start;
+        while p < range.end {
+            if !owned[p] {
+                p += 1;
+                continue;
+            }
+            let start = p;
+            while p < range.end && owned[p] {
+                p += 1;
+            }
+            runs.push((b, start..p));
+        }
+    }
+    runs
+}
+
 /// Advances this rank's points (`owned`) of every body, each maximal run of consecutive owned
 /// points of a body as one batch (the closures are pointwise: [`Simulation::split_ranks`]
 /// admits only repeatable ones). Every batch is prepared before any is advanced, as on one
@@ -412,21 +422,7 @@ pub(super) fn advance_owned_closures<const D: usize>(
     evaluations: &mut u64,
     balance: &mut LoadBalance,
 ) -> Result<(), (usize, SolverError)> {
-    let mut runs: Vec<(usize, std::ops::Range<usize>)> = Vec::new();
-    for (b, range) in body_ranges.iter().enumerate() {
-        let mut p = range.start;
-        while p < range.end {
-            if !owned[p] {
-                p += 1;
-                continue;
-            }
-            let start = p;
-            while p < range.end && owned[p] {
-                p += 1;
-            }
-            runs.push((b, start..p));
-        }
-    }
+    let runs = owned_runs(body_ranges, owned);
     balance.body_s.resize(body_ranges.len(), 0.0);
     balance.body_points.resize(body_ranges.len(), 0.0);
     for prepare in [true, false] {
