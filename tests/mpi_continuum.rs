@@ -157,7 +157,11 @@ fn same_digest_over(
         }
         let one = digest(&exe, tmp.path(), scene, &set, None);
         if let (None, Some(pinned)) = (m, pinned) {
-            assert_eq!(one.split(' ').next(), Some(pinned), "{scene}: the mpi build's one-process digest differs from the pinned default-build digest");
+            assert_eq!(
+                one.split(' ').next(),
+                Some(pinned),
+                "{scene}: the mpi build's one-process digest differs from the pinned default-build digest"
+            );
         }
         let extra_ranks = more.iter().filter(|(mm, _)| *mm == m).map(|(_, n)| *n);
         let all: Vec<usize> = ranks.iter().copied().chain(extra_ranks).collect();

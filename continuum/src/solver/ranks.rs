@@ -29,9 +29,7 @@ const SEND_ROUND: usize = 16_384;
 
 fn send_round() -> usize {
     static ROUND: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
-    *ROUND.get_or_init(|| {
-        std::env::var("MSCALE_MPI_SEND_ROUND").ok().and_then(|v| v.parse().ok()).filter(|&n| n > 0).unwrap_or(SEND_ROUND)
-    })
+    *ROUND.get_or_init(|| std::env::var("MSCALE_MPI_SEND_ROUND").ok().and_then(|v| v.parse().ok()).filter(|&n| n > 0).unwrap_or(SEND_ROUND))
 }
 
 /// Steps between two rebalances of the tiles over the ranks by default.
@@ -128,10 +126,8 @@ impl<const D: usize> Simulation<D> {
         let base = if sum[1] > 0.0 && sum[0] > 0.0 { ((sum[0] - closures_s) / sum[1]).max(0.0) } else { 1.0 };
         let per_body: Vec<f64> =
             body_s.iter().zip(body_points).map(|(&s, &n)| base + if n > 0.0 && sum[0] > 0.0 { s / n } else { 0.0 }).collect();
-        let cost: Vec<f64> = counts
-            .chunks_exact(nb + 1)
-            .map(|c| c.iter().zip(per_body.iter().chain([&base])).map(|(n, per)| n * per).sum())
-            .collect();
+        let cost: Vec<f64> =
+            counts.chunks_exact(nb + 1).map(|c| c.iter().zip(per_body.iter().chain([&base])).map(|(n, per)| n * per).sum()).collect();
         self.tiles.set_cuts(par::balanced_cuts(&cost, size));
         let lb = &mut self.balance;
         lb.rebalances += 1;
@@ -258,7 +254,12 @@ impl<const D: usize> Simulation<D> {
     /// all-gather a round, every rank taking part until no rank has more), so an exchange's
     /// buffers stay a few MB whatever the number of points; calls `take(self, rank, point,
     /// tile, state)` for each point every other rank sent, in that rank's order.
-    fn send_points(&mut self, ex: &dyn TileExchange, points: &[usize], mut take: impl FnMut(&mut Self, usize, usize, Option<usize>, &[f64])) {
+    fn send_points(
+        &mut self,
+        ex: &dyn TileExchange,
+        points: &[usize],
+        mut take: impl FnMut(&mut Self, usize, usize, Option<usize>, &[f64]),
+    ) {
         let per = 2 + self.shared_per_point();
         let mut next = 0;
         loop {
