@@ -918,7 +918,7 @@ fn summary<const D: usize>(
         None => "f64".into(),
     };
     let scene = &loaded.scene;
-    let (init, now) = (sim.initial, sim.step_totals().0);
+    let (init, now) = (sim.initial, sim.totals());
     let energy_scale = init.energy().abs().max(max_kinetic).max(f64::MIN_POSITIVE);
     let momentum_drift = (0..D).map(|a| (now.momentum[a] - init.momentum[a] - sim.wall_impulse[a]).abs()).fold(0.0, f64::max)
         / momentum_scale.max(sim.wall_impulse_magnitude).max(f64::MIN_POSITIVE);
