@@ -461,8 +461,9 @@ impl<const D: usize> Simulation<D> {
         match ranks {
             None => self.guard(step)?,
             Some(ex) => {
-                // Each rank checks its own points, all agree on the lowest bad one, then every
-                // rank takes the others' points and the neighbour-gap check (1D) runs on all.
+                // Each rank checks its own points, all agree on the lowest bad one, then the
+                // step's end gathers the sums (in 1D also the positions the neighbour-gap check
+                // reads, which then runs on all).
                 ranks::agree(Some(ex), self.guard_points(step))?;
                 self.finish_split(ex);
                 if let Some((start, inside)) = clock {
