@@ -371,16 +371,14 @@ impl<const D: usize> Simulation<D> {
             return s;
         }
         if self.splittable() && self.tiles.count() > 0 {
-            return (0..self.tiles.count()).map(|t| self.tile_sums(t)).fold((Totals::default(), 0.0), |(mut a, m), (t, tm)| {
-                a.add(&t);
-                (a, m + tm)
-            });
+            return in_tile_order((0..self.tiles.count()).map(|t| self.tile_sums(t)));
         }
         let scale = (0..self.points.len()).map(|p| crate::diagnostics::momentum_magnitude(&self.points, p)).sum();
         (Totals::of(&self.points), scale)
     }
 
-    /// [`Simulation::step_totals`] of the points of tile `t`, in ascending index.
+    /// [`Simulation::step_totals`] of the points of tile `t`, in ascending index (tiles are
+    /// added with [`in_tile_order`]).
     fn tile_sums(&self, t: usize) -> (Totals<D>, f64) {
         let (mut sums, mut scale) = (Totals::default(), 0.0);
         for &p in self.tiles.points(t) {
@@ -1199,6 +1197,14 @@ fn distribute_empty<const D: usize>(grid: &Grid<D>, mass: &[f64], force: &[[f64;
             f
         })
         .collect()
+}
+
+/// The sum of per-tile [`Simulation::step_totals`] terms, added in the order given (tile order).
+fn in_tile_order<const D: usize>(tiles: impl Iterator<Item = (Totals<D>, f64)>) -> (Totals<D>, f64) {
+    tiles.fold((Totals::default(), 0.0), |(mut a, m), (t, tm)| {
+        a.add(&t);
+        (a, m + tm)
+    })
 }
 
 /// The tensor artificial viscosity (7.8)-(7.10) of point `p`.

@@ -334,10 +334,7 @@ impl<const D: usize> Simulation<D> {
                 }
             }
         }
-        self.step_sums = Some(tile_sums.iter().fold((Totals::default(), 0.0), |(mut a, m), (t, tm)| {
-            a.add(t);
-            (a, m + tm)
-        }));
+        self.step_sums = Some(super::in_tile_order(tile_sums.into_iter()));
         self.held.clone_from(&self.owned);
         self.foreign_stale = true;
     }
