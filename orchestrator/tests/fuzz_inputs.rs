@@ -9,7 +9,7 @@
 #![allow(clippy::unwrap_used)]
 
 use mscale_proto::orchestrator::v1 as pb;
-use mscale_testkit::fuzz::{Fuzzer, HOSTILE, Rng, Rng64, class_of, mutate_bytes, mutate_json, mutate_text};
+use mscale_testkit::fuzz::{Fuzzer, HOSTILE, Rng, Rng64, class_of, mutate_bytes, mutate_json, mutate_text, threads_of};
 use mscale_testkit::{Listening, repo};
 use orchestrator::loaded::Loaded;
 use orchestrator::run::{Outcome, RunOptions};
@@ -513,6 +513,13 @@ fn users_file(dir: &Path) -> PathBuf {
     f
 }
 
+/// The last 40 lines of a log file.
+fn tail(log: &Path) -> String {
+    let text = std::fs::read_to_string(log).unwrap_or_default();
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(40)..].join("\n")
+}
+
 #[test]
 fn fuzz_orchestrator_messages() {
     let tmp = tempfile::tempdir().unwrap();
@@ -545,7 +552,11 @@ fn fuzz_orchestrator_messages() {
         let (class, answer) = rt.block_on(async {
             match tokio::time::timeout(Duration::from_secs(30), call(channel.clone(), method, streamed, TOKENS[t], body)).await {
                 Ok(r) => r,
-                Err(_) => panic!("{method}: no answer within 30 s (a hang)"),
+                Err(_) => panic!(
+                    "{method}: no answer within 30 s (a hang); the server's threads:\n{}\nits log ends:\n{}",
+                    threads_of(proc.pid()),
+                    tail(&log)
+                ),
             }
         });
         // A job the fuzzer got submitted is cancelled at once (the queue stays short).

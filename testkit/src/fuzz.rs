@@ -153,6 +153,30 @@ pub fn rss_of(pid: &str) -> Option<(u64, u64)> {
     Some((field("VmRSS:")?, field("VmHWM:")?))
 }
 
+/// What each thread of a process waits in (name, state, kernel wait channel, and its kernel
+/// stack where readable), from /proc: printed when a server stops answering, so a hang seen
+/// once in CI says where it stood.
+pub fn threads_of(pid: u32) -> String {
+    let Ok(tasks) = std::fs::read_dir(format!("/proc/{pid}/task")) else { return format!("(no /proc/{pid}/task)") };
+    let mut out = String::new();
+    for t in tasks.flatten() {
+        let p = t.path();
+        let read = |f: &str| std::fs::read_to_string(p.join(f)).unwrap_or_default();
+        let state = read("status").lines().find(|l| l.starts_with("State:")).unwrap_or_default().to_string();
+        let stack: Vec<String> =
+            read("stack").lines().take(8).map(|l| l.split_whitespace().last().unwrap_or_default().to_string()).collect();
+        out.push_str(&format!(
+            "  {} {:?} {} wchan={} {}\n",
+            t.file_name().to_string_lossy(),
+            read("comm").trim(),
+            state.trim_start_matches("State:").trim(),
+            read("wchan"),
+            stack.join(" < ")
+        ));
+    }
+    out
+}
+
 /// A fuzz target: its corpus, its stream, its figures.
 pub struct Fuzzer {
     pub name: String,
@@ -630,5 +654,19 @@ pub fn mutate_json(rng: &mut Rng64, v: &mut serde_json::Value) {
         }
         Value::Bool(b) => *b = !*b,
         Value::Null => *node = hostile_number(rng),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn threads_of_names_each_thread_and_its_state() {
+        let t = std::thread::Builder::new().name("parked-one".into()).spawn(std::thread::park).unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(50));
+        let s = super::threads_of(std::process::id());
+        assert!(s.contains("\"parked-one\" S (sleeping)"), "{s}");
+        t.thread().unpark();
+        t.join().unwrap();
+        assert!(super::threads_of(u32::MAX).contains("no /proc"));
     }
 }

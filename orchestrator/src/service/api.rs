@@ -141,7 +141,10 @@ impl Orchestrator for JobService {
     async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Result<Response<pb::HeartbeatResponse>, Status> {
         self.authorize(&req, "Heartbeat", Need::Worker)?;
         let r = req.into_inner();
-        let drain = lock(&self.core.workers).heartbeat(&r.worker_id, r.epoch, r.protocol_version).map_err(JobError::from)?;
+        let core = self.core.clone();
+        // Off the runtime's threads: the registry's lock may be held over a write to disk.
+        let drain =
+            blocking(move || lock(&core.workers).heartbeat(&r.worker_id, r.epoch, r.protocol_version).map_err(JobError::from)).await?;
         Ok(Response::new(pb::HeartbeatResponse { drain }))
     }
 
@@ -155,7 +158,8 @@ impl Orchestrator for JobService {
 
     async fn list_workers(&self, req: Request<pb::ListWorkersRequest>) -> Result<Response<pb::ListWorkersResponse>, Status> {
         self.authorize(&req, "ListWorkers", Need::Read)?;
-        let workers = lock(&self.core.workers).list().iter().map(worker_to_pb).collect();
+        let core = self.core.clone();
+        let workers = blocking(move || Ok(lock(&core.workers).list().iter().map(worker_to_pb).collect())).await?;
         Ok(Response::new(pb::ListWorkersResponse { workers }))
     }
 }

@@ -152,16 +152,29 @@ impl Registry {
 
     /// Declares a worker lost for good; false when it already was.
     pub fn declare_lost(&mut self, store: &mut Store, epoch: u64, why: &str) -> Result<bool> {
-        let Some(w) = self.workers.get_mut(&epoch) else { return Ok(false) };
-        if w.state == WorkerState::Lost {
-            return Ok(false);
+        Ok(!self.declare_all_lost(store, vec![(epoch, why.to_string())])?.is_empty())
+    }
+
+    /// Declares each `(epoch, why)` lost for good, in one store transaction (a monitor pass
+    /// that finds hundreds silent writes to disk once, not once each, while it holds the
+    /// registry). Returns the epochs that were not lost before.
+    pub fn declare_all_lost(&mut self, store: &mut Store, lost: Vec<(u64, String)>) -> Result<Vec<u64>> {
+        let lost: Vec<(u64, String)> =
+            lost.into_iter().filter(|(e, _)| self.workers.get(e).is_some_and(|w| w.state != WorkerState::Lost)).collect();
+        if lost.is_empty() {
+            return Ok(Vec::new());
         }
-        store.set_worker_state(epoch, WorkerState::Lost, why)?;
-        tracing::warn!("worker {} at {} is lost: {why}", w.id, w.ad.address);
-        w.state = WorkerState::Lost;
-        w.note = why.to_string();
-        self.seen.remove(&epoch);
-        Ok(true)
+        store.set_workers_state(&lost, WorkerState::Lost)?;
+        let mut newly = Vec::with_capacity(lost.len());
+        for (epoch, why) in lost {
+            let w = self.workers.get_mut(&epoch).expect("kept above: registered");
+            tracing::warn!("worker {} at {} is lost: {why}", w.id, w.ad.address);
+            w.state = WorkerState::Lost;
+            w.note = why;
+            self.seen.remove(&epoch);
+            newly.push(epoch);
+        }
+        Ok(newly)
     }
 
     /// Live or draining workers whose last heartbeat is older than the timeout.
@@ -363,25 +376,30 @@ pub(crate) fn monitor(core: Arc<Core>) {
     while !core.stopping.load(Ordering::SeqCst) {
         std::thread::sleep(period);
         let mut reg = lock(&core.workers);
-        for (epoch, silent) in reg.expired() {
-            let why =
-                format!("no heartbeat for {:.1} s (the worker timeout is {:.1} s)", silent.as_secs_f64(), reg.timeout().as_secs_f64());
-            match reg.declare_lost(&mut lock(&core.store), epoch, &why) {
-                Ok(true) => {
-                    let abort = reg.get(epoch).and_then(|w| lock(&core.aborts).get(&w.ad.address).cloned());
-                    if let Some(h) = abort {
-                        tracing::warn!(
-                            "aborting the MD calls on the lost worker w{epoch}: its boxes are replayed on the job's other workers"
-                        );
-                        h.abort(&why);
-                    } else if let Some(run) = lock(&core.running).values().find(|r| r.workers.contains(&epoch)) {
-                        tracing::warn!("job {}: moves off the lost worker w{epoch} (checkpoint after this step)", run.id);
-                        run.reassign.store(true, Ordering::SeqCst);
-                        run.stop.store(true, Ordering::SeqCst);
-                    }
-                }
-                Ok(false) => {}
-                Err(e) => tracing::error!("cannot record worker w{epoch} as lost: {e:#}"),
+        let timeout = reg.timeout().as_secs_f64();
+        let silent: Vec<(u64, String)> = reg
+            .expired()
+            .into_iter()
+            .map(|(epoch, silent)| {
+                (epoch, format!("no heartbeat for {:.1} s (the worker timeout is {timeout:.1} s)", silent.as_secs_f64()))
+            })
+            .collect();
+        let lost = match reg.declare_all_lost(&mut lock(&core.store), silent) {
+            Ok(l) => l,
+            Err(e) => {
+                tracing::error!("cannot record silent workers as lost: {e:#}");
+                continue;
+            }
+        };
+        for epoch in lost {
+            let abort = reg.get(epoch).and_then(|w| lock(&core.aborts).get(&w.ad.address).cloned());
+            if let Some(h) = abort {
+                tracing::warn!("aborting the MD calls on the lost worker w{epoch}: its boxes are replayed on the job's other workers");
+                h.abort(&reg.get(epoch).map(|w| w.note.clone()).unwrap_or_default());
+            } else if let Some(run) = lock(&core.running).values().find(|r| r.workers.contains(&epoch)) {
+                tracing::warn!("job {}: moves off the lost worker w{epoch} (checkpoint after this step)", run.id);
+                run.reassign.store(true, Ordering::SeqCst);
+                run.stop.store(true, Ordering::SeqCst);
             }
         }
     }

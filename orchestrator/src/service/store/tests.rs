@@ -167,6 +167,13 @@ fn workers_get_a_new_epoch_per_registration_and_lost_is_final() {
     assert_eq!(states, vec![(a.id.clone(), WorkerState::Lost), (b.id, WorkerState::Live), (c.id, WorkerState::Live)]);
     let h: Vec<String> = s.worker_history(a.epoch).unwrap().into_iter().map(|h| h.1).collect();
     assert_eq!(h, vec!["live", "draining", "lost"]);
+    // Many at once (a monitor pass): one transaction; the lost one and an unknown one stay out.
+    let mut s = s;
+    let moves = vec![(b.epoch, "silent".to_string()), (a.epoch, "x".to_string()), (999, "x".to_string()), (c.epoch, "silent".to_string())];
+    assert_eq!(s.set_workers_state(&moves, WorkerState::Lost).unwrap(), vec![true, false, false, true]);
+    assert!(s.workers().unwrap().iter().all(|w| w.state == WorkerState::Lost));
+    assert_eq!(s.worker_history(c.epoch).unwrap().last().unwrap().1, "lost");
+    assert_eq!(s.worker_history(a.epoch).unwrap().len(), 3);
 }
 
 #[test]

@@ -100,18 +100,33 @@ impl Store {
     /// Moves a worker to `state` (one transaction, with a history row). Returns false when the
     /// worker is unknown or already lost (`lost` is final).
     pub fn set_worker_state(&mut self, epoch: u64, state: WorkerState, note: &str) -> Result<bool> {
+        Ok(self.set_workers_state(&[(epoch, note.to_string())], state)?[0])
+    }
+
+    /// Moves each `(epoch, note)` to `state` in one transaction (one write to disk however many
+    /// there are). Returns, for each, whether it moved or was already there (false when the
+    /// worker is unknown or already lost).
+    pub fn set_workers_state(&mut self, moves: &[(u64, String)], state: WorkerState) -> Result<Vec<bool>> {
         let tx = self.db.transaction()?;
-        let old: Option<String> =
-            tx.query_row("SELECT state FROM workers WHERE epoch = ?1", params![epoch as i64], |r| r.get(0)).optional()?;
-        match old.as_deref().map(WorkerState::parse).transpose()? {
-            None | Some(WorkerState::Lost) => return Ok(false),
-            Some(old) if old == state => return Ok(true),
-            Some(_) => {}
+        let mut done = Vec::with_capacity(moves.len());
+        for (epoch, note) in moves {
+            let old: Option<String> =
+                tx.query_row("SELECT state FROM workers WHERE epoch = ?1", params![*epoch as i64], |r| r.get(0)).optional()?;
+            done.push(match old.as_deref().map(WorkerState::parse).transpose()? {
+                None | Some(WorkerState::Lost) => false,
+                Some(old) if old == state => true,
+                Some(_) => {
+                    tx.execute("UPDATE workers SET state = ?2, note = ?3 WHERE epoch = ?1", params![*epoch as i64, state.as_str(), note])?;
+                    tx.execute(
+                        "INSERT INTO worker_history VALUES (?1, ?2, ?3, ?4)",
+                        params![*epoch as i64, now_unix(), state.as_str(), note],
+                    )?;
+                    true
+                }
+            });
         }
-        tx.execute("UPDATE workers SET state = ?2, note = ?3 WHERE epoch = ?1", params![epoch as i64, state.as_str(), note])?;
-        tx.execute("INSERT INTO worker_history VALUES (?1, ?2, ?3, ?4)", params![epoch as i64, now_unix(), state.as_str(), note])?;
         tx.commit()?;
-        Ok(true)
+        Ok(done)
     }
 
     /// Every registration, oldest first.
