@@ -53,7 +53,10 @@ impl JobService {
     }
 }
 
-/// Runs `f` on the blocking pool (it takes the store's lock or touches files).
+/// Runs `f` on the blocking pool: every call that takes the store's or the registry's lock or
+/// touches files goes through here, so a write to disk that stalls (the store syncs each
+/// transaction) holds up the calls waiting for it, never the runtime's two threads and with
+/// them every other call (workers' heartbeats included).
 async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, JobError> + Send + 'static) -> Result<T, JobError> {
     tokio::task::spawn_blocking(f).await?
 }
@@ -79,13 +82,15 @@ impl Orchestrator for JobService {
 
     async fn list_jobs(&self, req: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
         let caller = self.authorize(&req, "ListJobs", Need::Read)?;
-        let jobs = self.core.jobs_of(&caller)?;
+        let core = self.core.clone();
+        let jobs = blocking(move || core.jobs_of(&caller)).await?;
         Ok(Response::new(pb::ListJobsResponse { jobs: jobs.iter().map(job_to_pb).collect() }))
     }
 
     async fn get_job(&self, req: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
         let caller = self.authorize(&req, "GetJob", Need::Read)?;
-        Ok(Response::new(job_to_pb(&self.core.owned(&caller, &req.get_ref().job_id)?)))
+        let (core, id) = (self.core.clone(), req.into_inner().job_id);
+        Ok(Response::new(job_to_pb(&blocking(move || core.owned(&caller, &id)).await?)))
     }
 
     type WatchJobStream = EventStream;
@@ -93,23 +98,36 @@ impl Orchestrator for JobService {
     async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
         let caller = self.authorize(&req, "WatchJob", Need::Read)?;
         let pb::WatchJobRequest { job_id, after_sequence } = req.into_inner();
-        self.core.owned(&caller, &job_id)?;
-        let events = self.core.watch(&job_id, after_sequence)?;
+        let core = self.core.clone();
+        let events = blocking(move || {
+            core.owned(&caller, &job_id)?;
+            core.watch(&job_id, after_sequence)
+        })
+        .await?;
         Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(events).map(event_or_status))))
     }
 
     async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
         let caller = self.authorize(&req, "CancelJob", Need::Jobs)?;
         let id = req.into_inner().job_id;
-        self.core.owned(&caller, &id)?;
-        Ok(Response::new(job_to_pb(&self.core.cancel(&id)?)))
+        let core = self.core.clone();
+        let job = blocking(move || {
+            core.owned(&caller, &id)?;
+            core.cancel(&id)
+        })
+        .await?;
+        Ok(Response::new(job_to_pb(&job)))
     }
 
     async fn fetch_result(&self, req: Request<pb::FetchResultRequest>) -> Result<Response<pb::FetchResultResponse>, Status> {
         let caller = self.authorize(&req, "FetchResult", Need::Read)?;
         let req = req.into_inner();
-        self.core.owned(&caller, &req.job_id)?;
-        let (content, sha256) = self.core.fetch_result(&req.job_id, &req.path)?;
+        let core = self.core.clone();
+        let (content, sha256) = blocking(move || {
+            core.owned(&caller, &req.job_id)?;
+            core.fetch_result(&req.job_id, &req.path)
+        })
+        .await?;
         Ok(Response::new(pb::FetchResultResponse { content, sha256 }))
     }
 
@@ -118,8 +136,12 @@ impl Orchestrator for JobService {
     async fn fetch_run(&self, req: Request<pb::FetchRunRequest>) -> Result<Response<ChunkStream>, Status> {
         let caller = self.authorize(&req, "FetchRun", Need::Read)?;
         let req = req.into_inner();
-        self.core.owned(&caller, &req.job_id)?;
-        let root = self.core.run_root(&req.job_id)?;
+        let (core, id) = (self.core.clone(), req.job_id.clone());
+        let root = blocking(move || {
+            core.owned(&caller, &id)?;
+            core.run_root(&id)
+        })
+        .await?;
         let chunk = if req.chunk_bytes == 0 { FETCH_CHUNK } else { (req.chunk_bytes as usize).min(FETCH_CHUNK) };
         let (tx, out) = tokio::sync::mpsc::channel(4);
         tokio::task::spawn_blocking(move || {
@@ -189,5 +211,59 @@ mod tests {
         assert_eq!((s.code(), s.message()), (Code::NotFound, "summary.json: gone"));
         let s = Status::from(JobError::Worker(WorkerError::Version { theirs: 2, ours: 1 }));
         assert_eq!(s.code(), Code::FailedPrecondition);
+    }
+
+    #[test]
+    fn calls_waiting_for_a_held_lock_do_not_hold_up_the_others() {
+        // The registry's lock held for a while (as over a stalled write to disk): heartbeats and
+        // worker lists wait for it, on the blocking pool; a job's lookup on the runtime's only
+        // thread still answers at once (it waited behind them when they locked on that thread).
+        use super::super::store::{Store, test_job};
+        use super::super::workers::Registry;
+        use std::time::{Duration, Instant};
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let registry = Registry::load(&store, Duration::from_secs(15)).unwrap();
+        let core = Core::new(
+            store,
+            registry,
+            dir.path().to_path_buf(),
+            super::super::auth::Users::single("t", Default::default()),
+            0,
+            0,
+            Default::default(),
+            None,
+        );
+        lock(&core.store).insert(&test_job("j1", 0)).unwrap();
+        let service = JobService::new(core.clone());
+        fn req<T>(m: T) -> Request<T> {
+            let mut r = Request::new(m);
+            r.metadata_mut().insert("authorization", "Bearer t".parse().unwrap());
+            r
+        }
+        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        let (held_tx, held_rx) = std::sync::mpsc::channel();
+        let holder = std::thread::spawn({
+            let core = core.clone();
+            move || {
+                let _reg = lock(&core.workers);
+                held_tx.send(()).unwrap();
+                std::thread::sleep(Duration::from_millis(1500));
+            }
+        });
+        held_rx.recv().unwrap();
+        let t0 = Instant::now();
+        let (waited, got) = rt.block_on(async {
+            let beat = || req(pb::HeartbeatRequest { worker_id: "w1".into(), epoch: 1, protocol_version: 1 });
+            let lookup = async {
+                let job = service.get_job(req(pb::GetJobRequest { job_id: "j1".into() })).await.unwrap().into_inner();
+                (t0.elapsed(), job.id)
+            };
+            let (_, _, got) = tokio::join!(service.heartbeat(beat()), service.heartbeat(beat()), lookup);
+            got
+        });
+        holder.join().unwrap();
+        assert_eq!(got, "j1");
+        assert!(waited < Duration::from_millis(1000), "GetJob waited {waited:?} behind calls waiting for the registry");
     }
 }
