@@ -218,22 +218,10 @@ mod tests {
         // The registry's lock held for a while (as over a stalled write to disk): heartbeats and
         // worker lists wait for it, on the blocking pool; a job's lookup on the runtime's only
         // thread still answers at once (it waited behind them when they locked on that thread).
-        use super::super::store::{Store, test_job};
-        use super::super::workers::Registry;
+        use super::super::store::test_job;
         use std::time::{Duration, Instant};
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
-        let registry = Registry::load(&store, Duration::from_secs(15)).unwrap();
-        let core = Core::new(
-            store,
-            registry,
-            dir.path().to_path_buf(),
-            super::super::auth::Users::single("t", Default::default()),
-            0,
-            0,
-            Default::default(),
-            None,
-        );
+        let core = Core::for_test(dir.path());
         lock(&core.store).insert(&test_job("j1", 0)).unwrap();
         let service = JobService::new(core.clone());
         fn req<T>(m: T) -> Request<T> {

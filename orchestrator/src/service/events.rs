@@ -190,27 +190,13 @@ async fn replay(core: &Arc<Core>, id: &str, next: &mut u64, tx: &EventSender) ->
 
 #[cfg(test)]
 mod tests {
-    use super::super::store::Store;
     use super::super::store::test_job;
-    use super::super::workers::Registry;
     use super::*;
-    use std::time::Duration;
 
     #[test]
     fn a_watcher_that_falls_behind_is_caught_up_from_the_store() {
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).unwrap();
-        let registry = Registry::load(&store, Duration::from_secs(15)).unwrap();
-        let core = Core::new(
-            store,
-            registry,
-            dir.path().to_path_buf(),
-            super::super::auth::Users::single("t", Default::default()),
-            0,
-            0,
-            Default::default(),
-            None,
-        );
+        let core = Core::for_test(dir.path());
         lock(&core.store).insert(&test_job("j1", 0)).unwrap();
         let published = WATCH_BACKLOG as u64 + 50;
         let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();

@@ -139,6 +139,14 @@ impl Core {
         }
     }
 
+    /// A core over a fresh store in `dir`, one user (token "t"), no workers, for unit tests.
+    #[cfg(test)]
+    pub(crate) fn for_test(dir: &std::path::Path) -> Arc<Core> {
+        let store = Store::open(dir).unwrap();
+        let registry = Registry::load(&store, std::time::Duration::from_secs(15)).unwrap();
+        Core::new(store, registry, dir.to_path_buf(), Users::single("t", Default::default()), 0, 0, Default::default(), None)
+    }
+
     /// The jobs `caller` sees, oldest first: its own, or every job for an admin.
     pub(crate) fn jobs_of(&self, caller: &super::auth::Caller) -> Result<Vec<JobRecord>, JobError> {
         let store = lock(&self.store);
