@@ -4,6 +4,11 @@
 //! constitutive-law scene builds no MD engine). The `mscale` binary is a thin layer over this
 //! library, so tests drive the same code users do.
 
+// A lock guard in a match or if-let scrutinee lives through the arms: the job service's threads
+// take the registry, then the store, and a store guard held that way into code that takes the
+// registry deadlocked (a cancelled job's start against DrainWorker). Bind the result first.
+#![deny(clippy::significant_drop_in_scrutinee)]
+
 pub mod atomic;
 pub mod cell_run;
 pub mod checkpoint;

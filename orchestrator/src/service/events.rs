@@ -73,7 +73,8 @@ impl Core {
     /// Records a job's note (a worker change, a checkpoint) as an event and publishes it.
     pub(crate) fn note_event(&self, id: &str, kind: EventKind, text: &str) {
         let detail = lock(&self.details).get(id).cloned().unwrap_or_default();
-        if let Err(e) = lock(&self.store).note_event(id, kind, text, &detail) {
+        let noted = lock(&self.store).note_event(id, kind, text, &detail);
+        if let Err(e) = noted {
             tracing::error!("job {id}: cannot record {text:?}: {e:#}");
         }
         self.publish_stored(id);
@@ -87,7 +88,8 @@ impl Core {
     /// Moves a job to `state`, recorded with its event, and publishes it.
     pub(crate) fn transition(&self, id: &str, state: JobState, note: &str, digest: &str) {
         let detail = if state.is_final() { lock(&self.details).remove(id) } else { lock(&self.details).get(id).cloned() };
-        if let Err(e) = lock(&self.store).transition_event(id, state, note, digest, &detail.unwrap_or_default()) {
+        let moved = lock(&self.store).transition_event(id, state, note, digest, &detail.unwrap_or_default());
+        if let Err(e) = moved {
             tracing::error!("job {id}: cannot record {}: {e:#}", state.as_str());
         }
         self.publish_stored(id);

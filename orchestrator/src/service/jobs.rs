@@ -163,7 +163,11 @@ fn run_job(core: &Arc<Core>, job: JobRecord, placement: Placement) {
     let id = job.id.clone();
     let Some(flags) = flags_of(core, &id) else { return };
     // A job cancelled between being picked and starting stays cancelled and is not run.
-    match lock(&core.store).transition(&id, JobState::Running, if job.resumes > 0 { "resumed" } else { "started" }, "") {
+    // Bound first: a guard in the match's scrutinee would hold the store through the arms, and
+    // `release` takes the registry (the order everywhere else is registry, then store): a job
+    // cancelled right after placement deadlocked against a DrainWorker that way.
+    let started = lock(&core.store).transition(&id, JobState::Running, if job.resumes > 0 { "resumed" } else { "started" }, "");
+    match started {
         Ok(true) => {}
         Ok(false) => {
             release(core, &id);
@@ -331,13 +335,11 @@ fn run_on_workers(
         let at = step + 1;
         let names = lost.iter().map(|w| format!("{} at {}", w.id, w.ad.address)).collect::<Vec<_>>().join(", ");
         {
+            let why = format!("stopped answering during step {at} of job {id}");
             let mut reg = lock(&core.workers);
-            for w in &lost {
-                if let Err(e) =
-                    reg.declare_lost(&mut lock(&core.store), w.epoch, &format!("stopped answering during step {at} of job {id}"))
-                {
-                    tracing::error!("cannot record worker {} as lost: {e:#}", w.id);
-                }
+            let declared = reg.declare_all_lost(&mut lock(&core.store), lost.iter().map(|w| (w.epoch, why.clone())).collect());
+            if let Err(e) = declared {
+                tracing::error!("cannot record the workers {names} as lost: {e:#}");
             }
         }
         let k = assigned[0].kind();
@@ -433,16 +435,14 @@ fn attempt(
     let (core4, id4, assigned4) = (core.clone(), id.clone(), assigned.to_vec());
     opts.on_worker_lost = Some(Arc::new(move |r: &md_worker::recovery::Recovery| {
         if let Some(w) = assigned4.iter().find(|w| w.ad.address == r.worker) {
+            let why = if r.why.starts_with("declared faulty") {
+                format!("answered garbage during step {} of job {id4}: {}", r.step, r.why)
+            } else {
+                format!("stopped answering during step {} of job {id4}: {}", r.step, r.why)
+            };
             let mut reg = lock(&core4.workers);
-            if let Err(e) = reg.declare_lost(
-                &mut lock(&core4.store),
-                w.epoch,
-                &if r.why.starts_with("declared faulty") {
-                    format!("answered garbage during step {} of job {id4}: {}", r.step, r.why)
-                } else {
-                    format!("stopped answering during step {} of job {id4}: {}", r.step, r.why)
-                },
-            ) {
+            let declared = reg.declare_lost(&mut lock(&core4.store), w.epoch, &why);
+            if let Err(e) = declared {
                 tracing::error!("cannot record worker {} as lost: {e:#}", w.id);
             }
         }
@@ -499,7 +499,8 @@ fn attempt(
         } else {
             (EventKind::Progress, String::new())
         };
-        if let Err(e) = lock(&core2.store).progress_event(&id2, kind, p.step, p.steps, p.time, &message, &detail) {
+        let recorded = lock(&core2.store).progress_event(&id2, kind, p.step, p.steps, p.time, &message, &detail);
+        if let Err(e) = recorded {
             tracing::warn!("job {id2}: cannot record progress: {e:#}");
         }
         core2.publish_stored(&id2);
@@ -558,5 +559,60 @@ impl Core {
             state => return Err(JobError::Ended { id: id.to_string(), state }),
         }
         self.get(id)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::service::store::test_job;
+
+    #[test]
+    fn a_job_cancelled_before_it_starts_frees_the_store_before_it_takes_the_registry() {
+        // Found by fuzz_orchestrator_messages (SubmitJob, then CancelJob at once, and a
+        // DrainWorker): the job's thread held the store while waiting for the registry, and
+        // DrainWorker held the registry while waiting for the store.
+        let dir = tempfile::tempdir().unwrap();
+        let core = Core::for_test(dir.path());
+        lock(&core.store).insert(&test_job("j1", 0)).unwrap();
+        assert!(lock(&core.store).transition("j1", JobState::Cancelled, "cancelled by a user before it started", "").unwrap());
+        lock(&core.running).insert(
+            "j1".into(),
+            RunningJob {
+                id: "j1".into(),
+                owner: "t".into(),
+                stop: Arc::default(),
+                user_cancel: Arc::default(),
+                reassign: Arc::default(),
+                workers: Vec::new(),
+                in_process: true,
+                waits_for: Arc::default(),
+            },
+        );
+        let job = lock(&core.store).get("j1").unwrap().unwrap();
+        // The registry held (as DrainWorker holds it) while the job's thread starts and finds
+        // the job cancelled.
+        let registry = lock(&core.workers);
+        let t = std::thread::spawn({
+            let core = core.clone();
+            move || run_job(&core, job, Placement::InProcess)
+        });
+        std::thread::sleep(Duration::from_millis(200));
+        // DrainWorker's next lock: the store must be free.
+        let t0 = Instant::now();
+        let free = loop {
+            if core.store.try_lock().is_ok() {
+                break true;
+            }
+            if t0.elapsed() > Duration::from_secs(2) {
+                break false;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        };
+        drop(registry);
+        t.join().unwrap();
+        assert!(free, "the job's thread held the store while it waited for the registry");
+        assert!(lock(&core.running).is_empty(), "the cancelled job was released");
+        assert_eq!(lock(&core.store).get("j1").unwrap().unwrap().state, JobState::Cancelled);
     }
 }

@@ -384,7 +384,8 @@ pub(crate) fn monitor(core: Arc<Core>) {
                 (epoch, format!("no heartbeat for {:.1} s (the worker timeout is {timeout:.1} s)", silent.as_secs_f64()))
             })
             .collect();
-        let lost = match reg.declare_all_lost(&mut lock(&core.store), silent) {
+        let lost = reg.declare_all_lost(&mut lock(&core.store), silent);
+        let lost = match lost {
             Ok(l) => l,
             Err(e) => {
                 tracing::error!("cannot record silent workers as lost: {e:#}");
