@@ -174,7 +174,25 @@ pub fn threads_of(pid: u32) -> String {
             stack.join(" < ")
         ));
     }
+    out.push_str(&user_stacks(pid));
     out
+}
+
+/// Each thread's frames in this workspace's code, from `gdb -batch` where it is installed (a
+/// hung server's backtrace named both sides of a lock-order deadlock at once); empty otherwise.
+fn user_stacks(pid: u32) -> String {
+    let Ok(o) = std::process::Command::new("timeout")
+        .args(["60", "gdb", "-p", &pid.to_string(), "-batch", "-ex", "thread apply all bt 40"])
+        .stderr(std::process::Stdio::null())
+        .output()
+    else {
+        return String::new();
+    };
+    let text = String::from_utf8_lossy(&o.stdout);
+    let ours =
+        |l: &str| l.contains(" at ") && l.contains("src/") && !l.contains("/rustc/") && !l.contains("library/") && !l.contains(".cargo/");
+    let kept: Vec<&str> = text.lines().filter(|l| l.starts_with("Thread ") || (l.starts_with('#') && ours(l))).collect();
+    if kept.is_empty() { String::new() } else { format!("gdb, this workspace's frames of each thread:\n{}\n", kept.join("\n")) }
 }
 
 /// A fuzz target: its corpus, its stream, its figures.
@@ -665,6 +683,10 @@ mod tests {
         std::thread::sleep(std::time::Duration::from_millis(50));
         let s = super::threads_of(std::process::id());
         assert!(s.contains("\"parked-one\" S (sleeping)"), "{s}");
+        // With gdb installed, the parked thread's frame in this test is named.
+        if std::process::Command::new("gdb").arg("--version").output().is_ok() {
+            assert!(s.contains("testkit/src/fuzz.rs"), "{s}");
+        }
         t.thread().unpark();
         t.join().unwrap();
         assert!(super::threads_of(u32::MAX).contains("no /proc"));
