@@ -103,6 +103,14 @@ impl<const D: usize> Grid<D> {
         }
     }
 
+    /// The nodes whose index along axis `a` is `side`, in increasing linear order (x fastest:
+    /// `lin = outer * block + side * stride + inner`).
+    fn face_nodes(&self, a: usize, side: usize) -> impl Iterator<Item = usize> {
+        let stride: usize = (0..a).map(|b| self.nodes_along(b)).product();
+        let block = stride * self.nodes_along(a);
+        (0..self.node_count() / block).flat_map(move |outer| (0..stride).map(move |inner| outer * block + side * stride + inner))
+    }
+
     /// Applies the boundary conditions to a nodal velocity field (`vel[node]`), returning the
     /// momentum the constraints added (net, and summed in magnitude over the faces).
     pub fn apply_boundaries(&self, mass: &[f64], vel: &mut [[f64; D]]) -> ([f64; D], f64) {
@@ -114,10 +122,7 @@ impl<const D: usize> Grid<D> {
                 if matches!(face, Face::Free | Face::Periodic) {
                     continue;
                 }
-                for lin in 0..vel.len() {
-                    if self.unlinear(lin)[a] != side {
-                        continue;
-                    }
+                for lin in self.face_nodes(a, side) {
                     let old = vel[lin];
                     match face {
                         Face::Fixed => vel[lin] = [0.0; D],
@@ -140,5 +145,31 @@ impl<const D: usize> Grid<D> {
             }
         }
         (added, magnitude)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `face_nodes` lists exactly the nodes `unlinear` puts on the face, in increasing order.
+    fn check<const D: usize>(cells: [usize; D], faces: [(Face, Face); D]) {
+        let g = Grid::<D> { origin: [0.0; D], h: [1.0; D], cells, faces };
+        for a in 0..D {
+            for side in [0, g.nodes_along(a) - 1] {
+                let want: Vec<usize> = (0..g.node_count()).filter(|&l| g.unlinear(l)[a] == side).collect();
+                assert_eq!(g.face_nodes(a, side).collect::<Vec<_>>(), want, "axis {a}, side {side}, cells {cells:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn face_nodes_are_the_nodes_on_the_face_in_linear_order() {
+        let (f, p) = (|| (Face::Fixed, Face::Reflective), || (Face::Periodic, Face::Periodic));
+        check([5], [f()]);
+        check([4, 3], [f(), f()]);
+        check([4, 3], [p(), f()]);
+        check([3, 4, 2], [f(), p(), f()]);
+        check([2, 3, 5], [p(), f(), p()]);
     }
 }

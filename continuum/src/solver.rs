@@ -1114,10 +1114,15 @@ fn for_each_neighbour<const D: usize>(grid: &Grid<D>, i: usize, mut f: impl FnMu
 /// unchanged (the shares of each node sum to one), so momentum is conserved. A node whose
 /// whole neighbourhood is massless keeps its force.
 fn distribute<const D: usize>(grid: &Grid<D>, mass: &[f64], force: &[[f64; D]], light: impl Fn(f64) -> bool + Sync) -> Vec<[f64; D]> {
+    // Only selected nodes with a force hand anything on: a zero force's shares add +-0 to a
+    // sum that starts at +0 and so is never -0, which leaves it bit for bit as it was. So
+    // the rest of the grid (most of it: the empty region far from the material, the bulk)
+    // skips its neighbours.
+    let hands_on = |l: usize| light(mass[l]) && force[l].iter().any(|v| *v != 0.0);
     let sqrt_sum: Vec<f64> = (0..mass.len())
         .into_par_iter()
         .map(|l| {
-            if !light(mass[l]) {
+            if !hands_on(l) {
                 return 0.0;
             }
             let mut s = 0.0;
@@ -1125,9 +1130,19 @@ fn distribute<const D: usize>(grid: &Grid<D>, mass: &[f64], force: &[[f64; D]], 
             s
         })
         .collect();
+    // A node beside no such node keeps its own force (the loop below adds 1 x its force to
+    // zero, which `0.0 + f` is, bit for bit).
+    let mut near = vec![false; mass.len()];
+    for l in (0..mass.len()).filter(|&l| hands_on(l)) {
+        // Sharing a cell is symmetric: l is beside j exactly when j is beside l.
+        for_each_neighbour(grid, l, |j| near[j] = true);
+    }
     (0..mass.len())
         .into_par_iter()
         .map(|i| {
+            if !near[i] {
+                return std::array::from_fn(|a| 0.0 + force[i][a]);
+            }
             let mut f = [0.0; D];
             let own = mass[i].max(0.0).sqrt();
             for_each_neighbour(grid, i, |l| {
@@ -1159,18 +1174,20 @@ fn distribute_empty<const D: usize>(grid: &Grid<D>, mass: &[f64], force: &[[f64;
     let first = distribute(grid, mass, force, light);
     // Nodes whose neighbourhood is massless kept their force: spread it evenly over their
     // neighbours that have a massive node next to them (a one-node step towards the material).
-    let near_mass: Vec<bool> = (0..mass.len())
-        .into_par_iter()
-        .map(|i| {
-            let mut any = false;
+    let near_mass_of = |i: usize| {
+        // A node with mass is beside itself.
+        let mut any = !light(mass[i]);
+        if !any {
             for_each_neighbour(grid, i, |j| any |= !light(mass[j]));
-            any
-        })
-        .collect();
-    let stuck = |l: usize| light(mass[l]) && !near_mass[l] && first[l].iter().any(|v| *v != 0.0);
-    if !(0..mass.len()).any(stuck) {
+        }
+        any
+    };
+    let holds = |l: usize| light(mass[l]) && first[l].iter().any(|v| *v != 0.0);
+    if !(0..mass.len()).into_par_iter().any(|l| holds(l) && !near_mass_of(l)) {
         return first;
     }
+    let near_mass: Vec<bool> = (0..mass.len()).into_par_iter().map(near_mass_of).collect();
+    let stuck = |l: usize| holds(l) && !near_mass[l];
     let receivers: Vec<usize> = (0..mass.len())
         .into_par_iter()
         .map(|l| {
