@@ -51,6 +51,21 @@ impl JobService {
         let given = req.metadata().get("authorization").and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer ")).unwrap_or("");
         self.core.authorize(given.trim(), call, need)
     }
+
+    /// Runs `f` on the blocking pool once `caller` is found to own job `id` (`Core::owned`).
+    async fn on_owned<T: Send + 'static>(
+        &self,
+        caller: Caller,
+        id: String,
+        f: impl FnOnce(&Arc<Core>, &str) -> Result<T, JobError> + Send + 'static,
+    ) -> Result<T, JobError> {
+        let core = self.core.clone();
+        blocking(move || {
+            core.owned(&caller, &id)?;
+            f(&core, &id)
+        })
+        .await
+    }
 }
 
 /// Runs `f` on the blocking pool: every call that takes the store's or the registry's lock or
@@ -98,36 +113,21 @@ impl Orchestrator for JobService {
     async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
         let caller = self.authorize(&req, "WatchJob", Need::Read)?;
         let pb::WatchJobRequest { job_id, after_sequence } = req.into_inner();
-        let core = self.core.clone();
-        let events = blocking(move || {
-            core.owned(&caller, &job_id)?;
-            core.watch(&job_id, after_sequence)
-        })
-        .await?;
+        let events = self.on_owned(caller, job_id, move |core, id| core.watch(id, after_sequence)).await?;
         Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(events).map(event_or_status))))
     }
 
     async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
         let caller = self.authorize(&req, "CancelJob", Need::Jobs)?;
         let id = req.into_inner().job_id;
-        let core = self.core.clone();
-        let job = blocking(move || {
-            core.owned(&caller, &id)?;
-            core.cancel(&id)
-        })
-        .await?;
+        let job = self.on_owned(caller, id, |core, id| core.cancel(id)).await?;
         Ok(Response::new(job_to_pb(&job)))
     }
 
     async fn fetch_result(&self, req: Request<pb::FetchResultRequest>) -> Result<Response<pb::FetchResultResponse>, Status> {
         let caller = self.authorize(&req, "FetchResult", Need::Read)?;
         let req = req.into_inner();
-        let core = self.core.clone();
-        let (content, sha256) = blocking(move || {
-            core.owned(&caller, &req.job_id)?;
-            core.fetch_result(&req.job_id, &req.path)
-        })
-        .await?;
+        let (content, sha256) = self.on_owned(caller, req.job_id, move |core, id| core.fetch_result(id, &req.path)).await?;
         Ok(Response::new(pb::FetchResultResponse { content, sha256 }))
     }
 
@@ -136,12 +136,7 @@ impl Orchestrator for JobService {
     async fn fetch_run(&self, req: Request<pb::FetchRunRequest>) -> Result<Response<ChunkStream>, Status> {
         let caller = self.authorize(&req, "FetchRun", Need::Read)?;
         let req = req.into_inner();
-        let (core, id) = (self.core.clone(), req.job_id.clone());
-        let root = blocking(move || {
-            core.owned(&caller, &id)?;
-            core.run_root(&id)
-        })
-        .await?;
+        let root = self.on_owned(caller, req.job_id, |core, id| core.run_root(id)).await?;
         let chunk = if req.chunk_bytes == 0 { FETCH_CHUNK } else { (req.chunk_bytes as usize).min(FETCH_CHUNK) };
         let (tx, out) = tokio::sync::mpsc::channel(4);
         tokio::task::spawn_blocking(move || {
