@@ -1,13 +1,16 @@
 #!/usr/bin/env bash
 # Strong scaling of the continuum over MPI ranks against one process (1 and 2 threads), the
 # forms interleaved, medians of ROUNDS (continuum/README.md "MPI", measured figures there).
-#   scripts/mpi_scaling.sh MSCALE [2d|2d-jet|3d|3d-large] [ROUNDS]
+#   scripts/mpi_scaling.sh MSCALE [2d|2d-jet|3d|3d-large] [ROUNDS] [mscale run options...]
+# (options after ROUNDS are appended to the layout's, e.g. --set scheme.end_time=16e-12 for a
+# longer run: a later --set of the same key wins)
 # MSCALE: an mscale built with --features mpi. Time per step = summary.json
 # time_breakdown_s.continuum / steps (rank 0); MSCALE_MPI_STATS gives each rank's collectives.
 set -euo pipefail
 M="${1:?usage: scripts/mpi_scaling.sh MSCALE [2d|2d-jet|3d|3d-large] [ROUNDS]}"
 LAYOUT="${2:-2d}"
 ROUNDS="${3:-5}"
+shift $(( $# < 3 ? $# : 3 ))
 cd "$(dirname "$0")/.."
 OUT="$(mktemp -d)"
 trap 'rm -rf "$OUT"' EXIT
@@ -35,6 +38,7 @@ case "$LAYOUT" in
           --set 'boundary.z_max="roller"' --set scheme.end_time=0.0002) ;;
   *) echo "layout $LAYOUT: 2d, 2d-jet, 3d or 3d-large" >&2; exit 2 ;;
 esac
+S+=("$@")
 export RUST_LOG=warn OMPI_MCA_btl_vader_single_copy_mechanism=none OMPI_MCA_mpi_yield_when_idle=1 MSCALE_MPI_STATS=1
 MPIRUN=(mpirun --allow-run-as-root --oversubscribe -np 2)
 for round in $(seq "$ROUNDS"); do
