@@ -208,9 +208,9 @@ fn a_2d_manufactured_solution_has_one_digest_over_1_2_3_ranks() {
             "output.plots=false",
         ],
         METHODS_2D,
-        // 12 rows: three slab tiles of 4 rows, one per rank at N = 3 (8 rows are two tiles).
+        // 12 rows: six slab tiles of 2 rows, two per rank at N = 3 (8 rows are four tiles).
         &["domain.cells=[8,12]"],
-        "6c5ece78afd33a6fc6db7853845043f4d2891cea7005bad174bf50a5ae9b8f32",
+        "0dfb8909a579ce291ecb1c0ed3bfac4a192e782a0af52a67b3bc6925112c2b65",
     );
 }
 
@@ -220,8 +220,8 @@ fn a_2d_manufactured_solution_has_one_digest_over_1_2_3_ranks() {
     ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_MSCALE=<mscale built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
 )]
 fn a_point_leaving_the_grid_stops_every_rank_with_one_message() {
-    // A 2D block on 8 x 12 cells whose top quarter (y >= 0.75 m, inside the third slab tile of
-    // 4 rows, owned by rank 2 at N = 3) flies at 2 km/s towards the free x_max face while the
+    // A 2D block on 8 x 12 cells whose top quarter (y >= 0.75 m, inside the last two slab tiles
+    // of 2 rows, owned by rank 2 at N = 3) flies at 2 km/s towards the free x_max face while the
     // rest stays at rest: a point of that strip leaves the grid at step 9 (the one-process run
     // fails the same way). Over 3 ranks every rank stops there (no rank hangs in a collective),
     // mpirun exits 1 and the message, raised on rank 2, is printed once, by rank 0; the failed
@@ -314,11 +314,11 @@ plots = false
     ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_MSCALE=<mscale built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
 )]
 fn the_tiles_shared_out_by_cost_change_who_computes_not_the_digest() {
-    // LOPSIDED: at the start 128 points in each of slab tiles 0 and 1 (moving up into tile 2)
-    // and 64 in tile 5, of 6 tiles. The even blocks of tiles (never rebalanced) give 2 ranks
-    // tiles 0-2 / 3-5 and 3 ranks 0-1 / 2-3 / 4-5 (256 / 0 / 64 points at the start). The
-    // first step shares them out by point counts, deterministically: 2 ranks 0 / 1-5
-    // (128 / 192), 3 ranks 0 / 1-4 / 5 (128 / 128 / 64: the empty tiles go to the earlier
+    // LOPSIDED: at the start 64 points in each of slab tiles 0-3 (moving up into tiles 4-5)
+    // and 64 in tile 11, of 12 tiles. The even blocks of tiles (never rebalanced) give 2 ranks
+    // tiles 0-5 / 6-11 and 3 ranks 0-3 / 4-7 / 8-11 (256 / 0 / 64 points at the start). The
+    // first step shares them out by point counts, deterministically: 2 ranks 0-2 / 3-11
+    // (192 / 128), 3 ranks 0-1 / 2-10 / 11 (128 / 128 / 64: the empty tiles go to the earlier
     // block); later shares use the costs the ranks
     // measure (timings: not asserted). Whatever the split (never moved, once at the start,
     // every step), the digest is the one-process digest.
@@ -340,7 +340,7 @@ fn the_tiles_shared_out_by_cost_change_who_computes_not_the_digest() {
     let steps = one["steps"].as_u64().expect("steps");
     assert!((10..100).contains(&steps), "{steps} steps");
     for n in [2usize, 3] {
-        let (even_cuts, count_cuts) = if n == 2 { (vec![0, 3, 6], vec![0, 1, 6]) } else { (vec![0, 2, 4, 6], vec![0, 1, 5, 6]) };
+        let (even_cuts, count_cuts) = if n == 2 { (vec![0, 6, 12], vec![0, 3, 12]) } else { (vec![0, 4, 8, 12], vec![0, 2, 11, 12]) };
         let even = run(Some(n), Some(0));
         let once = run(Some(n), None);
         let every_step = run(Some(n), Some(1));
@@ -390,8 +390,8 @@ fn points_sent_in_many_small_rounds_give_the_same_digest() {
     assert!(s["ranks"]["migrated_points"].as_u64().expect("migrated_points") > 3, "{}", s["ranks"]);
 }
 
-/// A 2D scene lopsided over the slab tiles (8 x 24 cells: six tiles of 4 rows): a dense block
-/// in tiles 0-1 moving up at 50 m/s, a strip at rest in tile 5, nothing in between.
+/// A 2D scene lopsided over the slab tiles (8 x 24 cells: twelve tiles of 2 rows): a dense
+/// block in tiles 0-3 moving up at 50 m/s, a strip at rest in tile 11, nothing in between.
 const LOPSIDED: &str = r#"schema = 1
 name = "lopsided"
 
@@ -432,12 +432,12 @@ plots = false
 "#;
 
 /// The 2D manufactured solution set up in 3D (a unit cube of neo-Hookean material, rollers on
-/// every face), 4 x 4 x 12 cells (three slab tiles), 6 steps.
+/// every face), 4 x 4 x 6 cells (three slab tiles of 2 cells), 6 steps.
 const CUBE: &[&str] = &[
     "domain.dimension=3",
     "domain.min=[0.0,0.0,0.0]",
     "domain.max=[1.0,1.0,1.0]",
-    "domain.cells=[4,4,12]",
+    "domain.cells=[4,4,6]",
     "bodies.bar.min=[0.0,0.0,0.0]",
     "bodies.bar.max=[1.0,1.0,1.0]",
     "boundary.z_min=\"roller\"",
@@ -455,7 +455,7 @@ const CUBE: &[&str] = &[
     ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_MSCALE=<mscale built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
 )]
 fn a_3d_block_has_one_digest_over_1_2_3_4_ranks() {
-    // 1,536 points in three slab tiles: at N = 4 the fourth rank owns no tile (no points) and
+    // 768 points in three slab tiles: at N = 4 the fourth rank owns no tile (no points) and
     // still takes part in every collective. The scene's cpdi1 and ddmp-subpoints also run on
     // 4 ranks.
     same_digest_over(
@@ -475,7 +475,7 @@ fn a_3d_block_has_one_digest_over_1_2_3_4_ranks() {
     ignore = "needs MPI: bash deploy/setup.sh mpi, MSCALE_MPI_MSCALE=<mscale built with --features mpi>; runs with MSCALE_REQUIRE_MPI=1 (CI) or -- --ignored"
 )]
 fn a_checkpoint_of_2_ranks_resumes_on_3_to_the_uninterrupted_digest() {
-    // mms-2d on 8 x 12 cells (three slab tiles), 6 steps, a checkpoint every 2 steps: written by
+    // mms-2d on 8 x 12 cells (six slab tiles), 6 steps, a checkpoint every 2 steps: written by
     // 2 ranks, the run directory (its summary removed) resumed from the step-4 checkpoint by 3
     // ranks, and from the step-2 one by 1 rank, ends in the digest of one uninterrupted process.
     let exe = mpi_mscale();

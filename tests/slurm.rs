@@ -310,7 +310,7 @@ fn the_cluster_sbatch_runs_a_job_survives_a_killed_worker_step_and_resumes_after
     assert!(workers.contains("SERVING") && workers.contains("listening on 0.0.0.0:"), "md-workers.sbatch:\n{workers}");
 }
 
-/// mms-2d on 16 x 24 cells (six slab tiles), long enough to scancel mid-run.
+/// mms-2d on 16 x 24 cells (twelve slab tiles), long enough to scancel mid-run.
 const MMS_OVER_RANKS: [&str; 6] = [
     "domain.cells=[16,24]",
     "scheme.end_time=0.4",

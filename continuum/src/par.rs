@@ -4,7 +4,7 @@
 //! threads. Per-point work runs chunk by chunk in parallel. The explicit step's scatters to
 //! grid nodes ([`Scatter::run_tiled`]) are summed in an order fixed by space instead, so that
 //! the same order can be kept when the points are spread over MPI ranks: the grid is cut into
-//! [`Tiles`], slabs of [`TILE_CELLS`] cells along its slowest axis (the last); a point belongs
+//! [`Tiles`], slabs of [`tile_cells`] cells along its slowest axis (the last); a point belongs
 //! to the slab of the cell holding its position at the start of the step; each tile sums its
 //! points in ascending point index into a buffer over the node window its points touch, and
 //! the tiles' buffers are added node by node in tile order. A node's value is then
@@ -22,11 +22,18 @@ pub const CHUNK: usize = 256;
 /// Nodes per block in the reduction of a scatter.
 const NODE_BLOCK: usize = 1024;
 
-/// Cells of the grid's slowest axis per tile (fixed: results must not depend on the number of
-/// threads or ranks). Slabs keep each tile's node window one contiguous range of linear node
-/// indices (axis 0 varies fastest), so a tile's buffer holds no nodes it cannot touch beyond
-/// the stencil's reach, in 1D, 2D and 3D alike.
-pub const TILE_CELLS: usize = 4;
+/// Cells of the grid's slowest axis per tile in a `dim`-dimensional grid (fixed by the
+/// dimension: results must not depend on the number of threads or ranks). Slabs keep each
+/// tile's node window one contiguous range of linear node indices (axis 0 varies fastest), so a
+/// tile's buffer holds no nodes it cannot touch beyond the stencil's reach, in 1D, 2D and 3D
+/// alike. 4 cells in 1D (a slab there is a handful of points); 2 in 2D and 3D, where a grid has
+/// few rows along its last axis: the tiles are what ranks are balanced by, and a slab of 4 rows of
+/// the jet piled against its wall held 11 % of the body (continuum/README.md "MPI", slab
+/// granularity). A thinner slab's buffer carries relatively more of the stencil's reach (+30 %
+/// bytes on the jet layout).
+pub const fn tile_cells(dim: usize) -> usize {
+    if dim == 1 { 4 } else { 2 }
+}
 
 /// [`Tiles`]'s mark of a point in no tile.
 const NO_TILE: u32 = u32::MAX;
@@ -173,18 +180,18 @@ pub fn balanced_cuts(cost: &[f64], ranks: usize) -> Vec<usize> {
     fill(hi).unwrap_or_else(|| (0..=ranks).map(|r| (r * cost.len()).div_ceil(ranks)).collect())
 }
 
-/// The slab tile of a position: `TILE_CELLS` cells of the last axis per tile, clamped into the
+/// The slab tile of a position: `tile_cells(D)` cells of the last axis per tile, clamped into the
 /// grid (a point outside it is the stencil's error to report), and the number of tiles.
 pub fn slab_tile<const D: usize>(grid: &crate::grid::Grid<D>, x: &[f64; D]) -> usize {
     let a = D - 1;
     let cell = ((x[a] - grid.origin[a]) / grid.h[a]).floor();
     let cell = if cell.is_finite() { cell.clamp(0.0, (grid.cells[a].max(1) - 1) as f64) as usize } else { 0 };
-    cell / TILE_CELLS
+    cell / tile_cells(D)
 }
 
 /// Number of slab tiles of a grid.
 pub fn slab_tile_count<const D: usize>(grid: &crate::grid::Grid<D>) -> usize {
-    grid.cells[D - 1].max(1).div_ceil(TILE_CELLS)
+    grid.cells[D - 1].max(1).div_ceil(tile_cells(D))
 }
 
 /// Point ranges of the chunks of `n` points.
@@ -465,7 +472,7 @@ mod tests {
         assert_eq!(a.iter().step_by(2).sum::<f64>(), expected);
     }
 
-    /// Points of a 2D grid of 10 x 21 cells (slab tiles of [`TILE_CELLS`] rows), each touching
+    /// Points of a 2D grid of 10 x 21 cells (slab tiles of [`tile_cells`] rows), each touching
     /// the four nodes of its cell and their right neighbours, with values far apart in
     /// magnitude so that any change of summation order shows in the bits.
     fn tiled_case() -> (crate::grid::Grid<2>, Vec<[f64; 2]>, Vec<f64>) {
@@ -505,7 +512,8 @@ mod tests {
         let nodes = grid.node_count();
         let mut tiles = Tiles::default();
         tiles.assign(slab_tile_count(&grid), n, |p| slab_tile(&grid, &x[p]));
-        assert_eq!(tiles.count(), 6);
+        let nt = tiles.count();
+        assert_eq!(nt, 21usize.div_ceil(tile_cells(2)));
         let span = |p: usize| {
             let t = touched(&grid, &x[p]);
             (*t.iter().min().unwrap(), t.iter().max().unwrap() + 1)
@@ -552,7 +560,7 @@ mod tests {
         // tile order reduce to the single-process bits.
         for ranks in 1..=4usize {
             for owner in
-                [Box::new(move |t: usize| t * ranks / 6) as Box<dyn Fn(usize) -> usize>, Box::new(move |t: usize| (t * 5 + 1) % ranks)]
+                [Box::new(move |t: usize| t * ranks / nt) as Box<dyn Fn(usize) -> usize>, Box::new(move |t: usize| (t * 5 + 1) % ranks)]
             {
                 let mut gathered: Vec<Option<((usize, usize), Vec<f64>)>> = vec![None; tiles.count()];
                 for r in 0..ranks {
