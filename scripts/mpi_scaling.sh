@@ -7,7 +7,7 @@
 # MSCALE: an mscale built with --features mpi. Time per step = summary.json
 # time_breakdown_s.continuum / steps (rank 0); MSCALE_MPI_STATS gives each rank's collectives.
 set -euo pipefail
-M="${1:?usage: scripts/mpi_scaling.sh MSCALE [2d|2d-jet|3d|3d-large] [ROUNDS]}"
+M="${1:?usage: scripts/mpi_scaling.sh MSCALE [2d|2d-jet|3d|3d-large] [ROUNDS] [mscale run options]}"
 LAYOUT="${2:-2d}"
 ROUNDS="${3:-5}"
 shift $(( $# < 3 ? $# : 3 ))
