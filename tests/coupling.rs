@@ -221,6 +221,13 @@ fn two_md_bodies_make_one_pool_call_per_step_and_exact_reuse_changes_no_bit() {
     let ratio = d["min_box_length_over_cutoff"].as_f64().expect("box length");
     assert!(ratio > 1.0 && ratio < 2.0, "2x2x2-cell boxes of Cu (7.2 A) over Mishin's 5.5 A cut-off: {d}");
     assert!(d["max_neighbor_rebuilds_per_call"].as_u64().is_some(), "{d}");
+    // The hottest box over the run is at least as hot as the hottest box at its end.
+    let csv = std::fs::read_to_string(off.join("particles_final.csv")).expect("csv");
+    let col = csv.lines().next().expect("header").split(',').position(|c| c == "md_temperature_k").expect("column");
+    let at_end = csv.lines().skip(1).map(|l| l.split(',').nth(col).expect("cell").parse::<f64>().expect("number")).fold(0.0, f64::max);
+    let hottest = d["max_box_temperature_k"].as_f64().expect("temperature");
+    assert!(at_end > 0.0 && hottest >= at_end, "hottest {hottest} K, {at_end} K at the end: {d}");
+    assert!(d["hottest_box_point"].as_u64().expect("point") < s["points"].as_u64().expect("points"), "{d}");
     assert_eq!(s["md"]["atom_steps_avoided"], 0.0, "{}", s["md"]);
     let exact = ["bodies.left.material.reuse=\"exact\"", "bodies.right.material.reuse=\"exact\""];
     let ex = run_small(&tmp.path().join("exact"), &exact, None);

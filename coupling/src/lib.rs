@@ -83,11 +83,22 @@ pub struct MdDiagnostics {
     pub min_box_length_over_cutoff: f64,
     /// Most neighbour-list builds of one box in one call.
     pub max_rebuilds_per_call: u64,
+    /// Highest temperature an MD call's result reported (K), with its point and the MD step
+    /// count of its box then: a box far hotter than the shocked states of the scene (energy
+    /// consistency and the viscous heat are added to the boxes) is a point to look at.
+    pub max_temperature_k: f64,
+    pub hottest_point: Option<usize>,
 }
 
 impl Default for MdDiagnostics {
     fn default() -> Self {
-        MdDiagnostics { max_strain_rate_per_s: 0.0, min_box_length_over_cutoff: f64::INFINITY, max_rebuilds_per_call: 0 }
+        MdDiagnostics {
+            max_strain_rate_per_s: 0.0,
+            min_box_length_over_cutoff: f64::INFINITY,
+            max_rebuilds_per_call: 0,
+            max_temperature_k: 0.0,
+            hottest_point: None,
+        }
     }
 }
 
@@ -415,6 +426,9 @@ impl MdClosure {
                 r.diagnostics.lengths_a.iter().fold(diag.min_box_length_over_cutoff, |m, x| m.min(x / cutoff));
             diag.max_rebuilds_per_call =
                 diag.max_rebuilds_per_call.max(r.diagnostics.neighbor_rebuilds.saturating_sub(state.last.diagnostics.neighbor_rebuilds));
+            if r.temperature_k > diag.max_temperature_k {
+                (diag.max_temperature_k, diag.hottest_point) = (r.temperature_k, Some(p));
+            }
             if steps > 0 {
                 // This continuum step's part of the call: its own rate (a catch-up's earlier
                 // steps were accounted for while the box was skipped).

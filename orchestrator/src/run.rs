@@ -651,6 +651,10 @@ fn run_dim<const D: usize>(loaded: &LoadedScene, opts: &RunOptions) -> Result<Ou
     if let Some(done) = summary["md"]["atom_steps_done"].as_f64() {
         let requested = summary["md"]["atom_steps_requested"].as_f64().unwrap_or(done);
         tracing::info!("MD atom-steps: {done:.3e} done of {requested:.3e} ({:.3e} avoided by reuse)", requested - done);
+        let d = &summary["md"]["diagnostics"];
+        if let (Some(t), Some(p)) = (d["max_box_temperature_k"].as_f64(), d["hottest_box_point"].as_u64()) {
+            tracing::info!("hottest MD box: point {p} at {t:.0} K (summary.json md.diagnostics)");
+        }
     }
     // The run's last log line: its error against the direct MD.
     match direct.map(|d| d.line) {
@@ -873,6 +877,8 @@ fn md_cost_json(m: &MdShared) -> Value {
             "min_box_length_over_cutoff": finite_or_null(d.min_box_length_over_cutoff),
             "cutoff_a": finite_or_null(m.cutoff_a),
             "max_neighbor_rebuilds_per_call": d.max_rebuilds_per_call,
+            "max_box_temperature_k": finite_or_null(d.max_temperature_k),
+            "hottest_box_point": d.hottest_point,
         },
     })
 }
