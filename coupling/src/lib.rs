@@ -83,9 +83,9 @@ pub struct MdDiagnostics {
     pub min_box_length_over_cutoff: f64,
     /// Most neighbour-list builds of one box in one call.
     pub max_rebuilds_per_call: u64,
-    /// Highest temperature an MD call's result reported (K), with its point and the MD step
-    /// count of its box then: a box far hotter than the shocked states of the scene (energy
-    /// consistency and the viscous heat are added to the boxes) is a point to look at.
+    /// Highest temperature an MD call's result reported (K), and its point: a box far hotter
+    /// than the scene's shocked states (energy consistency and the viscous heat are added to
+    /// the boxes) is a point to look at.
     pub max_temperature_k: f64,
     pub hottest_point: Option<usize>,
 }
